@@ -1,0 +1,1 @@
+"""Analysis of detector images: STSA correction, gradients, height maps, design tools (numpy)."""

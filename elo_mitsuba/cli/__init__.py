@@ -1,0 +1,86 @@
+"""The ``elo-mitsuba`` command line: a thin layer over the Python API.
+
+Each sub-command lives in its own module of this package, which provides
+``add_parser(subparsers)`` (returning the parser, with ``set_defaults(run=...)``) and does its
+work through the library. User errors (:class:`~elo_mitsuba.errors.EloError`) are printed as one
+line ``elo-mitsuba: error: ...`` with exit status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from ..errors import EloError
+
+#: Sub-command modules, in the order ``--help`` lists them.
+COMMANDS = (
+    "render",
+    "mesh",
+    "gradient",
+    "reconstruct",
+    "reflectance_map",
+    "validate",
+    "benchmark",
+)
+
+DESCRIPTION = """\
+Simulate electron-optical (ELO) imaging in electron-beam powder bed fusion (PBF-EB) with Mitsuba 3,
+after Renner et al. 2023 (J. Manuf. Mater. Process. 7, 87), and turn four detector images into
+surface gradients and height maps. Lengths are millimetres; images are seen from above with +y up
+(columns run towards +x, row 0 is the +y edge of the scan field).
+"""
+
+EPILOG = """\
+examples:
+  elo-mitsuba render flat_plate -o flat.exr                 # a shipped scene, by name
+  elo-mitsuba render scenes_xml/athene_flat.xml -o a.exr --events 2 --spp 64 -D dh=250
+  elo-mitsuba gradient --flat flat.exr melt.exr -o grad.exr
+  elo-mitsuba reconstruct grad.exr -o height.npy
+
+Run 'elo-mitsuba COMMAND --help' for each command's options.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="elo-mitsuba",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(title="commands", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"{__name__}.{name}":
+                continue
+            raise
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "run"):
+        parser.print_help()
+        return 2
+    try:
+        result = args.run(args)
+    except EloError as exc:
+        print(f"elo-mitsuba: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("elo-mitsuba: interrupted", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

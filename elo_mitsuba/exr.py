@@ -1,0 +1,104 @@
+"""Multichannel EXR files with the scan geometry in the header.
+
+Channels are float32 images named by detector id (``right``, ``left``, ``back``, ``front``, ...)
+with per-event channels ``<id>.e<k>`` (EXR layers), or by quantity (``dzdx``, ``Mx``, ``mask``, ...).
+The metadata dictionary is stored as JSON in the header attribute ``elo_mitsuba`` and, for the
+most used scalars, also as plain attributes readable by any EXR viewer.
+
+Image orientation everywhere: array row 0 is the +y edge of the scan field, columns run towards
++x (the build plate seen from above with +y up). Pixel (i, j) (column i, row j) is centred at
+x = -field_x/2 + (i + 1/2) field_x/W, y = +field_y/2 - (j + 1/2) field_y/H, in millimetres.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from .errors import EloInputError
+
+METADATA_ATTRIBUTE = "elo_mitsuba"
+ORIENTATION = "row 0 = +y edge, columns towards +x (plate seen from above, +y up)"
+_PLAIN_ATTRIBUTES = ("units", "events", "spp", "material", "work_distance_mm")
+
+
+def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None = None,
+              overwrite: bool = False) -> Path:
+    """Write float32 channels and metadata to ``path``.
+
+    Refuses NaN/Inf (names the channel) and an existing file unless ``overwrite``. The file is
+    written to a temporary name first and renamed, so a failure never leaves a partial result.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise EloInputError(f"{path} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    if not channels:
+        raise EloInputError(f"{path}: no channels to write")
+    shapes = {np.shape(v) for v in channels.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise EloInputError(f"{path}: channels must be 2-D images of one shape, got {sorted(shapes)}")
+    data = {}
+    for name, img in channels.items():
+        arr = np.ascontiguousarray(np.asarray(img, dtype=np.float32))
+        if not np.all(np.isfinite(arr)):
+            raise EloInputError(f"{path}: channel {name!r} holds NaN or Inf; refusing to write it")
+        data[name] = arr
+    meta = dict(metadata or {})
+    meta.setdefault("orientation", ORIENTATION)
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        METADATA_ATTRIBUTE: json.dumps(meta, default=_json_default),
+    }
+    for key in _PLAIN_ATTRIBUTES:
+        if key in meta and isinstance(meta[key], (int, float, str)) and not isinstance(meta[key], bool):
+            header[key] = meta[key] if not isinstance(meta[key], int) else int(meta[key])
+    if path.parent and not path.parent.exists():
+        raise EloInputError(f"{path}: directory {path.parent} does not exist")
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.exr")
+    try:
+        with OpenEXR.File(header, data) as f:
+            f.write(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
+    """Read all channels (float32 arrays) and the metadata dict (empty if not ours)."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise EloInputError(f"{path}: no such file")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            header = dict(f.header())  # the File clears its own dict on close
+            channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
+    except EloInputError:
+        raise
+    except Exception as exc:  # OpenEXR raises plain Exceptions with long messages
+        raise EloInputError(f"{path}: not a readable EXR file ({str(exc).splitlines()[0]})") from None
+    meta = {}
+    if METADATA_ATTRIBUTE in header:
+        try:
+            meta = json.loads(header[METADATA_ATTRIBUTE])
+        except (TypeError, ValueError):
+            raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} is not valid JSON") from None
+    return channels, meta
+
+
+def _json_default(obj):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    raise TypeError(f"cannot store {type(obj).__name__} in EXR metadata")

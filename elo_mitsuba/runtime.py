@@ -1,0 +1,128 @@
+"""Choosing the Mitsuba variant safely and registering our plugins.
+
+Debian 12's default LLVM (15/16) makes Mitsuba's llvm variants abort the whole process (SIGABRT)
+on the first float min/max; LLVM 14 is refused as too old. We therefore ask Dr.Jit which LLVM it
+found *before* setting an llvm variant and stop with one actionable line instead of an abort.
+
+The variant is chosen, in this order, by the ``variant`` argument, the environment variable
+``ELO_MITSUBA_VARIANT``, and ``llvm_ad_mono``. ``cuda_ad_mono`` runs on NVIDIA GPUs.
+Our plugins (``elo_bse``, ``elo_beam``, ``elo``) are registered whenever a supported variant
+becomes active, whichever of ``import elo_mitsuba`` and ``mi.set_variant`` comes first.
+"""
+
+from __future__ import annotations
+
+import os
+
+from .constants import DEFAULT_VARIANT, MIN_LLVM_MAJOR, SUPPORTED_VARIANTS, VARIANT_ENV_VAR
+from .errors import EloEnvironmentError, EloInputError
+
+_registered_for: set[str] = set()
+_callback_installed = False
+
+LLVM_ADVICE = (
+    "install Debian's libllvm19 (apt-get install -y libllvm19) or point DRJIT_LIBLLVM_PATH at a "
+    f"libLLVM.so of version >= {MIN_LLVM_MAJOR}"
+)
+
+
+def llvm_version() -> tuple[int, int, int]:
+    """The LLVM version Dr.Jit loaded, (-1, -1, -1) if none could be used."""
+    import drjit as dr
+
+    return tuple(dr.detail.llvm_version())
+
+
+def check_llvm() -> None:
+    """Raise :class:`EloEnvironmentError` (one line) unless a usable LLVM >= 17 was found."""
+    version = llvm_version()
+    where = os.environ.get("DRJIT_LIBLLVM_PATH")
+    origin = f" (DRJIT_LIBLLVM_PATH={where})" if where else ""
+    if version[0] < 0:
+        raise EloEnvironmentError(
+            f"Dr.Jit found no usable LLVM library{origin}; {LLVM_ADVICE}, or use "
+            "--variant cuda_ad_mono on an NVIDIA GPU"
+        )
+    if version[0] < MIN_LLVM_MAJOR:
+        raise EloEnvironmentError(
+            f"Dr.Jit loaded LLVM {'.'.join(map(str, version))}{origin}, which aborts Mitsuba's llvm "
+            f"variants; {LLVM_ADVICE}"
+        )
+
+
+def check_cuda() -> None:
+    import drjit as dr
+
+    if not dr.has_backend(dr.JitBackend.CUDA):
+        raise EloEnvironmentError(
+            "variant cuda_ad_mono needs an NVIDIA GPU with a CUDA driver, and none was found; "
+            "use --variant llvm_ad_mono"
+        )
+
+
+def resolve_variant(variant: str | None = None) -> str:
+    """The variant to use: argument, else $ELO_MITSUBA_VARIANT, else llvm_ad_mono."""
+    name = variant or os.environ.get(VARIANT_ENV_VAR) or DEFAULT_VARIANT
+    if name not in SUPPORTED_VARIANTS:
+        source = "variant" if variant else f"${VARIANT_ENV_VAR}"
+        raise EloInputError(
+            f"{source} {name!r} is not supported; choose one of {', '.join(SUPPORTED_VARIANTS)}"
+        )
+    return name
+
+
+def ensure_variant(variant: str | None = None):
+    """Check the environment, set the Mitsuba variant and register our plugins; return ``mi``.
+
+    If a supported variant is already active and no variant is requested, it is kept.
+    """
+    import mitsuba as mi
+
+    current = mi.variant()
+    if variant is None and current in SUPPORTED_VARIANTS and not os.environ.get(VARIANT_ENV_VAR):
+        name = current
+    else:
+        name = resolve_variant(variant)
+    if name.startswith("llvm"):
+        check_llvm()
+    else:
+        check_cuda()
+    install_variant_callback()
+    if mi.variant() != name:
+        mi.set_variant(name)
+    register_plugins()
+    return mi
+
+
+def register_plugins() -> None:
+    """Register our plugins for the active variant (idempotent)."""
+    import mitsuba as mi
+
+    name = mi.variant()
+    if name in SUPPORTED_VARIANTS:
+        _register(name)
+
+
+def _on_variant_change(old, new) -> None:
+    if new in SUPPORTED_VARIANTS:
+        _register(new)
+
+
+def install_variant_callback() -> None:
+    """Register our plugins automatically whenever the user switches to a supported variant."""
+    global _callback_installed
+    if _callback_installed:
+        return
+    import mitsuba as mi
+
+    mi.detail.add_variant_callback(_on_variant_change)
+    _callback_installed = True
+
+
+def _register(name: str) -> None:
+    if name in _registered_for:
+        return
+    from . import plugins
+
+    plugins.register_all()
+    _registered_for.add(name)

@@ -1,0 +1,1 @@
+"""Shipped ELO scenes (XML, millimetres). Installed as ``elo_mitsuba.scenes``."""
