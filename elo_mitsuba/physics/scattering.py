@@ -210,3 +210,19 @@ def _g_from_cosines(cos_t, cos_a, cos_b, material, lobe, lobe_width_deg):
 def _unit(v):
     v = np.asarray(v, dtype=float)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def lobe_weight_table(material, lobe_width_deg=LOBE_WIDTH_DEG, n=1025, lobe=True):
+    """Tabulated lobe weight of Eq. 13 for the kernels: W(theta) = (eta - eta0)/C (k+1)/(2 pi).
+
+    g_BSE = eta0/pi cos(alpha) + W(theta) max(cos beta, 0)^k. Returns ``(theta_deg, W)`` on ``n``
+    equidistant angles over [0, 90] deg; ``lobe=False`` gives W = 0 (diffuse-only). Linear
+    interpolation in theta is accurate to better than 1e-6 relative with the default n.
+    """
+    theta_deg = np.linspace(0.0, 90.0, int(n))
+    if not lobe:
+        return theta_deg, np.zeros_like(theta_deg)
+    k = lobe_exponent(theta_deg, lobe_width_deg)
+    c = lobe_normalisation(theta_deg, lobe_width_deg)
+    w = (material.eta(np.deg2rad(theta_deg)) - material.eta0) / c * (k + 1.0) / (2.0 * np.pi)
+    return theta_deg, w

@@ -1,0 +1,157 @@
+"""BSDF ``elo_bse``: the BSE scattering function g_BSE of Eq. 13 (Renner et al. 2023).
+
+``eval`` *is* g_BSE, a probability per steradian with the cosine of alpha inside, so a path
+traced from the gun accumulates N_d/N_0. Direction convention (local frame, normal = +z):
+``si.wi`` points back to where the electron came from (-p_E), ``wo`` where it goes. One-sided:
+zero when either direction is at or below the surface.
+
+    g_BSE = eta0/pi cos(alpha) + W(theta) max(cos beta, 0)^k,
+    W(theta) = (eta(theta) - eta0)/C(theta) (k+1)/(2 pi),  k = theta / lobe_width,
+
+with eta by Eqs. 10/12 and C(theta) computed from its definition (ERRATA.md item 1); W is
+tabulated once per material in :func:`elo_mitsuba.physics.scattering.lobe_weight_table`.
+
+Sampling: with S(theta) = eta0 + (eta - eta0)/C the density g_BSE/S is a mixture of a cosine
+lobe (probability eta0/S) and the Phong lobe about the mirror direction (probability
+(eta - eta0)/(C S)); lobe samples that fall below the surface are rejected. The sample weight
+g/pdf is therefore the constant S(theta) for every accepted sample (zero variance per sample)
+and the accepted fraction is eta/S.
+
+XML parameters: ``material`` (preset name or composition "Ti:0.9,Al:0.06,V:0.04", default
+Ti-6Al-4V), ``lobe`` (bool, default true; false = Lambert part only, Figs. 12-13 right),
+``lobe_width`` (deg, default 13). ``mi.traverse`` exposes ``lobe_width``; a material is changed
+in place with :meth:`EloBSE.set_material` (same kernel, no recompilation).
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from elo_mitsuba.constants import DEFAULT_MATERIAL, LOBE_WIDTH_DEG
+from elo_mitsuba.errors import EloInputError
+from elo_mitsuba.physics.materials import get_material
+from elo_mitsuba.physics.scattering import lobe_weight_table
+
+TABLE_SIZE = 1025
+_INV_PI = 1.0 / np.pi
+
+
+class EloBSE(mi.BSDF):
+    def __init__(self, props):
+        mi.BSDF.__init__(self, props)
+        material = props.get("material", DEFAULT_MATERIAL)
+        self.lobe = bool(props.get("lobe", True))
+        width = float(props.get("lobe_width", LOBE_WIDTH_DEG))
+        if not (np.isfinite(width) and width > 0):
+            raise EloInputError(f"elo_bse: lobe_width={width!r} deg; must be a positive number")
+        self.lobe_width = mi.Float(width)
+        self.material = None
+        self.eta0 = mi.Float(0.0)
+        self.lobe_table = mi.Float(np.zeros(TABLE_SIZE))
+        self.set_material(material)
+        flags_d = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+        flags_g = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
+        self.m_components = [flags_d, flags_g]
+        self.m_flags = flags_d | flags_g
+
+    # ---- parameters ------------------------------------------------------------------------------
+    def set_material(self, material):
+        """Switch the target material (preset, composition string or mapping) in place."""
+        self.material = get_material(material)
+        self._update_tables()
+
+    def _update_tables(self):
+        width = float(self.lobe_width[0])
+        if not (np.isfinite(width) and width > 0):
+            raise EloInputError(f"elo_bse: lobe_width={width!r} deg; must be a positive number")
+        _, w = lobe_weight_table(self.material, width, TABLE_SIZE, self.lobe)
+        # Assign into the existing (opaque) variables so re-renders reuse the compiled kernel.
+        self.eta0 = dr.opaque(mi.Float, self.material.eta0)
+        self.lobe_table = mi.Float(w.astype(np.float32))
+        dr.make_opaque(self.eta0, self.lobe_table, self.lobe_width)
+
+    def traverse(self, callback):
+        callback.put("lobe_width", self.lobe_width, mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys=[]):
+        self._update_tables()
+
+    # ---- g_BSE ----------------------------------------------------------------------------------
+    def _terms(self, wi, wo):
+        """(g_BSE, S) for local directions; both 0 where wi or wo is at/below the surface."""
+        cos_t = wi.z
+        cos_a = wo.z
+        theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
+        k = theta_deg / self.lobe_width
+        # linear interpolation of W(theta) on the uniform 0..90 deg grid
+        pos = theta_deg * ((TABLE_SIZE - 1) / 90.0)
+        i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, TABLE_SIZE - 2))
+        frac = pos - mi.Float(i0)
+        w0 = dr.gather(mi.Float, self.lobe_table, i0)
+        w1 = dr.gather(mi.Float, self.lobe_table, i0 + 1)
+        weight = dr.fma(frac, w1 - w0, w0)
+        # cos(beta) between wo and the mirror direction of p_E = -wi: (-wi.x, -wi.y, wi.z)
+        cos_b = cos_t * cos_a - wi.x * wo.x - wi.y * wo.y
+        lobe = dr.select(cos_b > 0, dr.power(dr.maximum(cos_b, 1e-30), k), 0.0)
+        g = self.eta0 * _INV_PI * cos_a + weight * lobe
+        valid = (cos_t > 0) & (cos_a > 0)
+        # S = eta0 + (eta - eta0)/C = eta0 + W 2 pi/(k+1): the mixture's normaliser
+        s = self.eta0 + weight * (2.0 * dr.pi) / (k + 1.0)
+        return dr.select(valid, g, 0.0), s, valid
+
+    def eval(self, ctx, si, wo, active=True):
+        g, _, _ = self._terms(si.wi, wo)
+        return mi.Spectrum(dr.select(active, g, 0.0))
+
+    def pdf(self, ctx, si, wo, active=True):
+        g, s, valid = self._terms(si.wi, wo)
+        return dr.select(active & valid & (s > 0), g / s, 0.0)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        g, s, valid = self._terms(si.wi, wo)
+        ok = active & valid & (s > 0)
+        return mi.Spectrum(dr.select(active, g, 0.0)), dr.select(ok, g / s, 0.0)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        wi = si.wi
+        cos_t = wi.z
+        theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
+        k = theta_deg / self.lobe_width
+        pos = theta_deg * ((TABLE_SIZE - 1) / 90.0)
+        i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, TABLE_SIZE - 2))
+        frac = pos - mi.Float(i0)
+        w0 = dr.gather(mi.Float, self.lobe_table, i0)
+        w1 = dr.gather(mi.Float, self.lobe_table, i0 + 1)
+        lobe_mass = dr.fma(frac, w1 - w0, w0) * (2.0 * dr.pi) / (k + 1.0)  # (eta - eta0)/C
+        q_lobe = lobe_mass / (self.eta0 + lobe_mass)
+        pick_lobe = sample1 < q_lobe
+
+        # Phong lobe about the mirror direction: cos(beta) = u^(1/(k+1))
+        cos_b = dr.power(dr.maximum(sample2.x, 1e-30), 1.0 / (k + 1.0))
+        sin_b = dr.safe_sqrt(1.0 - cos_b * cos_b)
+        sin_p, cos_p = dr.sincos(2.0 * dr.pi * sample2.y)
+        mirror = mi.Vector3f(-wi.x, -wi.y, wi.z)
+        wo_lobe = mi.Frame3f(mirror).to_world(mi.Vector3f(sin_b * cos_p, sin_b * sin_p, cos_b))
+        wo_diff = mi.warp.square_to_cosine_hemisphere(sample2)
+        wo = dr.select(pick_lobe, wo_lobe, wo_diff)
+
+        g, s, valid = self._terms(wi, wo)
+        ok = active & valid & (s > 0) & (g > 0)
+        bs = mi.BSDFSample3f()
+        bs.wo = wo
+        bs.pdf = dr.select(ok, g / s, 0.0)
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(
+            dr.select(pick_lobe, int(mi.BSDFFlags.GlossyReflection), int(mi.BSDFFlags.DiffuseReflection))
+        )
+        bs.sampled_component = dr.select(pick_lobe, mi.UInt32(1), mi.UInt32(0))
+        # g / pdf = S for every accepted sample
+        return bs, mi.Spectrum(dr.select(ok, s, 0.0))
+
+    def to_string(self):
+        mode = "full" if self.lobe else "diffuse-only"
+        return (f"EloBSE[material={self.material.describe()}, eta0={self.material.eta0:.5f}, "
+                f"lobe_width={float(self.lobe_width[0]):g} deg, {mode}]")
+
+
+PLUGIN_CLASS = EloBSE
