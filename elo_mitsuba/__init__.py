@@ -17,6 +17,7 @@ __version__ = "0.1.0"
 
 from .errors import EloEnvironmentError, EloError, EloInputError  # noqa: E402
 from .runtime import ensure_variant  # noqa: E402
+from .render import EloScene, RenderResult, load_scene, render  # noqa: E402
 
 
 def _install_callback_if_mitsuba_loaded():
@@ -32,4 +33,7 @@ def _install_callback_if_mitsuba_loaded():
 
 _install_callback_if_mitsuba_loaded()
 
-__all__ = ["EloEnvironmentError", "EloError", "EloInputError", "ensure_variant", "__version__"]
+__all__ = [
+    "EloEnvironmentError", "EloError", "EloInputError", "EloScene", "RenderResult", "ensure_variant",
+    "load_scene", "render", "__version__",
+]

@@ -1,0 +1,380 @@
+"""Python API of the forward model: load a scene once, render detector images many times.
+
+>>> import elo_mitsuba as em
+>>> scene = em.load_scene("athene_flat", dh=272, dw=127)   # shipped scene name or XML path
+>>> result = scene.render(spp=64, events=2)                 # numpy channels + metadata
+>>> result.channels["right"].shape, result.channels["right.e2"].mean()
+>>> scene.set_detector("right", center=(150, 0, 250))       # move a detector: same kernel
+>>> scene.set_material("plate", "316L")                     # change a material: same kernel
+>>> result.write_exr("right.exr")
+
+Channels are float32 images with row 0 at the +y edge and columns towards +x (see
+:mod:`elo_mitsuba.exr`): ``<id>`` is the total over the counted events, ``<id>.e<k>`` event k
+alone (only when ``events > 1``). Values are N_d/N_0 (or volts with ``units="voltage"``).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import sys
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from . import __version__
+from .constants import TABLE1_LAYOUTS
+from .errors import EloError, EloInputError
+from .exr import ORIENTATION, write_exr
+from .runtime import ensure_variant
+
+#: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
+#: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
+SAMPLES_PER_PASS = 1 << 24
+
+
+# ---- scene lookup and parameters -------------------------------------------------------------------
+def shipped_scenes() -> dict[str, Path]:
+    """Names and paths of the scenes shipped in ``scenes_xml/`` (``elo_mitsuba.scenes``)."""
+    root = Path(str(resources.files("elo_mitsuba.scenes")))
+    return {p.stem: p for p in sorted(root.glob("*.xml"))}
+
+
+def resolve_scene_path(scene: str | Path) -> Path:
+    """A path to an XML file, or the name of a shipped scene (``flat_plate``, ``athene_flat``, ...)."""
+    path = Path(scene)
+    if path.is_file():
+        return path
+    shipped = shipped_scenes()
+    if str(scene) in shipped:
+        return shipped[str(scene)]
+    if path.suffix.lower() == ".xml" or path.parent != Path("."):
+        raise EloInputError(f"scene file {str(scene)!r} does not exist")
+    names = ", ".join(shipped) or "(none installed)"
+    raise EloInputError(f"scene {str(scene)!r} is neither an XML file nor a shipped scene ({names})")
+
+
+def declared_parameters(path: Path) -> dict[str, str]:
+    """The ``<default name=... value=...>`` parameters a scene file declares (for -D overrides)."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise EloInputError(f"{path}: malformed XML ({exc})") from None
+    except OSError as exc:
+        raise EloInputError(f"{path}: cannot read ({exc.strerror})") from None
+    if root.tag != "scene":
+        raise EloInputError(f"{path}: root element is <{root.tag}>, expected <scene>")
+    return {d.get("name"): d.get("value") for d in root.iter("default") if d.get("name")}
+
+
+def layout_parameters(layout: str | int) -> dict[str, float]:
+    """-D parameters of a Table 1 detector layout: ``"zeta50"``, ``"50"`` or ``50``."""
+    key = str(layout).lower().removeprefix("zeta").removesuffix("deg").strip()
+    try:
+        zeta = int(float(key))
+    except ValueError:
+        zeta = None
+    if zeta not in TABLE1_LAYOUTS:
+        allowed = ", ".join(f"zeta{z}" for z in TABLE1_LAYOUTS)
+        raise EloInputError(f"unknown detector layout {layout!r}; Table 1 layouts are {allowed}")
+    dh, dw = TABLE1_LAYOUTS[zeta]
+    return {"dh": dh, "dw": dw}
+
+
+def _explain_mitsuba_error(exc: Exception, path: Path) -> str:
+    """One line from Mitsuba's multi-line loader error: where, and the innermost message."""
+    text = str(exc)
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    where = ""
+    m = re.search(r"\(line (\d+), col (\d+)\)", text)
+    if m:
+        where = f" line {m.group(1)}"
+    # innermost Python error ("EloInputError: ...") if a plugin of ours refused a value
+    for ln in reversed(lines):
+        mm = re.match(r"^(?:\w+\.)*(\w*Error): (.*)$", ln)
+        if mm and mm.group(2):
+            return f"{path}{where}: {mm.group(2)}"
+    first = lines[0] if lines else type(exc).__name__
+    first = re.sub(r"^\[[\w.]+:\d+\]\s*", "", first)
+    first = re.sub(r"^At .*?: ", "", first)
+    if "unused parameters" in text.lower():
+        unused = ", ".join(re.findall(r"\$(\w+)=", text))
+        return f"{path}: parameter(s) {unused} not used by this scene"
+    return f"{path}{where}: {first}"
+
+
+# ---- results -----------------------------------------------------------------------------------------
+@dataclass
+class RenderResult:
+    """Detector images (numpy float32, row 0 = +y edge) and the geometry that produced them."""
+
+    channels: dict[str, np.ndarray]
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def detectors(self) -> list[str]:
+        return [name for name in self.channels if "." not in name]
+
+    def write_exr(self, path, overwrite: bool = False) -> Path:
+        return write_exr(path, self.channels, self.metadata, overwrite=overwrite)
+
+
+# ---- the scene ----------------------------------------------------------------------------------------
+class EloScene:
+    """A loaded ELO scene, rendered again and again without reloading or recompiling.
+
+    Parameters
+    ----------
+    scene : str or Path
+        XML file, or the name of a shipped scene.
+    variant : str, optional
+        ``llvm_ad_mono`` (default) or ``cuda_ad_mono``; also ``$ELO_MITSUBA_VARIANT``.
+    layout : str, optional
+        A Table 1 detector layout (``"zeta25"`` ... ``"zeta75"``), same as giving its dh and dw.
+    **params
+        Values for the scene's ``<default>`` parameters (``dh``, ``dw``, ``wd``, ``field``,
+        ``res``, ...), as ``-D name=value`` does on the command line.
+    """
+
+    def __init__(self, scene, variant: str | None = None, layout: str | None = None, **params):
+        self.mi = ensure_variant(variant)
+        self.path = resolve_scene_path(scene)
+        declared = declared_parameters(self.path)
+        values = dict(layout_parameters(layout)) if layout is not None else {}
+        values.update(params)
+        unknown = [k for k in values if k not in declared]
+        if unknown:
+            allowed = ", ".join(sorted(declared)) or "none"
+            raise EloInputError(
+                f"{self.path}: parameter {unknown[0]!r} is not declared by this scene (it declares: {allowed})"
+            )
+        self.params = {**declared, **{k: str(v) for k, v in values.items()}}
+        try:
+            self.scene = self.mi.load_file(str(self.path), **{k: str(v) for k, v in values.items()})
+        except EloError:
+            raise
+        except Exception as exc:  # Mitsuba wraps everything in RuntimeError
+            raise EloInputError(_explain_mitsuba_error(exc, self.path)) from None
+        self.integrator = self.scene.integrator()
+        self.sensor = self.scene.sensors()[0]
+        if not hasattr(self.integrator, "prepare_scene"):
+            raise EloInputError(f"{self.path}: the integrator must be <integrator type=\"elo\"/>")
+        if not hasattr(self.sensor, "beam_target"):
+            raise EloInputError(f"{self.path}: the sensor must be <sensor type=\"elo_beam\">")
+        self.integrator.prepare_scene(self.scene)
+        self.mi_params = self.mi.traverse(self.scene)
+        self._check_detectors()
+
+    # -- introspection --
+    @property
+    def detector_names(self) -> list[str]:
+        return [name for name, _ in self.integrator.detectors]
+
+    def detector_geometry(self) -> dict[str, dict]:
+        """Centre, unit normal (front face) and equivalent radius of each detector, in mm."""
+        out = {}
+        for name, shape in self.integrator.detectors:
+            key = f"{name}.to_world"
+            if shape.is_mesh() or key not in self.mi_params:
+                out[name] = _shape_geometry(self.mi, shape)
+            else:  # disk, rectangle, sphere ...: exact from the transform
+                out[name] = _disk_geometry(self.mi_params[key], shape)
+        return out
+
+    def materials(self) -> dict[str, str]:
+        """``{shape id: material}`` of the shapes with an ``elo_bse`` BSDF."""
+        out = {}
+        for shape in self.scene.shapes():
+            bsdf = shape.bsdf()
+            mat = getattr(bsdf, "material", None)
+            if mat is not None:
+                out[shape.id() or f"shape{len(out)}"] = mat.describe()
+        return out
+
+    def metadata(self, spp: int, seed: int) -> dict:
+        s = self.sensor
+        geometry = self.detector_geometry()
+        meta = {
+            "generator": f"elo-mitsuba {__version__}",
+            "scene": str(self.path),
+            "parameters": self.params,
+            "units": "V" if self.integrator.units == "voltage" else "N_d/N_0",
+            "field_mm": [s.field, s.field_y],
+            "resolution": list(s.resolution),
+            "pixel_size_mm": s.field / s.resolution[0],
+            "work_distance_mm": s.wd,
+            "projection": s.projection,
+            "beam_fwhm_mm": s.fwhm,
+            "events": self.integrator.events,
+            "detector_samples": self.integrator.detector_samples,
+            "spp": int(spp),
+            "seed": int(seed),
+            "detectors": geometry,
+            "materials": self.materials(),
+            "orientation": ORIENTATION,
+            "variant": self.mi.variant(),
+        }
+        if self.integrator.units == "voltage":
+            meta["beam_current_A"] = self.integrator.beam_current
+            meta["transimpedance_V_per_A"] = self.integrator.transimpedance
+        return meta
+
+    def _check_detectors(self):
+        for name, geo in self.detector_geometry().items():
+            c, n = np.array(geo["center"]), np.array(geo["normal"])
+            if c[2] <= 0:
+                raise EloInputError(
+                    f"{self.path}: detector {name!r} has its centre at z={c[2]:g} mm, at or below the "
+                    "build plane z=0; detectors must be above the plate"
+                )
+            if np.dot(n, -c) <= 0:
+                raise EloInputError(
+                    f"{self.path}: detector {name!r} faces away from the scan field (normal "
+                    f"{np.round(n, 3).tolist()}); its front face must see the origin"
+                )
+
+    # -- changing parameters without reloading --
+    def set_events(self, events: int):
+        if int(events) < 1:
+            raise EloInputError(f"events={events}; must be >= 1 (1 = first event only)")
+        self.integrator.events = int(events)
+
+    def set_material(self, shape_id: str, material) -> None:
+        """Give the ``elo_bse`` BSDF of shape ``shape_id`` another material (same kernel)."""
+        for shape in self.scene.shapes():
+            if shape.id() == shape_id:
+                bsdf = shape.bsdf()
+                if not hasattr(bsdf, "set_material"):
+                    raise EloInputError(f"shape {shape_id!r} has no elo_bse BSDF")
+                bsdf.set_material(material)
+                return
+        ids = ", ".join(sorted(s.id() for s in self.scene.shapes() if s.id()))
+        raise EloInputError(f"no shape with id {shape_id!r} (shapes: {ids})")
+
+    def set_detector(self, name: str, center=None, radius: float | None = None) -> None:
+        """Move a disk detector to ``center`` (mm), facing the origin; optionally resize it."""
+        mi = self.mi
+        key = f"{name}.to_world"
+        if name not in self.detector_names:
+            raise EloInputError(f"no detector {name!r} (detectors: {', '.join(self.detector_names)})")
+        if key not in self.mi_params:
+            raise EloInputError(f"detector {name!r} is not a disk; move it by editing the scene")
+        geo = self.detector_geometry()[name]
+        c = np.asarray(center if center is not None else geo["center"], dtype=float)
+        r = float(radius if radius is not None else geo["radius"])
+        if c.shape != (3,) or not np.all(np.isfinite(c)) or not (r > 0 and math.isfinite(r)):
+            raise EloInputError(f"detector {name!r}: centre {c.tolist()} / radius {r}; need 3 finite mm values and r > 0")
+        up = [0, 0, 1] if abs(c[0]) + abs(c[1]) > 1e-9 else [0, 1, 0]
+        xf = mi.ScalarTransform4f().look_at(origin=c.tolist(), target=[0, 0, 0], up=up) @ mi.ScalarTransform4f().scale(r)
+        self.mi_params[key] = mi.Transform4f(xf)
+        self.mi_params.update()
+        self._check_detectors()
+
+    # -- rendering --
+    def render(self, spp: int | None = None, seed: int = 0, events: int | None = None,
+               progress: bool | None = None) -> RenderResult:
+        """Render all detector channels; returns numpy images and metadata.
+
+        ``spp`` defaults to the scene's sampler. Large jobs run as several passes of one
+        compiled kernel (with a progress line on stderr when ``progress`` or a terminal).
+        """
+        mi = self.mi
+        import drjit as dr
+
+        if events is not None:
+            self.set_events(events)
+        spp = int(spp if spp is not None else self.sensor.sampler().sample_count())
+        if spp < 1:
+            raise EloInputError(f"spp={spp}; must be >= 1")
+        if int(seed) < 0:
+            raise EloInputError(f"seed={seed}; must be >= 0")
+        pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
+        per_pass = max(1, min(spp, SAMPLES_PER_PASS // max(pixels, 1)))
+        passes = math.ceil(spp / per_pass)
+        if progress is None:
+            progress = passes > 1 and sys.stderr.isatty()
+        accum = None
+        done = 0
+        t0 = time.perf_counter()
+        for p in range(passes):
+            n = min(per_pass, spp - done)
+            img = mi.render(self.scene, spp=n, seed=int(seed) * 65537 + p)
+            arr = np.array(img, dtype=np.float64) * n
+            accum = arr if accum is None else accum + arr
+            done += n
+            if progress:
+                _progress(done, spp, time.perf_counter() - t0)
+        if progress:
+            print(file=sys.stderr)
+        image = (accum / spp).astype(np.float32)
+        names = self.integrator.channel_names()
+        # film channels: 'Y' (sum over detectors) then the AOVs in our order
+        channels = {name: np.ascontiguousarray(image[..., i + 1]) for i, name in enumerate(names)}
+        for name, img in channels.items():
+            if not np.all(np.isfinite(img)):
+                raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
+        return RenderResult(channels, self.metadata(spp, seed))
+
+
+def _progress(done, total, elapsed):
+    width = 30
+    filled = int(width * done / total)
+    eta = elapsed / done * (total - done)
+    print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{total} spp, "
+          f"{elapsed:.1f} s, {eta:.1f} s left", end="", file=sys.stderr, flush=True)
+
+
+def _disk_geometry(to_world, shape) -> dict:
+    """Centre, front normal and equivalent radius of a unit shape placed by ``to_world``."""
+    m = np.array(to_world.matrix, dtype=float).reshape(4, 4) if hasattr(to_world, "matrix") else None
+    m = m.squeeze() if m is not None else np.eye(4)
+    centre = m[:3, 3]
+    normal = np.linalg.inv(m[:3, :3]).T @ np.array([0.0, 0.0, 1.0])
+    normal /= np.linalg.norm(normal)
+    area = float(shape.surface_area()[0])
+    return {
+        "center": [round(float(x), 6) for x in centre],
+        "normal": [round(float(x), 6) for x in normal],
+        "radius": round(math.sqrt(area / math.pi), 6),
+        "area_mm2": round(area, 6),
+    }
+
+
+def _shape_geometry(mi, shape, n_samples: int = 4096) -> dict:
+    """Area-weighted centroid, mean unit normal and equivalent radius of a shape (mm)."""
+    import drjit as dr
+
+    u = (np.arange(n_samples) + 0.5) / n_samples
+    v = np.modf(np.arange(n_samples) * 0.6180339887498949)[0]
+    ps = shape.sample_position(0.0, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))))
+    p = np.array([np.asarray(ps.p.x), np.asarray(ps.p.y), np.asarray(ps.p.z)]).T
+    n = np.array([np.asarray(ps.n.x), np.asarray(ps.n.y), np.asarray(ps.n.z)]).T
+    normal = n.mean(axis=0)
+    normal /= np.linalg.norm(normal)
+    area = float(shape.surface_area()[0])
+    return {
+        "center": [round(float(x), 6) for x in p.mean(axis=0)],
+        "normal": [round(float(x), 6) for x in normal],
+        "radius": round(math.sqrt(area / math.pi), 6),
+        "area_mm2": round(area, 6),
+    }
+
+
+def load_scene(scene, variant: str | None = None, layout: str | None = None, **params) -> EloScene:
+    """Load an XML scene (path or shipped name) for repeated rendering; see :class:`EloScene`."""
+    return EloScene(scene, variant=variant, layout=layout, **params)
+
+
+def render(scene, spp: int | None = None, events: int | None = None, seed: int = 0,
+           variant: str | None = None, layout: str | None = None, **params) -> RenderResult:
+    """Render a scene (path, shipped name or :class:`EloScene`) and return its detector images."""
+    if not isinstance(scene, EloScene):
+        scene = load_scene(scene, variant=variant, layout=layout, **params)
+    elif params or layout:
+        raise EloInputError("scene parameters are fixed once an EloScene is loaded; use set_detector/set_material")
+    return scene.render(spp=spp, seed=seed, events=events)
