@@ -133,8 +133,8 @@ class EloIntegrator(mi.SamplingIntegrator):
             events = [e * scale for e in per_event[d]]
             total = events[0]
             for e in events[1:]:
-                total += e
-            total_all += total
+                total = total + e  # not +=: Dr.Jit's in-place add would alias events[0]
+            total_all = total_all + total
             aovs.append(total)
             if self.events > 1:
                 aovs += events
