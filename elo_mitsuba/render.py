@@ -2,6 +2,7 @@
 
 >>> import elo_mitsuba as em
 >>> scene = em.load_scene("athene_flat", dh=272, dw=127)   # shipped scene name or XML path
+>>> scene = em.load_scene("melt_plate", detector_layout="zeta50")  # Table 1 layout
 >>> result = scene.render(spp=64, events=2)                 # numpy channels + metadata
 >>> result.channels["right"].shape, result.channels["right.e2"].mean()
 >>> scene.set_detector("right", center=(150, 0, 250))       # move a detector: same kernel
@@ -59,17 +60,37 @@ def resolve_scene_path(scene: str | Path) -> Path:
     raise EloInputError(f"scene {str(scene)!r} is neither an XML file nor a shipped scene ({names})")
 
 
-def declared_parameters(path: Path) -> dict[str, str]:
-    """The ``<default name=... value=...>`` parameters a scene file declares (for -D overrides)."""
+def declared_parameters(path: Path, values: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The ``<default name=... value=...>`` parameters of a scene file and the files it includes.
+
+    ``values`` (the user's -D settings) decide which file an ``<include filename="...$name...">``
+    pulls in, as Mitsuba's loader does.
+    """
+    values = dict(values or {})
+    declared: dict[str, str] = {}
+    _collect_defaults(Path(path), values, declared, depth=0)
+    return declared
+
+
+def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> None:
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
         raise EloInputError(f"{path}: malformed XML ({exc})") from None
     except OSError as exc:
-        raise EloInputError(f"{path}: cannot read ({exc.strerror})") from None
+        raise EloInputError(f"{path}: cannot read ({exc.strerror or exc})") from None
     if root.tag != "scene":
         raise EloInputError(f"{path}: root element is <{root.tag}>, expected <scene>")
-    return {d.get("name"): d.get("value") for d in root.iter("default") if d.get("name")}
+    for node in root.iter():
+        if node.tag == "default" and node.get("name"):
+            declared.setdefault(node.get("name"), node.get("value"))
+        elif node.tag == "include" and node.get("filename") and depth < 8:
+            name = node.get("filename")
+            known = {**declared, **values}
+            name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), name)
+            inc = (path.parent / name)
+            if inc.is_file():
+                _collect_defaults(inc, values, declared, depth + 1)
 
 
 def layout_parameters(layout: str | int) -> dict[str, float]:
@@ -134,19 +155,19 @@ class EloScene:
         XML file, or the name of a shipped scene.
     variant : str, optional
         ``llvm_ad_mono`` (default) or ``cuda_ad_mono``; also ``$ELO_MITSUBA_VARIANT``.
-    layout : str, optional
+    detector_layout : str, optional
         A Table 1 detector layout (``"zeta25"`` ... ``"zeta75"``), same as giving its dh and dw.
     **params
         Values for the scene's ``<default>`` parameters (``dh``, ``dw``, ``wd``, ``field``,
         ``res``, ...), as ``-D name=value`` does on the command line.
     """
 
-    def __init__(self, scene, variant: str | None = None, layout: str | None = None, **params):
+    def __init__(self, scene, variant: str | None = None, detector_layout: str | None = None, **params):
         self.mi = ensure_variant(variant)
         self.path = resolve_scene_path(scene)
-        declared = declared_parameters(self.path)
-        values = dict(layout_parameters(layout)) if layout is not None else {}
+        values = dict(layout_parameters(detector_layout)) if detector_layout is not None else {}
         values.update(params)
+        declared = declared_parameters(self.path, {k: str(v) for k, v in values.items()})
         unknown = [k for k in values if k not in declared]
         if unknown:
             allowed = ", ".join(sorted(declared)) or "none"
@@ -365,16 +386,16 @@ def _shape_geometry(mi, shape, n_samples: int = 4096) -> dict:
     }
 
 
-def load_scene(scene, variant: str | None = None, layout: str | None = None, **params) -> EloScene:
+def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:
     """Load an XML scene (path or shipped name) for repeated rendering; see :class:`EloScene`."""
-    return EloScene(scene, variant=variant, layout=layout, **params)
+    return EloScene(scene, variant=variant, detector_layout=detector_layout, **params)
 
 
 def render(scene, spp: int | None = None, events: int | None = None, seed: int = 0,
-           variant: str | None = None, layout: str | None = None, **params) -> RenderResult:
+           variant: str | None = None, detector_layout: str | None = None, **params) -> RenderResult:
     """Render a scene (path, shipped name or :class:`EloScene`) and return its detector images."""
     if not isinstance(scene, EloScene):
-        scene = load_scene(scene, variant=variant, layout=layout, **params)
-    elif params or layout:
+        scene = load_scene(scene, variant=variant, detector_layout=detector_layout, **params)
+    elif params or detector_layout:
         raise EloInputError("scene parameters are fixed once an EloScene is loaded; use set_detector/set_material")
     return scene.render(spp=spp, seed=seed, events=events)

@@ -99,7 +99,7 @@ def run(args) -> int:
     if args.resolution is not None:
         params["res"] = args.resolution
     t0 = time.perf_counter()
-    scene = load_scene(args.scene, variant=args.variant, layout=args.layout, **params)
+    scene = load_scene(args.scene, variant=args.variant, detector_layout=args.layout, **params)
     if args.units:
         scene.integrator.units = args.units
     if args.detector_samples:
