@@ -121,8 +121,11 @@ def _explain_mitsuba_error(exc: Exception, path: Path) -> str:
         if mm and mm.group(2):
             return f"{path}{where}: {mm.group(2)}"
     first = lines[0] if lines else type(exc).__name__
+    if first.endswith(":") and len(lines) > 1:  # e.g. "unreferenced property ...:" + "- name" lines
+        first = first + " " + " ".join(ln.lstrip("- ") for ln in lines[1:4])
     first = re.sub(r"^\[[\w.]+:\d+\]\s*", "", first)
-    first = re.sub(r"^At .*?: ", "", first)
+    first = re.sub(r"^(At|While loading) .*?\(line \d+, col \d+\): ", "", first)
+    first = re.sub(r"^(At|While loading) .*?: ", "", first)
     if "unused parameters" in text.lower():
         unused = ", ".join(re.findall(r"\$(\w+)=", text))
         return f"{path}: parameter(s) {unused} not used by this scene"

@@ -43,8 +43,15 @@ Run 'elo-mitsuba COMMAND --help' for each command's options.
 """
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line (what is wrong, and where to look), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="elo-mitsuba",
         description=DESCRIPTION,
         epilog=EPILOG,
