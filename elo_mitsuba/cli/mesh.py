@@ -1,0 +1,104 @@
+"""``elo-mitsuba mesh``: a height map to a triangle mesh (binary PLY) in scene coordinates."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..errors import EloInputError
+
+HELP = "turn a height map (.npy/.tif/.csv) into a triangle mesh (PLY) for a scene"
+
+DESCRIPTION = """\
+Triangulate a height map into a mesh in scene coordinates (millimetres): one vertex per pixel
+centre, centred on the z-axis, x to the right, y up, z = height, two triangles per pixel cell with
+normals pointing up (+z, out of the material): n = [-dZ/dx, -dZ/dy, 1] (Eq. 16).
+
+Orientation of the map: row 0 is the +y edge, columns run towards +x (the surface seen from
+above, +y up), as in the ELO images. Heights in mm (or --units um); the pixel size is always mm.
+Render the mesh with face_normals=true (flat shading), as the shipped scenes do; --scene writes
+such a scene (the four detectors of the ATHENE set-up, the parameters of scenes_xml/).
+"""
+
+EPILOG = """\
+examples:
+  elo-mitsuba mesh height.npy -o plate.ply --pixel-size 0.0533
+  elo-mitsuba mesh scan.tif --units um -o plate.ply --pixel-size 0.1 --step 2
+  elo-mitsuba mesh height.csv -o plate.ply --pixel-size 0.2 --tolerance 1e-4 --scene plate.xml
+  elo-mitsuba render plate.xml -o plate.exr -D res=512
+"""
+
+
+def _float(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    return value
+
+
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
+    return value
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "mesh", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("heightmap", metavar="HEIGHTMAP", help="height map: .npy, .tif/.tiff or .csv (comma-separated), 2-D, rows = -y, columns = +x")
+    p.add_argument("-o", "--output", required=True, metavar="MESH.ply", help="binary PLY to write")
+    p.add_argument("--pixel-size", required=True, type=_float, metavar="MM", help="pixel pitch in mm (> 0)")
+    p.add_argument("--units", choices=("mm", "um"), default="mm", help="units of the heights (default mm)")
+    p.add_argument("--step", type=_positive_int, default=1, metavar="N", help="keep every N-th row and column (down-sampling; default 1)")
+    p.add_argument("--tolerance", type=_float, metavar="MM", help="drop whole rows/columns that linear interpolation reproduces within MM (exact for flat margins)")
+    p.add_argument("--base", type=_float, metavar="Z_MM", help="close the mesh with side walls and a bottom at z = Z_MM (watertight solid; not needed to render)")
+    p.add_argument("--scene", metavar="SCENE.xml", help="also write a scene XML rendering this mesh with the four detectors")
+    p.add_argument("--material", help="material of the object in --scene: preset (Ti-6Al-4V, 316L, Cu, ...) or composition 'Ti:0.9,Al:0.06,V:0.04' (default Ti-6Al-4V)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(run=run)
+    return p
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from ..mesh import heightmap_to_mesh, load_heightmap, validate_pixel_size, write_mesh, write_scene
+
+    if args.material is not None and args.scene is None:
+        raise EloInputError("--material sets the object's material in --scene; give --scene SCENE.xml too")
+    out = Path(args.output)
+    if out.suffix.lower() != ".ply":
+        raise EloInputError(f"--output {args.output!r} must end in .ply (binary PLY is written)")
+    if out.exists() and not args.overwrite:
+        raise EloInputError(f"--output {args.output!r} exists; pass --overwrite to replace it")
+    if args.scene is not None:
+        scene = Path(args.scene)
+        if scene.suffix.lower() != ".xml":
+            raise EloInputError(f"--scene {args.scene!r} must end in .xml")
+        if scene.exists() and not args.overwrite:
+            raise EloInputError(f"--scene {args.scene!r} exists; pass --overwrite to replace it")
+        from ..physics.materials import get_material
+
+        get_material(args.material)
+    if not args.pixel_size > 0 or args.pixel_size == float("inf"):
+        raise EloInputError(f"--pixel-size {args.pixel_size!r} mm must be a finite number > 0")
+    pixel = validate_pixel_size(args.pixel_size)
+    height = load_heightmap(args.heightmap, units=args.units)
+    mesh = heightmap_to_mesh(height, pixel, step=args.step, tolerance_mm=args.tolerance, base_mm=args.base)
+    write_mesh(mesh, out, overwrite=args.overwrite)
+    lo, hi = mesh.bounds
+    print(
+        f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles, "
+        f"x [{lo[0]:.4g}, {hi[0]:.4g}] y [{lo[1]:.4g}, {hi[1]:.4g}] z [{lo[2]:.4g}, {hi[2]:.4g}] mm, "
+        f"{out.stat().st_size / 1e6:.2f} MB"
+    )
+    if args.scene is not None:
+        write_scene(args.scene, out, material=args.material, overwrite=args.overwrite)
+        print(f"{args.scene}: scene with the four detectors (render: elo-mitsuba render {args.scene} -o OUT.exr)")
+    return 0
