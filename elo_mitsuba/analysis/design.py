@@ -1,0 +1,210 @@
+"""Design tools for detector layouts: reflectance maps, normal histograms, image statistics.
+
+* :func:`reflectance_map` — g_BSE (Eq. 13) over the (p, q) plane of surface normals
+  n_S = [p, q, 1] = [n_Sx, n_Sy, 1] for one detector vector d = [d_x, d_y, 1] and beam direction,
+  with the masked region p d_x + q d_y + 1 <= 0 (Sec. 4.3, Figs. 12-13).
+* :func:`normal_histogram` — 2-D histogram of the normals of a height map in p,q-form (Fig. 14a);
+  :func:`masking_lines` gives the lines p d_x + q d_y + 1 = 0 of detector layouts (Table 1).
+* :func:`image_statistics` — masked-pixel fraction, mean and spread of a rendered image
+  (Fig. 14b, Fig. 15).
+
+Maps over the (p, q) plane follow the image convention of the package: row 0 holds the largest q,
+columns run towards larger p (so p plays x and q plays y).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from ..constants import DETECTOR_NAMES, LOBE_WIDTH_DEG, TABLE1_LAYOUTS
+from ..errors import EloInputError
+from ..physics import g_bse, get_material
+from .geometry import check_detector_geometry, detector_vectors, masking_condition
+from .gradient import detector_masking
+from .integrate import height_gradient
+
+
+def detector_pq(d_h, d_w, detector="right", x=0.0, y=0.0) -> tuple[float, float]:
+    """p,q-form (d_x, d_y) of a detector vector seen from (x, y, 0) (Eq. 17); mm in, unitless out."""
+    d = detector_vectors(np.asarray(x, float), np.asarray(y, float), d_h, d_w, (detector,))[detector]
+    return float(d[..., 0]), float(d[..., 1])
+
+
+def pq_grid(p_range=(-3.0, 3.0), q_range=(-3.0, 3.0), n=301):
+    """Sample the (p, q) plane: returns ``(P, Q)`` of shape (n_q, n_p), row 0 = largest q."""
+    n_p, n_q = (n, n) if np.isscalar(n) else n
+    if int(n_p) < 2 or int(n_q) < 2:
+        raise EloInputError(f"n={n!r}: need at least 2 samples along p and q")
+    p = np.linspace(float(p_range[0]), float(p_range[1]), int(n_p))
+    q = np.linspace(float(q_range[1]), float(q_range[0]), int(n_q))
+    return np.meshgrid(p, q)
+
+
+def reflectance_map(d_pq, *, beam_dir=(0.0, 0.0, -1.0), material=None, lobe=True,
+                    lobe_width_deg=LOBE_WIDTH_DEG, p_range=(-3.0, 3.0), q_range=(-3.0, 3.0), n=301):
+    """Reflectance map: g_BSE (Eq. 13, 1/sr) as a function of the surface normal in p,q-form.
+
+    Every normal is placed at the origin and seen by a point detector in the direction
+    d = [d_x, d_y, 1] (Sec. 4.3).
+
+    Parameters
+    ----------
+    d_pq : (float, float)
+        Detector vector (d_x, d_y) in p,q-form, e.g. ``detector_pq(272, 127)`` = (127/272, 0).
+    beam_dir : (float, float, float)
+        Beam direction of travel p_E (vertical [0, 0, -1] in the paper).
+    material : str, mapping or Material, optional
+        Default Ti-6Al-4V.
+    lobe : bool
+        True: full g_BSE (left halves of Figs. 12-13); False: the diffuse part only (right halves).
+    p_range, q_range, n :
+        Sampled (p, q) window and number of samples (scalar or (n_p, n_q)).
+
+    Returns
+    -------
+    p, q : ndarray (n_q, n_p)
+        n_Sx and n_Sy of every sample (row 0 = largest q).
+    g : ndarray (n_q, n_p)
+        g_BSE per steradian; 0 in the masked region.
+    masked : ndarray of bool (n_q, n_p)
+        p d_x + q d_y + 1 <= 0: the detector is behind the tangent plane (geometric masking).
+    """
+    d_x, d_y = (float(v) for v in d_pq)
+    p, q = pq_grid(p_range, q_range, n)
+    normal = np.stack([p, q, np.ones_like(p)], axis=-1)
+    d = np.array([d_x, d_y, 1.0])
+    g = g_bse(normal, np.asarray(beam_dir, dtype=float), d, get_material(material), lobe=lobe,
+              lobe_width_deg=lobe_width_deg)
+    return p, q, g, masking_condition(p, q, d_x, d_y)
+
+
+def masking_lines(layouts: Mapping | None = None, detectors=DETECTOR_NAMES) -> dict:
+    """Detector vectors (at the field centre) whose masking lines p d_x + q d_y + 1 = 0 bound the
+    masked normals, for each layout.
+
+    Parameters
+    ----------
+    layouts : mapping, optional
+        ``{label: (d_h, d_w)}`` in mm; default Table 1 keyed by zeta in degrees.
+
+    Returns
+    -------
+    dict
+        ``{label: {detector: (d_x, d_y)}}``. For the right detector the line is p = -d_h/d_w.
+    """
+    layouts = TABLE1_LAYOUTS if layouts is None else layouts
+    return {label: {det: detector_pq(dh, dw, det) for det in detectors} for label, (dh, dw) in layouts.items()}
+
+
+def normal_histogram(height, field_mm, *, bins=201, p_range=(-2.0, 2.0), q_range=(-2.0, 2.0),
+                     mask=None, density=False):
+    """2-D histogram of the surface normals n_S = [p, q, 1] of a height map (Fig. 14a).
+
+    Slopes by central differences (:func:`~.integrate.height_gradient`), p = -dZ/dx, q = -dZ/dy.
+
+    Parameters
+    ----------
+    height : ndarray (H, W)
+        Height map in mm, package orientation.
+    field_mm : float or (float, float)
+        Scan field in mm.
+    bins : int or (int, int)
+        Number of bins along p and q.
+    mask : ndarray of bool, optional
+        True = leave the pixel out.
+    density : bool
+        Normalise to a probability density over (p, q).
+
+    Returns
+    -------
+    hist : ndarray (n_q, n_p)
+        Counts, row 0 = largest q (image convention: show with ``origin="upper"`` and
+        ``extent=(p0, p1, q0, q1)``).
+    p_edges, q_edges : ndarray
+        Bin edges (ascending).
+    """
+    dzdx, dzdy = height_gradient(height, field_mm)
+    p, q = -dzdx, -dzdy
+    keep = np.isfinite(p) & np.isfinite(q)
+    if mask is not None:
+        keep &= ~np.asarray(mask, dtype=bool)
+    nb = (bins, bins) if np.isscalar(bins) else tuple(bins)
+    hist, p_edges, q_edges = np.histogram2d(p[keep], q[keep], bins=nb, range=(p_range, q_range), density=density)
+    return hist.T[::-1], p_edges, q_edges
+
+
+def masked_normal_fraction(dzdx, dzdy, field_mm, d_h, d_w, *, detectors=DETECTOR_NAMES,
+                           mask=None) -> dict[str, float]:
+    """Fraction of pixels geometrically masked for each detector and for any of them (Sec. 4.4).
+
+    Uses the detector vector at each pixel's position (Eq. 17), so it is the position-exact
+    version of counting the normals of :func:`normal_histogram` beyond a masking line.
+    """
+    masks = detector_masking(dzdx, dzdy, field_mm, d_h, d_w, detectors=detectors)
+    keep = np.ones(np.shape(dzdx), dtype=bool) if mask is None else ~np.asarray(mask, dtype=bool)
+    n = max(int(keep.sum()), 1)
+    out = {k: float((m & keep).sum() / n) for k, m in masks.items()}
+    any_m = np.zeros(np.shape(dzdx), dtype=bool)
+    for m in masks.values():
+        any_m |= m
+    out["any"] = float((any_m & keep).sum() / n)
+    return out
+
+
+def image_statistics(image, *, mask=None, zero_threshold=0.0, bins=100, value_range=None) -> dict:
+    """Statistics of a rendered detector image for layout comparisons (Fig. 14b, Fig. 15).
+
+    Parameters
+    ----------
+    image : ndarray (H, W)
+        Intensities >= 0 (N_d/N_0; for machine voltages pass the magnitude). Use the 1st-event
+        channel (e.g. ``right.e1``) to see geometric masking alone.
+    mask : ndarray of bool, optional
+        True = leave the pixel out of every statistic.
+    zero_threshold : float
+        Pixels at or below it count as masked (no electrons reach the detector: green in Fig. 14b).
+    bins, value_range :
+        Histogram of the unmasked-by-``mask`` pixels (Fig. 15).
+
+    Returns
+    -------
+    dict
+        ``masked_fraction``, ``masked`` (bool image), ``mean``, ``std``, ``cv`` (std/mean),
+        ``min``, ``max``, ``p05``, ``p50``, ``p95``, ``hist``, ``bin_edges``. Statistics use all
+        finite pixels not excluded by ``mask`` (masked pixels included, as in Fig. 15).
+    """
+    img = np.asarray(image, dtype=float)
+    if img.ndim != 2:
+        raise EloInputError(f"image of shape {img.shape}: expected a 2-D image")
+    keep = np.isfinite(img)
+    if mask is not None:
+        keep &= ~np.asarray(mask, dtype=bool)
+    vals = img[keep]
+    if vals.size == 0:
+        raise EloInputError("image_statistics: no finite pixel left to measure")
+    masked = keep & (np.where(keep, img, np.inf) <= zero_threshold)
+    mean = float(vals.mean())
+    std = float(vals.std())
+    hist, edges = np.histogram(vals, bins=bins, range=value_range)
+    p05, p50, p95 = np.percentile(vals, [5, 50, 95])
+    return {
+        "masked_fraction": float(masked.sum() / vals.size), "masked": masked,
+        "mean": mean, "std": std, "cv": std / mean if mean != 0 else float("inf"),
+        "min": float(vals.min()), "max": float(vals.max()),
+        "p05": float(p05), "p50": float(p50), "p95": float(p95),
+        "hist": hist, "bin_edges": edges,
+    }
+
+
+def layout_geometry(zeta=None, d_h=None, d_w=None) -> tuple[float, float]:
+    """(d_h, d_w) in mm from a Table 1 inclination ``zeta`` (deg) or explicit lengths."""
+    if zeta is not None:
+        key = int(round(float(zeta)))
+        if key not in TABLE1_LAYOUTS or abs(float(zeta) - key) > 1e-9:
+            raise EloInputError(f"zeta={zeta!r}: Table 1 has {', '.join(map(str, TABLE1_LAYOUTS))} deg")
+        return TABLE1_LAYOUTS[key]
+    if d_h is None or d_w is None:
+        raise EloInputError("give the detector layout as zeta (Table 1) or both d_h and d_w (mm)")
+    return check_detector_geometry(d_h, d_w)

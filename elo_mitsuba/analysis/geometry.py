@@ -1,0 +1,195 @@
+"""Scan-field and detector geometry shared by every analysis function.
+
+Image orientation (the same as :mod:`elo_mitsuba.exr`): array row 0 is the +y edge of the scan
+field, columns run towards +x (the build plate seen from above, +y up). Pixel (column i, row j)
+of an image of shape (H, W) covering ``field_mm = (field_x, field_y)`` is centred at
+
+    x = -field_x/2 + (i + 1/2) field_x / W,    y = +field_y/2 - (j + 1/2) field_y / H   [mm].
+
+:func:`pixel_coordinates` is the one place that implements this; everything else calls it.
+
+Detectors (Eq. 17): right (+x), left (-x), back (+y), front (-y), each at height ``d_h`` above the
+build plane and at distance ``d_w`` from the z-axis. Vectors are in p,q-form (scaled to z = 1,
+Fig. 8b): the normal of Eq. 16 is n_S = [-dZ/dx, -dZ/dy, 1], the detector vector seen from the
+surface point (x, y, 0) is d = [(d_w e_x - x)/d_h, (d_w e_y - y)/d_h, 1] with (e_x, e_y) the unit
+direction of the detector (``constants.DETECTOR_DIRECTIONS``).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from ..constants import DETECTOR_DIRECTIONS, DETECTOR_NAMES
+from ..errors import EloInputError
+
+#: Relative tolerance on the agreement of the four detectors' d_h and d_w read from a header, and
+#: on their lying along +x, -x, +y, -y (Eq. 17 assumes this symmetric layout).
+GEOMETRY_RTOL = 1e-3
+
+
+def field_xy(field_mm) -> tuple[float, float]:
+    """Return ``(field_x, field_y)`` in mm from a scalar (square field) or a pair; validated > 0."""
+    arr = np.atleast_1d(np.asarray(field_mm, dtype=float)).ravel()
+    if arr.size == 1:
+        arr = np.repeat(arr, 2)
+    if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise EloInputError(f"field_mm={field_mm!r}: give one or two finite lengths > 0 in mm")
+    return float(arr[0]), float(arr[1])
+
+
+def pixel_size(shape, field_mm) -> tuple[float, float]:
+    """Pixel pitch ``(dx, dy)`` in mm of an image of ``shape`` (H, W) covering ``field_mm``."""
+    h, w = _shape_hw(shape)
+    fx, fy = field_xy(field_mm)
+    return fx / w, fy / h
+
+
+def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates (mm) of the pixel centres of an image, following the package's orientation.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Image shape (H, W) (extra trailing dimensions are ignored).
+    field_mm : float or (float, float)
+        Scan field width (x) and height (y) in mm; a scalar means a square field.
+
+    Returns
+    -------
+    x, y : ndarray, shape (H, W)
+        x grows along columns, y *decreases* along rows (row 0 is the +y edge).
+    """
+    h, w = _shape_hw(shape)
+    fx, fy = field_xy(field_mm)
+    xs = -fx / 2 + (np.arange(w) + 0.5) * (fx / w)
+    ys = fy / 2 - (np.arange(h) + 0.5) * (fy / h)
+    x, y = np.meshgrid(xs, ys)
+    return x, y
+
+
+def check_detector_geometry(d_h, d_w) -> tuple[float, float]:
+    """Validate the detector height ``d_h`` and distance ``d_w`` (mm, finite, > 0)."""
+    out = []
+    for name, val in (("d_h", d_h), ("d_w", d_w)):
+        try:
+            v = float(val)
+        except (TypeError, ValueError):
+            raise EloInputError(f"{name}={val!r}: expected a length in mm") from None
+        if not (np.isfinite(v) and v > 0):
+            raise EloInputError(f"{name}={val!r} mm: must be finite and > 0")
+        out.append(v)
+    return out[0], out[1]
+
+
+def detector_vectors(x, y, d_h, d_w, detectors=DETECTOR_NAMES) -> dict[str, np.ndarray]:
+    """Detector vectors of Eq. 17 in p,q-form at the surface points (x, y, 0).
+
+    Parameters
+    ----------
+    x, y : array_like
+        Surface positions in mm (broadcast together), e.g. from :func:`pixel_coordinates`.
+    d_h, d_w : float
+        Detector height above the build plane and distance from the z-axis (mm).
+    detectors : iterable of str
+        Subset of ``right``, ``left``, ``back``, ``front``.
+
+    Returns
+    -------
+    dict
+        ``{name: d}`` with ``d`` of shape (..., 3): [(d_w e_x - x)/d_h, (d_w e_y - y)/d_h, 1].
+    """
+    d_h, d_w = check_detector_geometry(d_h, d_w)
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+    out = {}
+    for name in detectors:
+        if name not in DETECTOR_DIRECTIONS:
+            raise EloInputError(f"detector {name!r}: choose from {', '.join(DETECTOR_NAMES)}")
+        ex, ey = DETECTOR_DIRECTIONS[name]
+        out[name] = np.stack([(d_w * ex - x) / d_h, (d_w * ey - y) / d_h, np.ones_like(x)], axis=-1)
+    return out
+
+
+def masking_condition(p, q, d_x, d_y, margin=0.0):
+    """Geometric masking test of Sec. 4.3: ``p d_x + q d_y + 1 <= margin``.
+
+    ``n_S = [p, q, 1]`` (p = n_Sx = -dZ/dx, q = n_Sy = -dZ/dy) and ``d = [d_x, d_y, 1]`` in
+    p,q-form; the condition means n_S . d <= 0, i.e. the detector lies at or below the local
+    tangent plane (alpha >= 90 deg) and no electron of the 1st scattering event reaches it.
+    A positive ``margin`` also flags grazing directions. Returns a boolean array.
+    """
+    return np.asarray(p) * d_x + np.asarray(q) * d_y + 1.0 <= margin
+
+
+def zeta_deg(d_h, d_w) -> float:
+    """Detector inclination zeta = atan(d_w / d_h) in degrees (Table 1)."""
+    d_h, d_w = check_detector_geometry(d_h, d_w)
+    return float(np.degrees(np.arctan2(d_w, d_h)))
+
+
+def geometry_from_metadata(meta: Mapping, source: str = "metadata", *, d_h=None, d_w=None,
+                           field_mm=None) -> dict:
+    """Scan geometry from an EXR metadata dict written by the forward model.
+
+    ``d_h`` is the z of each detector centre and ``d_w`` the distance of the centre from the
+    z-axis. The four detectors must agree (relative tolerance :data:`GEOMETRY_RTOL`) and lie along
+    +x, -x, +y, -y, otherwise Eq. 17 (and therefore Eq. 26) does not describe the set-up and an
+    :class:`EloInputError` says so. Explicit ``d_h``, ``d_w`` or ``field_mm`` override the header
+    (then the detector block may be missing).
+
+    Returns
+    -------
+    dict
+        ``{"field_mm": (fx, fy), "d_h": float, "d_w": float, "resolution": (W, H) or None}``.
+    """
+    meta = dict(meta or {})
+    if field_mm is None:
+        if "field_mm" not in meta:
+            raise EloInputError(f"{source}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
+        field_mm = meta["field_mm"]
+    fx, fy = field_xy(field_mm)
+    res = meta.get("resolution")
+    resolution = None if res is None else (int(res[0]), int(res[1]))
+    if d_h is None or d_w is None:
+        dets = meta.get("detectors")
+        if not isinstance(dets, Mapping) or not all(n in dets for n in DETECTOR_NAMES):
+            raise EloInputError(
+                f"{source}: header lacks detector centres for {', '.join(DETECTOR_NAMES)}; "
+                "pass --dh and --dw (mm)"
+            )
+        hs, ws = {}, {}
+        for name in DETECTOR_NAMES:
+            try:
+                c = np.asarray(dets[name]["center"], dtype=float).reshape(3)
+            except (KeyError, TypeError, ValueError):
+                raise EloInputError(f"{source}: detector {name!r} has no valid 'center' [x, y, z]") from None
+            hs[name] = c[2]
+            ws[name] = float(np.hypot(c[0], c[1]))
+            ex, ey = DETECTOR_DIRECTIONS[name]
+            if np.hypot(c[0] - ws[name] * ex, c[1] - ws[name] * ey) > GEOMETRY_RTOL * max(ws[name], 1.0):
+                raise EloInputError(
+                    f"{source}: detector {name!r} centre {c.tolist()} does not lie along "
+                    f"({ex:+g}, {ey:+g}); Eq. 26 needs right/left/back/front on +x/-x/+y/-y"
+                )
+        for label, vals, given in (("height d_h (centre z)", hs, d_h), ("distance d_w (from the z-axis)", ws, d_w)):
+            if given is not None:
+                continue  # overridden: the header's value does not matter
+            v = np.array(list(vals.values()))
+            if np.ptp(v) > GEOMETRY_RTOL * np.max(np.abs(v)):
+                listing = ", ".join(f"{k}={val:.4g}" for k, val in vals.items())
+                raise EloInputError(
+                    f"{source}: the four detectors differ in {label}: {listing} mm; Eq. 26 needs "
+                    "one symmetric layout (pass --dh/--dw to override)"
+                )
+        d_h = float(np.mean(list(hs.values()))) if d_h is None else d_h
+        d_w = float(np.mean(list(ws.values()))) if d_w is None else d_w
+    d_h, d_w = check_detector_geometry(d_h, d_w)
+    return {"field_mm": (fx, fy), "d_h": d_h, "d_w": d_w, "resolution": resolution}
+
+
+def _shape_hw(shape) -> tuple[int, int]:
+    shape = tuple(int(s) for s in shape)
+    if len(shape) < 2 or shape[0] < 1 or shape[1] < 1:
+        raise EloInputError(f"image shape {shape}: expected (H, W) with H, W >= 1")
+    return shape[0], shape[1]

@@ -1,0 +1,206 @@
+"""PNG previews with matplotlib's Agg canvas (no display, no pyplot global state) and CMasher maps.
+
+Scan images are drawn seen from above with +y up (row 0 at the top, ``origin="upper"``), axes in mm.
+Masked (untrusted) pixels are painted in one flat colour (green as in Fig. 14b). Every writer
+refuses to replace an existing file unless ``overwrite=True``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import EloInputError
+from .geometry import field_xy
+
+#: Colour maps: diverging for signed quantities, sequential for heights and intensities.
+CMAP_DIVERGING = "cmr.iceburn"
+CMAP_HEIGHT = "cmr.rainforest"
+CMAP_INTENSITY = "cmr.arctic"
+MASK_COLOUR = "#2ca02c"
+
+
+def _figure(ncols=1, width=5.2, height=4.4):
+    import cmasher  # noqa: F401  (registers the cmr.* colour maps)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width * ncols, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, ncols, squeeze=False)[0]
+    return fig, axes
+
+
+def _save(fig, path, overwrite):
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise EloInputError(f"{path} exists; pass --overwrite to replace it")
+    if not path.parent.exists():
+        raise EloInputError(f"{path}: directory {path.parent} does not exist")
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def _extent(shape, field_mm):
+    fx, fy = field_xy(field_mm)
+    return (-fx / 2, fx / 2, -fy / 2, fy / 2)
+
+
+def _draw_image(fig, ax, image, field_mm, *, title, label, cmap, symmetric=False, mask=None, clip_percent=0.5):
+    from matplotlib.colors import ListedColormap
+
+    img = np.asarray(image, dtype=float)
+    shown = np.where(np.isfinite(img), img, np.nan)
+    if mask is not None:
+        shown = np.where(mask, np.nan, shown)
+    vals = shown[np.isfinite(shown)]
+    if vals.size:
+        # Clip a few outliers so that one hot pixel does not flatten the colour scale.
+        lo, hi = np.percentile(vals, [clip_percent, 100 - clip_percent])
+    else:
+        lo, hi = 0.0, 1.0
+    if symmetric:
+        hi = max(abs(lo), abs(hi), 1e-12)
+        lo = -hi
+    if hi <= lo:
+        hi = lo + 1e-12
+    ext = _extent(img.shape, field_mm)
+    im = ax.imshow(shown, cmap=cmap, vmin=lo, vmax=hi, extent=ext, origin="upper", interpolation="nearest")
+    if mask is not None and np.any(mask):
+        overlay = np.where(mask, 1.0, np.nan)
+        ax.imshow(overlay, cmap=ListedColormap([MASK_COLOUR]), extent=ext, origin="upper",
+                  interpolation="nearest", vmin=0, vmax=1)
+        title = f"{title}\n(green: masked, {100 * np.mean(mask):.1f} %)"
+    ax.set_xlabel("x / mm")
+    ax.set_ylabel("y / mm")
+    ax.set_title(title)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label(label)
+    return im
+
+
+def preview_image(image, field_mm, path, *, title="", label="", cmap=CMAP_INTENSITY, symmetric=False,
+                  mask=None, clip_percent=0.5, overwrite=False) -> Path:
+    """One image with colour bar (``label`` gives the unit), axes in mm, masked pixels green.
+
+    The colour scale spans the ``clip_percent`` .. ``100 - clip_percent`` percentiles."""
+    fig, (ax,) = _figure()
+    _draw_image(fig, ax, image, field_mm, title=title, label=label, cmap=cmap, symmetric=symmetric, mask=mask,
+                clip_percent=clip_percent)
+    return _save(fig, path, overwrite)
+
+
+def preview_gradient(dzdx, dzdy, field_mm, path, *, mask=None, title="Surface gradient (Eq. 26)",
+                     overwrite=False) -> Path:
+    """dZ/dx and dZ/dy side by side (shared symmetric colour scale, mm/mm)."""
+    fig, axes = _figure(2)
+    for ax, img, name in ((axes[0], dzdx, "dZ/dx"), (axes[1], dzdy, "dZ/dy")):
+        _draw_image(fig, ax, img, field_mm, title=f"{title}: {name}", label=f"{name} / (mm/mm)",
+                    cmap=CMAP_DIVERGING, symmetric=True, mask=mask)
+    return _save(fig, path, overwrite)
+
+
+def preview_height(height, field_mm, path, *, mask=None, title="Height map", overwrite=False) -> Path:
+    """Height map Z(x, y) in mm (relative: up to a constant)."""
+    return preview_image(height, field_mm, path, title=title, label="Z / mm (relative)", cmap=CMAP_HEIGHT,
+                         mask=mask, clip_percent=0.0, overwrite=overwrite)
+
+
+def _pq_extent(p, q):
+    return (float(p.min()), float(p.max()), float(q.min()), float(q.max()))
+
+
+def plot_reflectance_maps(p, q, g_full, g_diffuse, masked, d_pq, path, *, title="", overwrite=False) -> Path:
+    """Figs. 12-13: full g_BSE (left) and diffuse part (right) over (p, q); masked region hatched,
+    detector direction marked with a white cross. Inputs from :func:`~.design.reflectance_map`."""
+    from matplotlib import rc_context
+
+    fig, axes = _figure(2)
+    ext = _pq_extent(p, q)
+    vmax = float(max(np.max(g_full), np.max(g_diffuse), 1e-12))
+    for ax, g, name in ((axes[0], g_full, "full $g_{BSE}$ (Eq. 13)"), (axes[1], g_diffuse, "diffuse part only")):
+        im = ax.imshow(g, cmap=CMAP_INTENSITY, extent=ext, origin="upper", vmin=0, vmax=vmax,
+                       interpolation="bilinear")
+        ax.contour(p, q, g, levels=8, colors="k", linewidths=0.5, alpha=0.6)
+        if np.any(masked):
+            # Hatch the exact half-plane p d_x + q d_y + 1 <= 0 (a straight border, not the pixel
+            # staircase of ``masked``), in white: there g_BSE = 0, the dark end of the map.
+            side = p * d_pq[0] + q * d_pq[1] + 1.0
+            with rc_context({"hatch.color": "w", "hatch.linewidth": 0.8}):
+                hatch = ax.contourf(p, q, side, levels=[min(float(side.min()), -1.0) - 1.0, 0.0],
+                                    colors="none", hatches=["///"])
+                hatch.set_edgecolor("w")
+                hatch.set_linewidth(0.0)
+            ax.contour(p, q, side, levels=[0.0], colors="w", linewidths=1.0)
+        ax.plot([d_pq[0]], [d_pq[1]], marker="x", color="w", markersize=10, mew=2.5)
+        ax.set_xlabel("$p = n_{Sx} = -\\partial Z/\\partial x$")
+        ax.set_ylabel("$q = n_{Sy} = -\\partial Z/\\partial y$")
+        ax.set_title(name)
+        ax.set_aspect("equal")
+        cb = fig.colorbar(im, ax=ax, shrink=0.9)
+        cb.set_label("$g_{BSE}$ / sr$^{-1}$")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path, overwrite)
+
+
+def plot_normal_histogram(hist, p_edges, q_edges, path, *, lines: Mapping | None = None,
+                          title="Surface normals n_S = [p, q, 1]", overwrite=False) -> Path:
+    """Fig. 14a: log-scaled 2-D histogram of normals with the masking lines of detector layouts.
+
+    ``lines`` is :func:`~.design.masking_lines` output ``{label: {detector: (d_x, d_y)}}``.
+    """
+    from matplotlib.colors import LogNorm
+
+    fig, (ax,) = _figure(1, width=6.0, height=5.2)
+    h = np.asarray(hist, dtype=float)
+    shown = np.where(h > 0, h, np.nan)
+    vmax = max(np.nanmax(shown) if np.isfinite(shown).any() else 1.0, 1.0)
+    im = ax.imshow(shown, cmap=CMAP_HEIGHT, norm=LogNorm(vmin=1, vmax=vmax), origin="upper",
+                   extent=(p_edges[0], p_edges[-1], q_edges[0], q_edges[-1]), interpolation="nearest")
+    styles = ["-", "--", ":", "-."]
+    t = np.linspace(min(p_edges[0], q_edges[0]), max(p_edges[-1], q_edges[-1]), 2)
+    for k, (label, dets) in enumerate((lines or {}).items()):
+        for j, (det, (dx, dy)) in enumerate(dets.items()):
+            # p d_x + q d_y + 1 = 0; the four detectors of Eq. 17 have d_x = 0 or d_y = 0.
+            kw = dict(color=f"C{k}", ls=styles[k % 4], lw=1.2, label=(f"zeta = {label} deg" if isinstance(label, (int, float)) else str(label)) if j == 0 else None)
+            if abs(dx) >= abs(dy):
+                ax.plot(-(1 + dy * t) / dx, t, **kw)
+            else:
+                ax.plot(t, -(1 + dx * t) / dy, **kw)
+    ax.set_xlim(p_edges[0], p_edges[-1])
+    ax.set_ylim(q_edges[0], q_edges[-1])
+    ax.set_xlabel("$p = n_{Sx}$")
+    ax.set_ylabel("$q = n_{Sy}$")
+    ax.set_title(title)
+    if lines:
+        ax.legend(loc="upper right", fontsize=8)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label("pixels per bin")
+    return _save(fig, path, overwrite)
+
+
+def plot_image_histograms(stats: Mapping[str, dict], path, *, unit="N_d/N_0", title="Image histograms",
+                          overwrite=False) -> Path:
+    """Fig. 15: histograms of several images (``{label: image_statistics(...)}``), mean dashed."""
+    fig, (ax,) = _figure(1, width=6.5, height=4.2)
+    for k, (label, s) in enumerate(stats.items()):
+        edges = np.asarray(s["bin_edges"])
+        ax.stairs(s["hist"], edges, color=f"C{k}",
+                  label=f"{label}: mean {s['mean']:.3g}, std {s['std']:.2g}, masked {100 * s['masked_fraction']:.1f} %")
+        ax.axvline(s["mean"], color=f"C{k}", ls="--", lw=1)
+    ax.set_xlabel(f"intensity / {unit}")
+    ax.set_ylabel("pixels")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    return _save(fig, path, overwrite)
+
+
+def check_png_path(path) -> Path:
+    """Validate a preview path (``.png``) before long computations."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise EloInputError(f"{path}: previews are PNG files; use a name ending in .png")
+    return path

@@ -1,0 +1,105 @@
+"""``elo-mitsuba reconstruct``: gradient EXR -> height map by normal integration."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ..errors import EloInputError
+from .gradient import field_arg
+
+DESCRIPTION = """\
+Integrate a surface gradient (the EXR written by 'elo-mitsuba gradient': channels dzdx, dzdy and
+mask, geometry in the header) into a height map Z(x, y) in mm, known up to a constant (zero mean).
+
+Solvers (Queau, Durou & Aujol 2018 survey the field):
+  dct     least squares over all pixel pairs, Neumann boundary, exact via the DCT (fast; masked
+          pixels count as flat)
+  fft     Frankot-Chellappa on the mirrored field (fast; masked pixels count as flat)
+  masked  the least-squares functional of 'dct' restricted to trusted pixels, sparse direct solve;
+          each connected trusted region gets its own zero-mean constant (their relative heights
+          are unknown); needs memory for large images
+  auto    'masked' if any pixel is masked, else 'dct' (default)
+
+Output by suffix: .exr (channels height and mask, 1 = no height; geometry in the header), .npy
+(float64) or .tif (float32). NPY/TIFF hold 0 at masked pixels and no mask.
+"""
+
+EPILOG = """\
+examples:
+  elo-mitsuba reconstruct grad.exr -o height.exr --preview height.png
+  elo-mitsuba reconstruct grad.exr -o height.npy --method dct
+"""
+
+
+def add_parser(subparsers):
+    from ..analysis.integrate import METHODS
+
+    p = subparsers.add_parser(
+        "reconstruct", help="gradient EXR -> height map (normal integration)",
+        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("gradient", metavar="GRAD.exr", help="output of 'elo-mitsuba gradient'")
+    p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|npy|tif)", help="height map to write")
+    p.add_argument("--method", choices=("auto",) + METHODS, default="auto", help="integration solver (default auto)")
+    p.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm if the header lacks it")
+    p.add_argument("--ignore-mask", action="store_true", help="treat every pixel as trusted")
+    p.add_argument("--min-component", type=int, default=16, metavar="N",
+                   help="masked solver: trusted regions with fewer pixels are dropped (default 16)")
+    p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(run=run)
+    return p
+
+
+def run(args) -> int:
+    from ..analysis import field_xy, integrate_gradient
+    from ..analysis.io import HEIGHT_SUFFIXES, check_output_path, write_height
+    from ..analysis.plots import check_png_path, preview_height
+    from ..exr import read_exr
+
+    out = check_output_path(args.output, HEIGHT_SUFFIXES, args.overwrite)
+    if args.preview:
+        prev = check_png_path(args.preview)
+        if prev.exists() and not args.overwrite:
+            raise EloInputError(f"{prev} exists; pass --overwrite to replace it")
+    if args.min_component < 1:
+        raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
+    channels, meta = read_exr(args.gradient)
+    missing = [c for c in ("dzdx", "dzdy") if c not in channels]
+    if missing:
+        raise EloInputError(f"{args.gradient}: missing channel(s) {', '.join(missing)}; "
+                            "expected the output of 'elo-mitsuba gradient'")
+    field = args.field if args.field is not None else meta.get("field_mm")
+    if field is None:
+        raise EloInputError(f"{args.gradient}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
+    field = field_xy(field)
+    mask = None
+    if "mask" in channels and not args.ignore_mask:
+        mask = channels["mask"] > 0.5
+    height, mask_out = integrate_gradient(channels["dzdx"], channels["dzdy"], field, method=args.method,
+                                          mask=mask, min_component_size=args.min_component)
+    method = args.method if args.method != "auto" else ("masked" if mask is not None and mask.any() else "dct")
+    out_meta = {
+        "quantity": "height map (relative, zero mean)",
+        "units": "mm",
+        "field_mm": list(field),
+        "resolution": [height.shape[1], height.shape[0]],
+        "method": method,
+        "mask": "1 = no height measured (0 stored there), 0 = measured",
+        "source": str(args.gradient),
+    }
+    for key in ("d_h_mm", "d_w_mm", "material", "projection"):
+        if key in meta:
+            out_meta[key] = meta[key]
+    write_height(out, height, mask_out, out_meta, overwrite=args.overwrite)
+    valid = ~mask_out
+    span = float(np.ptp(height[valid])) if valid.any() else 0.0
+    print(f"wrote {out}: method {method}, {height.shape[1]}x{height.shape[0]} px, height range {span:.4g} mm, "
+          f"{100 * mask_out.mean():.2f} % without height")
+    if args.preview:
+        preview_height(height, field, args.preview, mask=mask_out if mask_out.any() else None,
+                       title=f"Height map ({method})", overwrite=args.overwrite)
+        print(f"wrote {args.preview}")
+    return 0

@@ -1,0 +1,189 @@
+"""CLI round trip: EXR -> gradient -> height reproduces the library calls; recorded-image inputs;
+user errors exit with status 2 and one line."""
+
+import numpy as np
+import pytest
+
+from elo_mitsuba.analysis import (
+    flat_plate_images,
+    integrate_gradient,
+    pixel_coordinates,
+    point_detector_images,
+    surface_gradient,
+)
+from elo_mitsuba.cli import main
+from elo_mitsuba.constants import DETECTOR_DIRECTIONS, DETECTOR_NAMES
+from elo_mitsuba.exr import read_exr, write_exr
+
+FIELD = (24.0, 20.0)
+SHAPE = (40, 48)            # H, W: non-square to catch transposes
+DH, DW = 250.0, 150.0
+
+
+def detector_block(dh=DH, dw=DW, jitter=None):
+    out = {}
+    for n, (ex, ey) in DETECTOR_DIRECTIONS.items():
+        c = [dw * ex, dw * ey, dh + (jitter or {}).get(n, 0.0)]
+        out[n] = {"center": c, "normal": list(-np.array(c) / np.linalg.norm(c)), "radius": 25.0}
+    return out
+
+
+def surface():
+    x, y = pixel_coordinates(SHAPE, FIELD)
+    r2 = (x - 3) ** 2 + (y + 2) ** 2
+    z = 1.5 * np.exp(-r2 / 20.0)
+    gx = -2 * (x - 3) / 20.0 * z
+    gy = -2 * (y + 2) / 20.0 * z
+    gx = np.where((x < -8) & (y > 5), 4.0, gx)   # a steep patch: right detector masked there
+    return gx, gy
+
+
+def meta(**kw):
+    m = {"field_mm": list(FIELD), "resolution": [SHAPE[1], SHAPE[0]], "units": "N_d/N_0",
+         "detectors": detector_block(), "events": 1, "spp": 1, "material": "Ti-6Al-4V",
+         "work_distance_mm": 400.0, "projection": "orthographic"}
+    m.update(kw)
+    return m
+
+
+def channels(images):
+    out = dict(images)
+    out.update({f"{n}.e1": v for n, v in images.items()})
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    gx, gy = surface()
+    kw = dict(model="lambert", detector_radius_mm=25.0)
+    obj = point_detector_images(gx, gy, FIELD, DH, DW, **kw)
+    flat = flat_plate_images(SHAPE, FIELD, DH, DW, **kw)
+    write_exr(d / "obj.exr", channels(obj), meta())
+    write_exr(d / "flat.exr", channels(flat), meta())
+    return d, gx, gy
+
+
+def test_round_trip_matches_library(scene, tmp_path):
+    d, gx, gy = scene
+    grad, height = tmp_path / "grad.exr", tmp_path / "h.exr"
+    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(grad),
+                 "--preview", str(tmp_path / "g.png")]) == 0
+    assert main(["reconstruct", str(grad), "-o", str(height), "--preview", str(tmp_path / "h.png")]) == 0
+    ch, m = read_exr(grad)
+    assert {"dzdx", "dzdy", "Mx", "My", "mask"} <= set(ch)
+    assert m["d_h_mm"] == pytest.approx(DH) and m["d_w_mm"] == pytest.approx(DW)
+    assert m["field_mm"] == list(FIELD) and m["resolution"] == [SHAPE[1], SHAPE[0]]
+    # library on the same (float32) inputs
+    obj, _ = read_exr(d / "obj.exr")
+    flat, _ = read_exr(d / "flat.exr")
+    res = surface_gradient({n: obj[n] for n in DETECTOR_NAMES}, {n: flat[n] for n in DETECTOR_NAMES}, FIELD, DH, DW)
+    assert np.array_equal(ch["mask"] > 0.5, res.mask)
+    assert np.allclose(ch["dzdx"], res.dzdx, atol=1e-6) and np.allclose(ch["dzdy"], res.dzdy, atol=1e-6)
+    assert np.allclose(ch["Mx"], res.mx, atol=1e-6)
+    assert res.mask.any() and np.all(ch["dzdx"][res.mask] == 0)
+    # the masked patch is where the right detector cannot see; elsewhere the gradient is right
+    assert np.array_equal(res.mask, gx == 4.0)
+    assert np.max(np.abs(res.dzdx - gx)[~res.mask]) < 1e-5
+    hc, hm = read_exr(height)
+    h_lib, m_lib = integrate_gradient(ch["dzdx"], ch["dzdy"], FIELD, mask=ch["mask"] > 0.5, min_component_size=16)
+    assert np.allclose(hc["height"], h_lib, atol=1e-6)
+    assert np.array_equal(hc["mask"] > 0.5, m_lib)
+    assert hm["method"] == "masked" and hm["units"] == "mm"
+    for png in ("g.png", "h.png"):
+        assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_recorded_single_files_and_formats(scene, tmp_path):
+    import tifffile
+
+    d, _, _ = scene
+    obj, _ = read_exr(d / "obj.exr")
+    flat, _ = read_exr(d / "flat.exr")
+    args = []
+    for n in DETECTOR_NAMES:
+        np.save(tmp_path / f"{n}.npy", -1e5 * obj[n])          # volts, negative: units cancel
+        tifffile.imwrite(tmp_path / f"flat_{n}.tif", (-1e5 * flat[n]).astype(np.float32))
+        args += [f"--{n}", str(tmp_path / f"{n}.npy"), f"--flat-{n}", str(tmp_path / f"flat_{n}.tif")]
+    out = tmp_path / "grad.exr"
+    assert main(["gradient", *args, "--field", "24,20", "--dh", str(DH), "--dw", str(DW), "-o", str(out)]) == 0
+    ref = tmp_path / "ref.exr"
+    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(ref)]) == 0
+    a, _ = read_exr(out)
+    b, _ = read_exr(ref)
+    assert np.allclose(a["dzdx"], b["dzdx"], atol=1e-5) and np.array_equal(a["mask"], b["mask"])
+    for suffix in ("npy", "tif"):
+        h = tmp_path / f"h.{suffix}"
+        assert main(["reconstruct", str(out), "-o", str(h), "--method", "dct"]) == 0
+        arr = np.load(h) if suffix == "npy" else tifffile.imread(h)
+        assert arr.shape == SHAPE and np.all(np.isfinite(arr))
+
+
+def test_event_channels(scene, tmp_path):
+    d, _, _ = scene
+    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "--event", "1",
+                 "-o", str(tmp_path / "g1.exr")]) == 0
+
+
+def test_user_errors_exit_2(scene, tmp_path, capsys):
+    d, _, _ = scene
+    out = tmp_path / "g.exr"
+    base = ["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(out)]
+    assert main(base) == 0
+    assert main(base) == 2 and "exists" in capsys.readouterr().err           # no silent overwrite
+    assert main(base + ["--overwrite"]) == 0
+    # detectors that disagree in height
+    obj, _ = read_exr(d / "obj.exr")
+    write_exr(tmp_path / "bad.exr", obj, meta(detectors=detector_block(jitter={"back": 5.0})))
+    assert main(["gradient", "--flat", str(d / "flat.exr"), str(tmp_path / "bad.exr"),
+                 "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    assert "differ in height" in err and err.count("\n") == 1
+    # ... unless overridden
+    assert main(["gradient", "--flat", str(d / "flat.exr"), str(tmp_path / "bad.exr"), "--dh", str(DH),
+                 "-o", str(tmp_path / "x.exr")]) == 0
+    capsys.readouterr()
+    # a flat recorded with another field
+    flat, _ = read_exr(d / "flat.exr")
+    write_exr(tmp_path / "flat80.exr", flat, meta(field_mm=[80.0, 80.0]))
+    assert main(["gradient", "--flat", str(tmp_path / "flat80.exr"), str(d / "obj.exr"),
+                 "-o", str(tmp_path / "w.exr")]) == 2
+    assert "field_mm" in capsys.readouterr().err
+    # header resolution that does not match the pixels
+    write_exr(tmp_path / "res.exr", obj, meta(resolution=[SHAPE[0], SHAPE[1]]))
+    assert main(["gradient", "--no-flat", str(tmp_path / "res.exr"), "-o", str(tmp_path / "v.exr")]) == 2
+    assert "resolution" in capsys.readouterr().err
+    # single files without geometry
+    np.save(tmp_path / "r.npy", obj["right"])
+    args = sum(([f"--{n}", str(tmp_path / "r.npy")] for n in DETECTOR_NAMES), [])
+    assert main(["gradient", *args, "--no-flat", "-o", str(tmp_path / "y.exr")]) == 2
+    assert "--field" in capsys.readouterr().err
+    # missing flat
+    assert main(["gradient", str(d / "obj.exr"), "-o", str(tmp_path / "z.exr")]) == 2
+    assert "flat" in capsys.readouterr().err
+    assert main(["reconstruct", str(d / "obj.exr"), "-o", str(tmp_path / "h.npy")]) == 2
+    assert "dzdx" in capsys.readouterr().err
+    assert main(["reconstruct", str(out), "-o", str(tmp_path / "h.png")]) == 2
+
+
+def test_reflectance_map_cli(tmp_path, capsys):
+    out = tmp_path / "m.png"
+    assert main(["reflectance-map", "--dh", "272", "--dw", "127", "-o", str(out), "--samples", "61",
+                 "--data", str(tmp_path / "m.npz")]) == 0
+    data = np.load(tmp_path / "m.npz")
+    assert np.array_equal(data["masked"], data["p"] <= -272 / 127)
+    assert out.read_bytes()[:4] == b"\x89PNG"
+    assert main(["reflectance-map", "--zeta", "50", "--dh", "1", "-o", str(tmp_path / "n.png")]) == 2
+    assert main(["reflectance-map", "--zeta", "60", "--beam", "pivot", "--at", "30,-20", "--samples", "41",
+                 "-o", str(tmp_path / "n.png")]) == 0
+
+
+def test_help_texts_teach(capsys):
+    for cmd, words in (("gradient", ["Eq. 26", "d_w + x M_x + y M_y", "examples:"]),
+                       ("reconstruct", ["DCT", "Frankot-Chellappa", "examples:"]),
+                       ("reflectance-map", ["Eq. 13", "p d_x + q d_y + 1 <= 0", "examples:"])):
+        with pytest.raises(SystemExit) as exc:
+            main([cmd, "--help"])
+        assert exc.value.code == 0
+        text = capsys.readouterr().out
+        assert all(w in text for w in words), cmd
