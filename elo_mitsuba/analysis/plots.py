@@ -204,3 +204,19 @@ def check_png_path(path) -> Path:
     if path.suffix.lower() != ".png":
         raise EloInputError(f"{path}: previews are PNG files; use a name ending in .png")
     return path
+
+
+def preview_detectors(channels: Mapping[str, np.ndarray], field_mm, path, *, unit="N_d/N_0", title="",
+                      overwrite=False) -> Path:
+    """The total image of every detector side by side (one colour bar each, axes in mm).
+
+    ``channels`` maps detector ids to images; per-event channels (``<id>.e<k>``) are skipped.
+    """
+    names = [n for n in channels if "." not in n]
+    if not names:
+        raise EloInputError(f"{path}: no detector channels to preview")
+    fig, axes = _figure(len(names), width=4.4, height=3.9)
+    for ax, name in zip(axes, names):
+        _draw_image(fig, ax, channels[name], field_mm, title=f"{title}{name}", label=unit,
+                    cmap=CMAP_INTENSITY, clip_percent=0.0)
+    return _save(fig, path, overwrite)

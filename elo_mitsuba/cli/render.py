@@ -29,7 +29,7 @@ Noise: the 1st-event channels carry about 2.4%/sqrt(spp) relative noise per pixe
 
 EPILOG = """\
 examples:
-  elo-mitsuba render flat_plate -o flat.exr
+  elo-mitsuba render flat_plate -o flat.exr --preview flat.png
   elo-mitsuba render athene_flat -o chamber.exr --events 2 --spp 64 --resolution 512
   elo-mitsuba render melt_plate -o melt.exr --layout zeta50          # Table 1 layout
   elo-mitsuba render my_scene.xml -o out.exr -D dh=250 -D dw=140 --units voltage
@@ -79,7 +79,8 @@ def add_parser(subparsers):
     p.add_argument("--layout", metavar="zetaNN", help="detector layout of Table 1: zeta25, zeta50, zeta60, zeta75 (sets dh and dw)")
     p.add_argument("--units", choices=("fraction", "voltage"), help="N_d/N_0 (default) or detector voltage U_d = N_d/N_0 * I_b * T (Eq. 9)")
     p.add_argument("--detector-samples", type=_positive_int, help="points sampled on each detector per event (default 1)")
-    p.add_argument("--overwrite", action="store_true", help="replace OUT.exr if it exists")
+    p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT.exr (and the preview) if they exist")
     p.add_argument("--quiet", action="store_true", help="no progress or summary output")
     p.set_defaults(run=run)
     return p
@@ -95,6 +96,12 @@ def run(args) -> int:
         raise EloInputError(f"output {out} exists; pass --overwrite to replace it")
     if not out.parent.exists():
         raise EloInputError(f"output {out}: directory {out.parent} does not exist")
+    preview = Path(args.preview) if args.preview else None
+    if preview is not None:
+        if preview.suffix.lower() != ".png":
+            raise EloInputError(f"preview {preview}: must end in .png")
+        if preview.exists() and not args.overwrite:
+            raise EloInputError(f"preview {preview} exists; pass --overwrite to replace it")
     params = dict(args.defines)
     if args.resolution is not None:
         params["res"] = args.resolution
@@ -107,6 +114,12 @@ def run(args) -> int:
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events,
                           progress=None if not args.quiet else False)
     result.write_exr(out, overwrite=args.overwrite)
+    if preview is not None:
+        from ..analysis.plots import preview_detectors
+
+        m = result.metadata
+        preview_detectors(result.channels, m["field_mm"], preview, unit=m["units"],
+                          title=f"{Path(m['scene']).stem}, {m['events']} event(s): ", overwrite=args.overwrite)
     if not args.quiet:
         m = result.metadata
         w, h = m["resolution"]
