@@ -9,8 +9,9 @@ The package is layered as the pipeline is:
 * :mod:`elo_mitsuba.analysis` -- STSA correction, gradients (Eq. 26), height maps, design tools;
 * :mod:`elo_mitsuba.cli` -- the ``elo-mitsuba`` command, thin over all of the above.
 
-Importing the package does not touch Mitsuba's JIT; the LLVM check and the variant choice happen
-at the first render (:func:`elo_mitsuba.runtime.ensure_variant`).
+Importing the package imports Mitsuba but compiles nothing; the LLVM check and the variant choice
+happen at the first render (:func:`elo_mitsuba.runtime.ensure_variant`), which stops with one
+actionable line instead of the abort that Debian 12's LLVM 15/16 would cause.
 """
 
 __version__ = "0.1.0"
@@ -20,18 +21,20 @@ from .runtime import ensure_variant  # noqa: E402
 from .render import EloScene, RenderResult, load_scene, render  # noqa: E402
 
 
-def _install_callback_if_mitsuba_loaded():
-    """If the user already imported mitsuba, register plugins on their variant changes too."""
-    import sys
+def _hook_mitsuba():
+    """Import Mitsuba and register our plugins on every switch to a supported variant.
 
-    if "mitsuba" in sys.modules:
-        from . import runtime
+    Then ``mi.set_variant(...)`` works before or after ``import elo_mitsuba``. Nothing is
+    compiled here: the LLVM check runs in :func:`ensure_variant`, at the first render.
+    """
+    from . import runtime
 
-        runtime.install_variant_callback()
-        runtime.register_plugins()
+    runtime.import_backend()
+    runtime.install_variant_callback()
+    runtime.register_plugins()
 
 
-_install_callback_if_mitsuba_loaded()
+_hook_mitsuba()
 
 __all__ = [
     "EloEnvironmentError", "EloError", "EloInputError", "EloScene", "RenderResult", "ensure_variant",

@@ -13,17 +13,54 @@ becomes active, whichever of ``import elo_mitsuba`` and ``mi.set_variant`` comes
 from __future__ import annotations
 
 import os
+import sys
+import tempfile
 
 from .constants import DEFAULT_VARIANT, MIN_LLVM_MAJOR, SUPPORTED_VARIANTS, VARIANT_ENV_VAR
 from .errors import EloEnvironmentError, EloInputError
 
 _registered_for: set[str] = set()
 _callback_installed = False
+#: What Dr.Jit printed on stderr while it was imported (kept for diagnosis; see import_backend).
+backend_import_log = ""
 
 LLVM_ADVICE = (
     "install Debian's libllvm19 (apt-get install -y libllvm19) or point DRJIT_LIBLLVM_PATH at a "
     f"libLLVM.so of version >= {MIN_LLVM_MAJOR}"
 )
+
+
+def import_backend() -> None:
+    """Import Dr.Jit and Mitsuba, holding back what Dr.Jit prints while it looks for LLVM.
+
+    With a missing or broken LLVM, Dr.Jit writes several lines of its own to file descriptor 2
+    on import; our one actionable line (:func:`check_llvm`) replaces them. When LLVM is usable
+    the captured text (normally nothing) is passed on to stderr unchanged.
+    """
+    global backend_import_log
+    if "mitsuba" in sys.modules:
+        return
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no real fd 2 (embedded interpreters)
+        import drjit  # noqa: F401
+        import mitsuba  # noqa: F401
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            import drjit
+            import mitsuba  # noqa: F401
+
+            version = tuple(drjit.detail.llvm_version())
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        backend_import_log = tmp.read().decode(errors="replace")
+    if backend_import_log and version[0] >= MIN_LLVM_MAJOR:
+        sys.stderr.write(backend_import_log)
 
 
 def llvm_version() -> tuple[int, int, int]:

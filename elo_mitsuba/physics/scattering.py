@@ -54,7 +54,8 @@ def lobe_normalisation(theta_deg, lobe_width_deg=LOBE_WIDTH_DEG):
         C = 1 - s^(k+1) + int_0^s (k+1) u^k acos(-u cot(theta)/sqrt(1-u^2)) / pi du,  s = sin(theta),
 
     evaluated by Gauss-Legendre quadrature after u = s (1 - t^2), which removes the square-root
-    behaviour of acos at u = s. Accuracy better than 1e-9 for 0 <= theta <= 90 deg.
+    behaviour of acos at u = s. Measured accuracy: better than 1e-7 at the paper's lobe width
+    (13 deg), about 3e-6 for very wide lobes (k < 0.1), where u^k is steep at u = 0.
 
     Parameters
     ----------
