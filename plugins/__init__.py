@@ -32,10 +32,5 @@ def register_all() -> None:
             # after a variant switch the classes must derive from the new variant's base types
             module = importlib.reload(sys.modules[qualified])
         else:
-            try:
-                module = importlib.import_module(qualified)
-            except ModuleNotFoundError as exc:  # TODO(lead): remove once all plugins exist
-                if exc.name == qualified:
-                    continue
-                raise
+            module = importlib.import_module(qualified)
         getattr(mi, register_fn)(plugin_name, module.PLUGIN_CLASS)
