@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import EloInputError
+from ._args import number, positive_int
 
 HELP = "turn a height map (.npy/.tif/.csv) into a triangle mesh (PLY) for a scene"
 
@@ -28,24 +29,6 @@ examples:
 """
 
 
-def _float(text):
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    return value
-
-
-def _positive_int(text):
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
-    return value
-
-
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "mesh", help=HELP, description=DESCRIPTION, epilog=EPILOG,
@@ -53,11 +36,11 @@ def add_parser(subparsers):
     )
     p.add_argument("heightmap", metavar="HEIGHTMAP", help="height map: .npy, .tif/.tiff or .csv (comma-separated), 2-D, rows = -y, columns = +x")
     p.add_argument("-o", "--output", required=True, metavar="MESH.ply", help="binary PLY to write")
-    p.add_argument("--pixel-size", required=True, type=_float, metavar="MM", help="pixel pitch in mm (> 0)")
+    p.add_argument("--pixel-size", required=True, type=number, metavar="MM", help="pixel pitch in mm (> 0)")
     p.add_argument("--units", choices=("mm", "um"), default="mm", help="units of the heights (default mm)")
-    p.add_argument("--step", type=_positive_int, default=1, metavar="N", help="keep every N-th row and column (down-sampling; default 1)")
-    p.add_argument("--tolerance", type=_float, metavar="MM", help="drop whole rows/columns that linear interpolation reproduces within MM (exact for flat margins)")
-    p.add_argument("--base", type=_float, metavar="Z_MM", help="close the mesh with side walls and a bottom at z = Z_MM (watertight solid; not needed to render)")
+    p.add_argument("--step", type=positive_int, default=1, metavar="N", help="keep every N-th row and column (down-sampling; default 1)")
+    p.add_argument("--tolerance", type=number, metavar="MM", help="drop whole rows/columns that linear interpolation reproduces within MM (exact for flat margins)")
+    p.add_argument("--base", type=number, metavar="Z_MM", help="close the mesh with side walls and a bottom at z = Z_MM (watertight solid; not needed to render)")
     p.add_argument("--scene", metavar="SCENE.xml", help="also write a scene XML rendering this mesh with the four detectors")
     p.add_argument("--material", help="material of the object in --scene: preset (Ti-6Al-4V, 316L, Cu, ...) or composition 'Ti:0.9,Al:0.06,V:0.04' (default Ti-6Al-4V)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")

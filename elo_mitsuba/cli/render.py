@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..errors import EloInputError
+from ._args import define, non_negative_int, positive_int
 
 HELP = "render the detector images of an XML scene to a multichannel EXR"
 
@@ -36,33 +37,6 @@ examples:
 """
 
 
-def _positive_int(text):
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
-    return value
-
-
-def _non_negative_int(text):
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value} must be >= 0")
-    return value
-
-
-def _define(text):
-    if "=" not in text or not text.split("=", 1)[0].strip():
-        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE (e.g. -D dh=250)")
-    name, value = text.split("=", 1)
-    return name.strip(), value.strip()
-
-
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "render", help=HELP, description=DESCRIPTION, epilog=EPILOG,
@@ -70,15 +44,15 @@ def add_parser(subparsers):
     )
     p.add_argument("scene", metavar="SCENE", help="XML scene file, or a shipped scene name (flat_plate, athene_flat, corrugated_sheet, melt_plate)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.exr", help="EXR file to write")
-    p.add_argument("--spp", type=_positive_int, help="beam samples per pixel (default: the scene's sampler)")
-    p.add_argument("--events", type=_positive_int, help="scattering events counted: 1 = first event only, 2 adds one bounce off walls or the object, ... (default: the scene's)")
-    p.add_argument("--resolution", type=_positive_int, metavar="N", help="N x N scan points (sets the scene parameter 'res')")
-    p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
+    p.add_argument("--spp", type=positive_int, help="beam samples per pixel (default: the scene's sampler)")
+    p.add_argument("--events", type=positive_int, help="scattering events counted: 1 = first event only, 2 adds one bounce off walls or the object, ... (default: the scene's)")
+    p.add_argument("--resolution", type=positive_int, metavar="N", help="N x N scan points (sets the scene parameter 'res')")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     p.add_argument("--variant", help="Mitsuba variant: llvm_ad_mono (CPU, default) or cuda_ad_mono (NVIDIA GPU); also $ELO_MITSUBA_VARIANT")
-    p.add_argument("-D", dest="defines", action="append", type=_define, default=[], metavar="NAME=VALUE", help="set a scene parameter, e.g. -D dh=250 -D dw=140 -D wd=450 -D field=80 -D fwhm=0.27")
+    p.add_argument("-D", dest="defines", action="append", type=define, default=[], metavar="NAME=VALUE", help="set a scene parameter, e.g. -D dh=250 -D dw=140 -D wd=450 -D field=80 -D fwhm=0.27")
     p.add_argument("--layout", metavar="zetaNN", help="detector layout of Table 1: zeta25, zeta50, zeta60, zeta75 (sets dh and dw)")
     p.add_argument("--units", choices=("fraction", "voltage"), help="N_d/N_0 (default) or detector voltage U_d = N_d/N_0 * I_b * T (Eq. 9)")
-    p.add_argument("--detector-samples", type=_positive_int, help="points sampled on each detector per event (default 1)")
+    p.add_argument("--detector-samples", type=positive_int, help="points sampled on each detector per event (default 1)")
     p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT.exr (and the preview) if they exist")
     p.add_argument("--quiet", action="store_true", help="no progress or summary output")
