@@ -1,10 +1,11 @@
 """Sensor ``elo_beam``: the scanned electron gun (Renner et al. 2023, Sec. 2.1.1, Fig. 1a).
 
-Film pixel (i, j) is scan point (i, j). Pixel centres lie exactly on the scan grid
+Film pixel (i, j) is scan point (i, j). Pixel centres lie on the scan grid
 
     x_i = -field_x/2 + (i + 1/2) field_x / W,   y_j = +field_y/2 - (j + 1/2) field_y / H   [mm],
 
-so columns run towards +x and row 0 is the +y edge (the plate seen from above, +y up);
+(nudged by less than 0.1 % of a pixel, see ``_AIM_NUDGE``), so columns run towards +x and row 0
+is the +y edge (the plate seen from above, +y up);
 field_y = field W/H keeps pixels square. Every beam ray leaves the pivot (0, 0, wd) towards its
 grid point on the build plane z = 0 (``projection="perspective"``, deflection angle phi grows
 towards the edges, so theta = phi on a flat plate), or runs parallel to -z from (x, y, wd)
@@ -29,6 +30,13 @@ from elo_mitsuba.constants import FIELD_MM, WORK_DISTANCE_MM
 from elo_mitsuba.errors import EloInputError
 
 _FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+#: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
+#: aimed exactly at a vertex or edge of a mesh built on the same grid as the scan (a height map
+#: rendered at its own resolution) can pass through the surface, and with fwhm = 0 every sample of
+#: that pixel repeats the miss. Unequal, irrational-ish fractions of a pixel (< 0.1 %, 53 nm on
+#: ATHENE's 53 um pixels; the beam spot is 270 um) keep the rays off regular grids' vertices and
+#: edges, including the diagonals.
+_AIM_NUDGE = (7.18e-4, 3.91e-4)
 PROJECTIONS = ("perspective", "orthographic")
 
 
@@ -82,9 +90,9 @@ class EloBeam(mi.Sensor):
         res = mi.Vector2f(self.resolution[0], self.resolution[1])
         scaled = film_sample * res
         pixel = dr.floor(scaled)
-        centre = (pixel + 0.5) / res  # exactly on the scan grid
-        x = (centre.x - 0.5) * self._field.x
-        y = (0.5 - centre.y) * self._field.y
+        centre = (pixel + 0.5) / res  # on the scan grid (up to _AIM_NUDGE)
+        x = (centre.x - 0.5 + _AIM_NUDGE[0] / res.x) * self._field.x
+        y = (0.5 - centre.y + _AIM_NUDGE[1] / res.y) * self._field.y
         if self.fwhm > 0:
             jitter = dr.clip(scaled - pixel, 1e-7, 1.0 - 1e-7)  # uniform in the pixel
             offset = mi.warp.square_to_std_normal(jitter) * self.sigma
