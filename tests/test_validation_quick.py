@@ -1,0 +1,91 @@
+"""The validation against the paper (validation/, `python -m validation`) in its quick mode.
+
+Runs `python -m validation --quick` into a temporary directory (about a minute) and checks that the
+report exists, every row has a verdict, disagreeing rows say why, the key numbers are finite and
+every figure was written. The default run (about ten minutes) produces validation/REPORT.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.skipif(not (REPO_ROOT / "validation" / "runner.py").is_file(),
+                                reason="validation/ package missing")
+
+VERDICTS = ("agrees", "agrees approx.", "partly", "disagrees")
+#: rows the quick run must produce (one or more per study)
+EXPECTED_ROWS = {"E1", "E3", "4a", "4c", "4d", "4e", "10b", "10e", "12a", "12b", "T1", "14a", "14b",
+                 "15a", "15b", "6a", "7a", "7b", "11a", "3b", "C1", "C2", "C3"}
+
+
+@pytest.fixture(scope="module")
+def quick_run(run_python, tmp_path_factory):
+    out = tmp_path_factory.mktemp("validation-quick")
+    proc = run_python("-m", "validation", "--quick", "--output-dir", str(out), "--json", str(out / "rows.json"),
+                      timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    return out, json.loads((out / "rows.json").read_text()), proc
+
+
+def test_every_row_has_a_verdict_and_finite_numbers(quick_run):
+    out, data, _ = quick_run
+    rows = data["rows"]
+    ids = [r["id"] for r in rows]
+    assert len(ids) == len(set(ids)), "duplicate row ids"
+    assert EXPECTED_ROWS <= set(ids), sorted(EXPECTED_ROWS - set(ids))
+    for r in rows:
+        assert r["verdict"] in VERDICTS, r
+        assert r["claim"] and r["paper"] and r["ours"] and r["settings"], r
+        if r["verdict"] != "agrees":
+            assert r["why"].strip(), f"row {r['id']} ({r['verdict']}) does not say why"
+        assert r["values"], f"row {r['id']} has no key numbers"
+        for k, v in r["values"].items():
+            assert math.isfinite(v), (r["id"], k, v)
+
+
+def test_key_numbers_are_physical(quick_run):
+    _, data, _ = quick_run
+    v = {r["id"]: r["values"] for r in data["rows"]}
+    assert 3e-4 < v["4a"]["mean_NR_N0"] < 3e-3            # "roughly one-thousandth"
+    assert 0 < v["4b"]["share_e2"] < 0.2                  # the 1st event dominates
+    assert v["E1"]["max_rel_error_mitsuba"] < 2e-3         # hemisphere integral of g_BSE = eta
+    assert 0.4 < v["10b"]["mx0"] < 0.6                    # M_x(0) ~ d_w/d_h
+    assert 0.8 < v["10e"]["grad_centre"] < 1.25           # Eq. 26 restores the slope
+    assert 0.3 < v["7a"]["mx_slope"] < 0.7                # M_x falls short of the gradient
+    assert 0.8 < v["11a"]["eq26_slope"] < 1.2
+    means = [v["15a"][f"mean_{z}"] for z in (25, 50, 60, 75)]
+    assert means == sorted(means, reverse=True)           # mean falls with zeta
+
+
+def test_report_and_figures(quick_run):
+    out, data, _ = quick_run
+    report = (out / "REPORT.md").read_text()
+    table = [ln for ln in report.splitlines() if re.match(r"^\| [0-9A-Z][^|]* \| ", ln) and ln.count(" | ") >= 6]
+    assert len(table) == len(data["rows"])
+    for ln in table:
+        cells = [c.strip() for c in ln.strip("|").split(" | ")]
+        assert any(vd in cells[5] for vd in VERDICTS), ln
+    figs = [Path(f) for s in data["studies"] for f in s["figures"]]
+    assert len(figs) >= 12
+    for f in figs:
+        assert f.is_file() and f.stat().st_size > 10_000, f
+        assert f"figures/{f.name}" in report
+    for key in ("Date (UTC)", "Commit", "Machine"):
+        assert key in report
+
+
+def test_cli_validate_is_registered_and_explains_missing_checkout(tmp_path):
+    from elo_mitsuba.cli import build_parser
+    from elo_mitsuba.cli.validate import _find_validation
+    from elo_mitsuba.errors import EloEnvironmentError
+
+    args = build_parser().parse_args(["validate", "--quick", "--output-dir", str(tmp_path)])
+    assert args.quick and callable(args.run)
+    with pytest.raises(EloEnvironmentError, match="source checkout"):
+        _find_validation(roots=[tmp_path])
