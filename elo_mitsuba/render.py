@@ -34,6 +34,26 @@ from .errors import EloError, EloInputError
 from .exr import ORIENTATION, write_exr
 from .runtime import ensure_variant
 
+#: Quality presets (issue 6; measured in benchmarks/RESULTS.md). The 1st event uses the triangle
+#: quadrature of Appendix A (``quadrature_triangles``; deterministic with a single-ray beam, so one
+#: sample per pixel suffices; ``spp_blur`` samples when the beam has a profile, fwhm > 0). Events
+#: >= 2 get ``bounce_budget`` continuation paths per window of ``bounce_filter`` mm half-width
+#: (a normal-guided average, see the elo integrator; 0 = per pixel), spread over the pixels by
+#: ``bounce_fraction`` / ``bounce_samples`` for the scene's resolution; pixels where the window
+#: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. ``scene`` keeps the scene
+#: file's own settings.
+QUALITY_PRESETS = {
+    "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 2.0, "bounce_budget": 100,
+              "bounce_min": 0.0},
+    "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 400,
+                "bounce_min": 2.0},
+    "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
+                  "bounce_budget": 256, "bounce_min": 0.0},
+}
+#: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
+MAX_BOUNCE_SAMPLES = 8
+QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
+
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
 SAMPLES_PER_PASS = 1 << 24
@@ -236,6 +256,11 @@ class EloScene:
             "beam_fwhm_mm": s.fwhm,
             "events": self.integrator.events,
             "detector_samples": self.integrator.detector_samples,
+            "quality": getattr(self, "quality", "scene"),
+            "integrator_options": {k: getattr(self.integrator, k) for k in (
+                "detector_sampling", "quadrature_triangles", "bounce_detector_samples",
+                "bounce_fraction", "bounce_filter") if hasattr(self.integrator, k)},
+            "notes": list(getattr(self.integrator, "notes", [])),
             "spp": int(spp),
             "seed": int(seed),
             "detectors": geometry,
@@ -299,20 +324,50 @@ class EloScene:
         self.mi_params.update()
         self._check_detectors()
 
+    def set_quality(self, quality: str) -> int:
+        """Apply a quality preset (:data:`QUALITY_PRESETS`) to the integrator for this scene's
+        resolution, events and beam; returns its spp (``scene``: the scene file's sampler count,
+        options untouched)."""
+        if quality not in QUALITIES:
+            raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
+        if quality == "scene":
+            self.quality = quality
+            return int(self.sensor.sampler().sample_count())
+        preset = QUALITY_PRESETS[quality]
+        integ = self.integrator
+        spp = int(preset["spp_blur"] if self.sensor.fwhm > 0 else preset["spp"])
+        integ.detector_sampling = "quadrature"
+        integ.quadrature_triangles = preset["quadrature_triangles"]
+        integ.bounce_filter = preset["bounce_filter"]
+        integ.bounce_min = preset["bounce_min"]  # paths per pixel where the filter cannot average
+        radius = round(preset["bounce_filter"] / (self.sensor.field / self.sensor.resolution[0]))
+        per_pixel = preset["bounce_budget"] / (2 * radius + 1) ** 2  # continuation paths per pixel
+        if integ.traced_events() > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
+            spp = math.ceil(per_pixel / MAX_BOUNCE_SAMPLES)
+        per_sample = per_pixel / spp
+        integ.bounce_samples = max(1, math.ceil(per_sample))
+        integ.bounce_fraction = min(1.0, per_sample / integ.bounce_samples)
+        self.quality = quality
+        return spp
+
     # -- rendering --
     def render(self, spp: int | None = None, seed: int = 0, events: int | None = None,
-               progress: bool | None = None) -> RenderResult:
+               progress: bool | None = None, quality: str | None = None) -> RenderResult:
         """Render all detector channels; returns numpy images and metadata.
 
-        ``spp`` defaults to the scene's sampler. Large jobs run as several passes of one
-        compiled kernel (with a progress line on stderr when ``progress`` or a terminal).
+        ``spp`` defaults to the quality preset's (``quality``, see :data:`QUALITY_PRESETS`), or
+        without one to the scene's sampler. Large jobs run as several passes of one compiled
+        kernel (with a progress line on stderr when ``progress`` or a terminal).
         """
         mi = self.mi
         import drjit as dr
 
         if events is not None:
             self.set_events(events)
-        spp = int(spp if spp is not None else self.sensor.sampler().sample_count())
+        preset_spp = self.set_quality(quality) if quality is not None else None
+        if spp is None:
+            spp = preset_spp if preset_spp is not None else self.sensor.sampler().sample_count()
+        spp = int(spp)
         if spp < 1:
             raise EloInputError(f"spp={spp}; must be >= 1")
         if int(seed) < 0:
@@ -328,14 +383,18 @@ class EloScene:
         for p in range(passes):
             n = min(per_pass, spp - done)
             img = mi.render(self.scene, spp=n, seed=int(seed) * 65537 + p)
-            arr = np.array(img, dtype=np.float64) * n
-            accum = arr if accum is None else accum + arr
+            if passes == 1:  # no float64 copies: peak memory (issue 6)
+                accum = np.array(img, dtype=np.float32)
+            else:
+                arr = np.array(img, dtype=np.float64) * n
+                accum = arr if accum is None else accum + arr
+            del img
             done += n
             if progress:
                 _progress(done, spp, time.perf_counter() - t0)
         if progress:
             print(file=sys.stderr)
-        image = (accum / spp).astype(np.float32)
+        image = accum if passes == 1 else (accum / spp).astype(np.float32)
         names = self.integrator.channel_names()
         # film channels: 'Y' (sum over detectors) then the AOVs in our order
         channels = {name: np.ascontiguousarray(image[..., i + 1]) for i, name in enumerate(names)}

@@ -24,8 +24,12 @@ beam electrons (or volts with --units voltage, Eq. 9). The header stores the sca
 that 'elo-mitsuba gradient' needs no flags. Image orientation: row 0 is the +y edge, columns run
 towards +x (the plate seen from above, +y up). Lengths are millimetres.
 
-Noise: the 1st-event channels carry about 2.4%/sqrt(spp) relative noise per pixel
-(16 spp ~ 0.6%); later events are much noisier and need more spp.
+Quality (--quality, default "default"; measured in benchmarks/RESULTS.md): draft, default and
+reference set the spp and how the detectors are integrated: the 1st event by the triangle
+quadrature of Appendix A (no noise with a single-ray beam), events >= 2 traced for a fraction of
+the pixels and averaged over a window that stops at changes of the surface normal. "scene" keeps
+the scene file's settings (independent sampling, 2.4%/sqrt(spp) noise per pixel on the 1st event).
+An explicit --spp or --detector-samples wins over the preset.
 """
 
 EPILOG = """\
@@ -53,6 +57,8 @@ def add_parser(subparsers):
     p.add_argument("--layout", metavar="zetaNN", help="detector layout of Table 1: zeta25, zeta50, zeta60, zeta75 (sets dh and dw)")
     p.add_argument("--units", choices=("fraction", "voltage"), help="N_d/N_0 (default) or detector voltage U_d = N_d/N_0 * I_b * T (Eq. 9)")
     p.add_argument("--detector-samples", type=positive_int, help="points sampled on each detector per event (default 1)")
+    p.add_argument("--quality", choices=("draft", "default", "reference", "scene"), default="default",
+                   help="speed/accuracy preset (default: default); 'scene' keeps the scene file's sampling settings")
     p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT.exr (and the preview) if they exist")
     p.add_argument("--quiet", action="store_true", help="no progress or summary output")
@@ -83,9 +89,10 @@ def run(args) -> int:
     scene = load_scene(args.scene, variant=args.variant, detector_layout=args.layout, **params)
     if args.units:
         scene.integrator.units = args.units
-    if args.detector_samples:
+    if args.detector_samples:  # explicit wins over the preset (which does not set it)
         scene.integrator.detector_samples = args.detector_samples
-    result = scene.render(spp=args.spp, seed=args.seed, events=args.events,
+        scene.integrator.bounce_detector_samples = args.detector_samples
+    result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False)
     result.write_exr(out, overwrite=args.overwrite)
     if preview is not None:
@@ -100,4 +107,13 @@ def run(args) -> int:
         print(f"wrote {out}: {w}x{h} px, {m['spp']} spp, events={m['events']}, "
               f"channels {', '.join(result.channels)} ({m['units']}) in {time.perf_counter() - t0:.1f} s",
               file=sys.stderr)
+        for note in m.get("notes", []):
+            print(f"note: {note}", file=sys.stderr)
+        if m["events"] > 1:  # what each event order adds (issue 6: report what changes the result)
+            total = sum(float(result.channels[d].mean()) for d in result.detectors)
+            shares = [sum(float(result.channels[f"{d}.e{k}"].mean()) for d in result.detectors) / total
+                      for k in range(1, m["events"] + 1)] if total > 0 else []
+            if shares:
+                print("event shares of the signal: " + ", ".join(f"e{k} {100 * v:.2f}%" for k, v in
+                                                                  enumerate(shares, 1)), file=sys.stderr)
     return 0
