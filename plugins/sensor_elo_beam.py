@@ -4,7 +4,7 @@ Film pixel (i, j) is scan point (i, j). Pixel centres lie on the scan grid
 
     x_i = -field_x/2 + (i + 1/2) field_x / W,   y_j = +field_y/2 - (j + 1/2) field_y / H   [mm],
 
-(nudged by less than 0.1 % of a pixel, see ``_AIM_NUDGE``), so columns run towards +x and row 0
+(nudged by less than 1 % of a pixel, see ``_AIM_NUDGE``), so columns run towards +x and row 0
 is the +y edge (the plate seen from above, +y up);
 field_y = field W/H keeps pixels square. Every beam ray leaves the pivot (0, 0, wd) towards its
 grid point on the build plane z = 0 (``projection="perspective"``, deflection angle phi grows
@@ -33,10 +33,10 @@ _FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 #: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
 #: aimed exactly at a vertex or edge of a mesh built on the same grid as the scan (a height map
 #: rendered at its own resolution) can pass through the surface, and with fwhm = 0 every sample of
-#: that pixel repeats the miss. Unequal, irrational-ish fractions of a pixel (< 0.1 %, 53 nm on
+#: that pixel repeats the miss. Unequal, irrational-ish fractions of a pixel (< 1 %, 0.4 um on
 #: ATHENE's 53 um pixels; the beam spot is 270 um) keep the rays off regular grids' vertices and
 #: edges, including the diagonals.
-_AIM_NUDGE = (7.18e-4, 3.91e-4)
+_AIM_NUDGE = (7.18e-3, 3.91e-3)
 PROJECTIONS = ("perspective", "orthographic")
 
 
