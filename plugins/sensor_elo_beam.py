@@ -37,6 +37,8 @@ _FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 #: ATHENE's 53 um pixels; the beam spot is 270 um) keep the rays off regular grids' vertices and
 #: edges, including the diagonals.
 _AIM_NUDGE = (7.18e-3, 3.91e-3)
+#: ... but never more than this in mm (3 um): coarse test grids must stay on their points.
+_AIM_NUDGE_MAX_MM = (2.9e-3, 1.6e-3)
 PROJECTIONS = ("perspective", "orthographic")
 
 
@@ -70,6 +72,8 @@ class EloBeam(mi.Sensor):
                 "lands in its own pixel"
             )
         self.field_y = self.field * self.resolution[1] / self.resolution[0]
+        pitch = (self.field / self.resolution[0], self.field_y / self.resolution[1])
+        self._nudge = tuple(min(f * p, cap) for f, p, cap in zip(_AIM_NUDGE, pitch, _AIM_NUDGE_MAX_MM))
         self.sigma = mi.Float(self.fwhm * _FWHM_TO_SIGMA)
         self._wd = mi.Float(self.wd)
         self._field = mi.Vector2f(self.field, self.field_y)
@@ -91,8 +95,8 @@ class EloBeam(mi.Sensor):
         scaled = film_sample * res
         pixel = dr.floor(scaled)
         centre = (pixel + 0.5) / res  # on the scan grid (up to _AIM_NUDGE)
-        x = (centre.x - 0.5 + _AIM_NUDGE[0] / res.x) * self._field.x
-        y = (0.5 - centre.y + _AIM_NUDGE[1] / res.y) * self._field.y
+        x = (centre.x - 0.5) * self._field.x + self._nudge[0]
+        y = (0.5 - centre.y) * self._field.y + self._nudge[1]
         if self.fwhm > 0:
             jitter = dr.clip(scaled - pixel, 1e-7, 1.0 - 1e-7)  # uniform in the pixel
             offset = mi.warp.square_to_std_normal(jitter) * self.sigma
