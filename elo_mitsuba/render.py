@@ -43,12 +43,12 @@ from .runtime import ensure_variant
 #: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. ``scene`` keeps the scene
 #: file's own settings.
 QUALITY_PRESETS = {
-    "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 2.0, "bounce_budget": 100,
+    "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0},
     "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 400,
                 "bounce_min": 2.0},
     "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
-                  "bounce_budget": 256, "bounce_min": 0.0},
+                  "bounce_budget": 128, "bounce_min": 0.0},
 }
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
@@ -377,31 +377,53 @@ class EloScene:
         passes = math.ceil(spp / per_pass)
         if progress is None:
             progress = passes > 1 and sys.stderr.isatty()
+        names = self.integrator.channel_names()
+        # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
+        # float32 channel-major array, accumulated in float64 only over several passes, so that
+        # peak memory stays near the film's own (issue 6: <= 1 GB at 1500 x 1500)
         accum = None
         done = 0
         t0 = time.perf_counter()
         for p in range(passes):
             n = min(per_pass, spp - done)
             img = mi.render(self.scene, spp=n, seed=int(seed) * 65537 + p)
-            if passes == 1:  # no float64 copies: peak memory (issue 6)
-                accum = np.array(img, dtype=np.float32)
-            else:
-                arr = np.array(img, dtype=np.float64) * n
-                accum = arr if accum is None else accum + arr
+            planes = _channel_planes(img)  # (C, H, W) float32: one gather, one copy
             del img
+            if passes == 1:
+                accum = {name: planes[i + 1] for i, name in enumerate(names)}
+            else:
+                if accum is None:
+                    accum = {name: np.zeros(planes.shape[1:]) for name in names}
+                for i, name in enumerate(names):
+                    accum[name] += planes[i + 1] * (n / spp)
+            del planes
             done += n
             if progress:
                 _progress(done, spp, time.perf_counter() - t0)
         if progress:
             print(file=sys.stderr)
-        image = accum if passes == 1 else (accum / spp).astype(np.float32)
-        names = self.integrator.channel_names()
-        # film channels: 'Y' (sum over detectors) then the AOVs in our order
-        channels = {name: np.ascontiguousarray(image[..., i + 1]) for i, name in enumerate(names)}
+        channels = accum if passes == 1 else {name: a.astype(np.float32) for name, a in accum.items()}
         for name, img in channels.items():
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
         return RenderResult(channels, self.metadata(spp, seed))
+
+
+def _channel_planes(img, group: int = 4) -> np.ndarray:
+    """A developed film (Dr.Jit tensor, H x W x C) as a numpy array C x H x W (each channel
+    contiguous): a few channels per gather on the device, then one copy each, so that time and
+    peak memory stay low (issue 6)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    h, w, c = (int(x) for x in img.shape)
+    out = np.empty((c, h, w), np.float32)
+    for first in range(0, c, group):
+        n = min(group, c - first)
+        idx = dr.arange(mi.UInt32, h * w * n)
+        src = (idx % (h * w)) * c + idx // (h * w) + first
+        out[first:first + n] = np.asarray(dr.gather(mi.Float, img.array, src)).reshape(n, h, w)
+    return out
 
 
 def _progress(done, total, elapsed):

@@ -90,6 +90,8 @@ STRATEGIES = ("independent", "stratified", "quadrature")
 VISIBILITY = ("sampled", "triangle")
 #: Most triangles of one detector in the quadrature (the loop over them is unrolled).
 MAX_QUADRATURE_TRIANGLES = 256
+#: Hidden film channels: the 1st-event surface normal that guides ``bounce_filter``.
+_GUIDE = ("_elo_nx", "_elo_ny", "_elo_nz")
 #: Hidden film channels counting the rays cast per sample (``count_rays = True``, benchmarks).
 _COUNTS = ("_elo_intersections", "_elo_shadow_rays")
 #: bounce_fraction < 1 selects blocks of 2**_BLOCK_SHIFT consecutive lanes (neighbouring pixels)
@@ -551,8 +553,11 @@ class EloIntegrator(mi.SamplingIntegrator):
                 names += [f"{name}.e{k}" for k in range(1, self.events + 1)]
         return names
 
+    def _guided(self):
+        return self.bounce_filter > 0 and self.traced_events() > 1
+
     def _hidden(self):
-        return list(_COUNTS) if self.count_rays else []
+        return (list(_GUIDE) if self._guided() else []) + (list(_COUNTS) if self.count_rays else [])
 
     def aov_names(self):
         return self.channel_names() + self._hidden()
@@ -576,54 +581,67 @@ class EloIntegrator(mi.SamplingIntegrator):
         image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
         if not develop:
             return image
+        n_public = 1 + len(self.channel_names())
+        col = {name: i for i, name in enumerate(["Y"] + self.aov_names())}
         if self.count_rays:
-            arr = np.array(image, dtype=np.float64)
-            self.ray_counts = {"intersections": float(arr[..., -2].mean()),
-                               "shadow_rays": float(arr[..., -1].mean())}
-            image = mi.TensorXf(np.ascontiguousarray(arr[..., :-2], dtype=np.float32))
-            del arr
+            self.ray_counts = {"intersections": float(np.mean(np.array(image[..., col[_COUNTS[0]]]))),
+                               "shadow_rays": float(np.mean(np.array(image[..., col[_COUNTS[1]]])))}
         if self.traced_events() > 1 and (self.bounce_filter > 0 or self.bounce_min > 0):
-            arr = np.array(image, dtype=np.float32)
-            del image
             n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
             rate = self.bounce_fraction * self.bounce_samples * n_spp  # paths per pixel, expected
-            paths = np.full(arr.shape[:2], rate, np.float32)
+            paths = np.full(tuple(image.shape[:2]), rate, np.float32)
             if self.bounce_filter > 0:
-                self._filter_bounces(arr, scene, sensor_obj, paths)
+                self._filter_bounces(image, col, sensor_obj, paths)
             if self.bounce_min > 0:
-                self._top_up(arr, scene, sensor, sensor_obj, seed_value, paths)
-            image = mi.TensorXf(arr)
+                self._top_up(image, col, scene, sensor, seed_value, paths)
+            self._totals(image, col)
+        if image.shape[2] > n_public:  # drop the hidden channels
+            image = image[..., :n_public]
         return image
 
-    def _top_up(self, arr, scene, sensor, sensor_obj, seed, paths):
+    def _top_up(self, image, col, scene, sensor, seed, paths):
         """bounce_min: pixels whose events >= 2 rest on fewer continuation paths than that (e.g.
         where the filter must stop at edges) get a second pass of bounce paths only; the two
-        estimates are averaged with their path counts as weights; totals recomputed."""
-        h, w = arr.shape[:2]
+        estimates are averaged with their path counts as weights."""
         need = paths < self.bounce_min
         if not np.any(need):
             return
         missing = float(np.max(self.bounce_min - paths[need]))
         k = max(1, min(8, math.ceil(missing)))
         spp2 = max(1, math.ceil(missing / k))
-        mask = mi.Bool(need.ravel())
-        saved = (self.bounce_samples, self.bounce_fraction)
-        self._pass2 = (mask, dr.opaque(mi.UInt32, spp2))
+        saved = (self.bounce_samples, self.bounce_fraction, self.bounce_filter, self.count_rays)
+        self._pass2 = (mi.Bool(need.ravel()), dr.opaque(mi.UInt32, spp2))
+        # same film channels as the main pass (hidden ones included) so the columns agree
         self.bounce_samples, self.bounce_fraction = k, 1.0
         try:
-            extra = np.array(mi.SamplingIntegrator.render(self, scene, sensor, seed + 0x5EED, spp2, True, True),
-                             dtype=np.float32)
+            extra = mi.SamplingIntegrator.render(self, scene, sensor, seed + 0x5EED, spp2, True, True)
         finally:
             self._pass2 = None
-            self.bounce_samples, self.bounce_fraction = saved
+            self.bounce_samples, self.bounce_fraction, self.bounce_filter, self.count_rays = saved
         n2 = float(k * spp2)
-        wt1 = np.where(need, paths / (paths + n2), 1.0).astype(np.float32)[..., None, None]
-        n_det, per_det = len(self.detectors), 1 + self.events
-        view = arr[..., 1:1 + n_det * per_det].reshape(h, w, n_det, per_det)
-        view2 = extra[..., 1:1 + n_det * per_det].reshape(h, w, n_det, per_det)
-        view[..., 2:] = view[..., 2:] * wt1 + view2[..., 2:] * (1.0 - wt1)
+        w1 = np.where(need, paths / (paths + n2), 1.0).astype(np.float32)
+        for d, _ in self.detectors:
+            for e in range(2, self.events + 1):
+                c = col[f"{d}.e{e}"]
+                mixed = np.array(image[..., c]) * w1 + np.array(extra[..., c]) * (1.0 - w1)
+                image[..., c] = mi.Float(mixed.ravel())
         paths[need] += n2
-        self._totals(arr)
+
+    def _totals(self, image, col):
+        """Each detector's total and the film's sum channel from the event channels (in place)."""
+        totals = []
+        for d, _ in self.detectors:
+            total = image[..., col[f"{d}.e1"]]
+            for e in range(2, self.events + 1):
+                total = total + image[..., col[f"{d}.e{e}"]]
+            totals.append(total)
+        y = totals[0]
+        for total in totals[1:]:
+            y = y + total
+        dr.eval(y, *totals)  # read everything first: the writes below then need no copy
+        for (d, _), total in zip(self.detectors, totals):
+            image[..., col[d]] = total.array
+        image[..., 0] = y.array
 
     # ---- the estimator --------------------------------------------------------------------------
     def sample(self, scene, sampler, ray, medium=None, active=True):
@@ -648,6 +666,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             first = self._sampled(scene, sampler, si, bsdf, ctx, ray, alive, self.detector_samples,
                                   self.detector_sampling != "independent")
         per_event = [[first[d]] for d in range(n_det)]
+        si_first, alive_first = si, mi.Bool(alive)
 
         # ---- events 2 .. traced: continue by sampling g_BSE (Eq. 7)
         if traced > 1:
@@ -712,6 +731,12 @@ class EloIntegrator(mi.SamplingIntegrator):
             aovs.append(total)
             if self.events > 1:
                 aovs += events
+        if self._guided():
+            if self._pass2 is not None:
+                aovs += [mi.Float(0.0)] * 3
+            else:
+                n = dr.select(alive_first, si_first.sh_frame.n, mi.Vector3f(0.0))
+                aovs += [n.x, n.y, n.z]
         if counting:
             aovs += [n_isect, self._n_shadow]
             self._n_shadow = None
@@ -735,10 +760,25 @@ class EloIntegrator(mi.SamplingIntegrator):
             n_hit = n_hit + dr.select(alive, 1.0, 0.0)
             alive &= si.is_valid() & ~si.shape.is_emitter()
             bsdf = si.bsdf(ray)
-            direct = self._sampled(scene, sampler, si, bsdf, ctx, ray, alive,
-                                   self.bounce_detector_samples, stratify)
+            counting = self.count_rays
+
+            def direct_fn(si, ray, alive, sampler, bsdf=bsdf):
+                outer = self._n_shadow
+                self._n_shadow = mi.Float(0.0) if counting else None
+                out = self._sampled(scene, sampler, si, bsdf, ctx, ray, alive, self.bounce_detector_samples,
+                                    stratify)
+                extra = [self._n_shadow] if counting else []
+                self._n_shadow = outer
+                return tuple(out) + tuple(extra)
+
+            # paths that left the scene (most, without a chamber) skip the detector estimate:
+            # whole SIMD packets of escaped paths do no work at all
+            out = dr.if_stmt((si, ray, alive, sampler), alive, direct_fn,
+                             lambda *args: tuple(mi.Float(0.0) for _ in range(n_det + (1 if counting else 0))))
+            if counting:
+                self._n_shadow = self._n_shadow + out[-1]
             for d in range(n_det):
-                later[d].append(throughput * direct[d])
+                later[d].append(throughput * out[d])
         return later, n_hit
 
     def _ray_test(self, scene, ray, active):
@@ -853,43 +893,18 @@ class EloIntegrator(mi.SamplingIntegrator):
         return out
 
     # ---- events >= 2 estimated in space ----------------------------------------------------------
-    def _guide_normals(self, scene, sensor, height, width):
-        """(H, W, 3) surface normal where each pixel's beam ray first hits a scattering surface,
-        zero where it misses or hits a detector: the guide of ``bounce_filter``."""
-        idx = dr.arange(mi.UInt32, width * height)
-        film = mi.Point2f((mi.Float(idx % width) + 0.5) / width, (mi.Float(idx // width) + 0.5) / height)
-        ray, _ = sensor.sample_ray(0.0, 0.0, film, mi.Point2f(0.5))
-        si = scene.ray_intersect(ray)
-        ok = si.is_valid() & ~si.shape.is_emitter()
-        n = dr.select(ok, si.sh_frame.n, mi.Vector3f(0.0))
-        packed = dr.zeros(mi.Float, 3 * width * height)
-        for i in range(3):
-            dr.scatter(packed, n[i], idx * 3 + i)
-        return np.array(packed, dtype=np.float32).reshape(height, width, 3)
-
-    def _totals(self, arr):
-        """Recompute each detector's total and the film's sum channel from the event channels."""
-        h, w = arr.shape[:2]
-        n_det, per_det = len(self.detectors), 1 + self.events
-        view = arr[..., 1:1 + n_det * per_det].reshape(h, w, n_det, per_det)  # [total, e1, e2, ...]
-        np.add(view[..., 1], view[..., 2], out=view[..., 0])
-        for k in range(3, per_det):
-            view[..., 0] += view[..., k]
-        arr[..., 0] = view[..., 0, 0]
-        for d in range(1, n_det):
-            arr[..., 0] += view[..., d, 0]
-
-    def _filter_bounces(self, arr, scene, sensor, paths=None):
-        """In place on the developed (H, W, 1 + channels) array: event >= 2 channels replaced by
-        their normal-guided window average (see the module docstring), totals recomputed.
+    def _filter_bounces(self, image, col, sensor, paths=None):
+        """Replace the event >= 2 channels of the developed film ``image`` (TensorXf, H x W x C,
+        in place) by their normal-guided window average (see the module docstring).
 
         Multi-scale and cheap: a sum pyramid of tiles of 2^j pixels (one pass over the image);
         the window of a tile is the 3 x 3 tiles around it (2^j about the filter half-width at the
         top level); it counts as homogeneous if the mean of its unit normals (zero where the beam
         missed) is longer than cos(bounce_filter_angle). Pixels whose surrounding windows are all
         homogeneous take the bilinear interpolation of the window means; the others go on to
-        tiles half as large, down to single pixels; what is left keeps its own value."""
-        h, w, _ = arr.shape
+        tiles half as large (three scales at most); what is left keeps its own value. ``paths``
+        (H, W) is multiplied by the number of pixels each value now averages."""
+        h, w = int(image.shape[0]), int(image.shape[1])
         field = getattr(sensor, "field", None)
         if not field:
             return
@@ -897,19 +912,21 @@ class EloIntegrator(mi.SamplingIntegrator):
         if radius < 1.0:
             return
         top = max(0, int(round(math.log2((2.0 * radius + 1.0) / 3.0))))
-        n_det, per_det = len(self.detectors), 1 + self.events
-        view = arr[..., 1:1 + n_det * per_det].reshape(h, w, n_det, per_det)  # [total, e1, e2, ...]
-        n_later = n_det * (per_det - 2)
+        bounce_cols = [col[f"{d}.e{k}"] for d, _ in self.detectors for k in range(2, self.events + 1)]
+        n_later = len(bounce_cols)
         size = 1 << top
         hp, wp = -(-h // size) * size, -(-w // size) * size
         data = np.zeros((hp, wp, 4 + n_later), np.float32)  # normal, pixel count, events >= 2
-        normal = self._guide_normals(scene, sensor, h, w)
-        data[:h, :w, :3] = normal
+        for i, g in enumerate(_GUIDE):
+            data[:h, :w, i] = np.array(image[..., col[g]])
         data[:h, :w, 3] = 1.0
-        data[:h, :w, 4:] = view[..., 2:].reshape(h, w, n_later)
-        undecided = (normal[..., 0] != 0) | (normal[..., 1] != 0) | (normal[..., 2] != 0)
-        del normal
-        later = np.ascontiguousarray(data[:h, :w, 4:].transpose(2, 0, 1))  # (C, H, W)
+        later = np.empty((n_later, h, w), np.float32)
+        for i, c in enumerate(bounce_cols):
+            later[i] = np.array(image[..., c])
+            data[:h, :w, 4 + i] = later[i]
+        normal = data[:h, :w, :3]
+        # pixels whose beam hit a scattering surface (their film normal is a unit vector)
+        undecided = np.einsum("ijk,ijk->ij", normal, normal) > 0.25
         pyramid = [data]
         for _ in range(top):
             x = pyramid[-1]
@@ -941,9 +958,8 @@ class EloIntegrator(mi.SamplingIntegrator):
             if paths is not None:  # continuation paths behind each pixel's value now
                 np.copyto(paths, paths * win[..., 3][iy][:, ix], where=take)
             undecided &= ~take
-        later = later.transpose(1, 2, 0)
-        view[..., 2:] = later.reshape(h, w, n_det, per_det - 2)
-        self._totals(arr)
+        for i, c in enumerate(bounce_cols):
+            image[..., c] = mi.Float(later[i].ravel())
 
     def to_string(self):
         names = ", ".join(n for n, _ in self.detectors) or "(resolved at render time)"

@@ -1,0 +1,345 @@
+"""The integrator's fast paths (issue 6) against independent computations.
+
+Detector quadrature of Appendix A (Van Oosterom-Strackee with the corrected denominator),
+stratified sampling, the occlusion analysis that skips shadow rays, the inline g_BSE tables,
+bounce_fraction / bounce_samples (unbiased), the normal-guided bounce filter, the top-up pass,
+planar scenes without bounces, and the quality presets.
+"""
+
+import numpy as np
+import pytest
+
+from forward_scenes import disc_integral, flat_scene
+
+import elo_mitsuba as em
+from elo_mitsuba.physics import get_material
+
+mi = em.ensure_variant()
+import drjit as dr  # noqa: E402
+
+from elo_mitsuba.plugins.integrator_elo import (  # noqa: E402
+    _local_disk_triangles,
+    solid_angle_triangle,
+)
+
+DETECTORS = ("right", "left", "back", "front")
+CENTRES = {"right": (127.0, 0, 272.0), "left": (-127.0, 0, 272.0), "back": (0, 127.0, 272.0),
+           "front": (0, -127.0, 272.0)}
+
+
+def render(scene_dict, spp, seed=0, **options):
+    scene = mi.load_dict(scene_dict)
+    integ = scene.integrator()
+    for k, v in options.items():
+        setattr(integ, k, v)
+    img = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
+    return {n: img[..., i + 1] for i, n in enumerate(integ.channel_names())}, integ
+
+
+def pixel_points(res, field):
+    c = -field / 2 + (np.arange(res) + 0.5) * field / res
+    return c, -c
+
+
+# ---- Appendix A ----------------------------------------------------------------------------------------
+def test_van_oosterom_strackee_corrected():
+    """An octant seen from its corner is 4 pi / 8; the misprinted denominator (v1.v3)|v1| for
+    (v2.v3)|v1| gives another value for a general triangle, so the test can tell them apart."""
+    o = np.zeros(3)
+    e = np.eye(3)
+    assert solid_angle_triangle(o, e[0], e[1], e[2]) == pytest.approx(np.pi / 2, rel=1e-12)
+    assert solid_angle_triangle(o, e[0], e[2], e[1]) == pytest.approx(-np.pi / 2, rel=1e-12)  # other side
+    # a general triangle: compare with a fine Monte Carlo-free quadrature of the spherical area
+    v1, v2, v3 = np.array([3.0, 0.2, 1.0]), np.array([0.5, 2.0, 1.5]), np.array([-0.4, 0.3, 2.5])
+    n = 300  # n^2 equal sub-triangles, each evaluated at its centroid
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    up, down = i + j < n, i + j < n - 1
+    a = np.concatenate([(i[up] + 1 / 3) / n, (i[down] + 2 / 3) / n])
+    b = np.concatenate([(j[up] + 1 / 3) / n, (j[down] + 2 / 3) / n])
+    p = v1 + a[:, None] * (v2 - v1) + b[:, None] * (v3 - v1)
+    normal = np.cross(v2 - v1, v3 - v1)
+    da = np.linalg.norm(normal) / (2 * n * n)
+    r = np.linalg.norm(p, axis=1)
+    omega = np.sum(np.abs(p @ normal / np.linalg.norm(normal)) / r**3) * da
+    got = abs(solid_angle_triangle(o, v1, v2, v3))
+    assert got == pytest.approx(omega, rel=1e-4)
+    l1, l2, l3 = (np.linalg.norm(v) for v in (v1, v2, v3))
+    misprint = abs(2 * np.arctan2(v1 @ np.cross(v2, v3),
+                                  l1 * l2 * l3 + (v1 @ v2) * l3 + (v1 @ v3) * l2 + (v1 @ v3) * l1))
+    assert abs(misprint / omega - 1) > 0.05
+
+
+def test_disk_triangulation_has_the_disc_area():
+    for n in (4, 8, 24, 96):
+        t = _local_disk_triangles(n)
+        area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+        assert area.sum() == pytest.approx(np.pi, rel=1e-12)
+        assert np.all(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])[:, 2] > 0)  # counter-clockwise
+
+
+@pytest.mark.parametrize("wd, field, triangles, tol", [(400.0, 80.0, 4, 1e-3), (150.0, 240.0, 8, 1e-3),
+                                                        (150.0, 240.0, 24, 1e-3)])
+def test_quadrature_matches_disc_integral(wd, field, triangles, tol):
+    """Eq. A2 with Eq. A1 at 3x3 scan points, one sample per pixel (deterministic). The tolerance
+    holds the quadrature error (< 4e-4) plus the float32 / tabulated g_BSE of the renderer (~5e-4
+    at the oblique corners, the same with stratified sampling)."""
+    res = 3
+    ch, _ = render(flat_scene(mi, res=res, field=field, wd=wd), spp=1, detector_sampling="quadrature",
+                   quadrature_triangles=triangles)
+    xs, ys = pixel_points(res, field)
+    mat = get_material("Ti-6Al-4V")
+    for j, y in enumerate(ys):
+        for i, x in enumerate(xs):
+            p = np.array([x, y, 0.0])
+            for name in DETECTORS:
+                c = np.array(CENTRES[name])
+                ref = disc_integral(p, p - np.array([0, 0, wd]), [0, 0, 1], c, -c, 25.0, mat)
+                assert ch[name][j, i] == pytest.approx(ref, rel=tol), (name, x, y)
+
+
+def test_quadrature_is_deterministic_and_stratified_unbiased():
+    scene = flat_scene(mi, res=4, field=80.0)
+    q1, _ = render(scene, spp=1, seed=1, detector_sampling="quadrature", quadrature_triangles=24)
+    q2, _ = render(scene, spp=3, seed=7, detector_sampling="quadrature", quadrature_triangles=24)
+    st, _ = render(scene, spp=512, seed=3, detector_sampling="stratified", detector_samples=4)
+    ind, _ = render(scene, spp=512, seed=3)
+    for n in DETECTORS:
+        np.testing.assert_allclose(q1[n], q2[n], rtol=1e-6)
+        np.testing.assert_allclose(st[n], q1[n], rtol=2e-3)
+        np.testing.assert_allclose(ind[n], q1[n], rtol=6e-3)
+    # stratification pays: 4 stratified points beat 4 independent spp at equal shadow rays
+    a, _ = render(scene, spp=1, seed=11, detector_sampling="stratified", detector_samples=4)
+    b, _ = render(scene, spp=4, seed=11)
+    err_a = np.sqrt(np.mean([(a[n] / q1[n] - 1) ** 2 for n in DETECTORS]))
+    err_b = np.sqrt(np.mean([(b[n] / q1[n] - 1) ** 2 for n in DETECTORS]))
+    assert err_a < 0.7 * err_b
+
+
+def _blocked_scene(mi, res=6, half=True):
+    """Flat plate, four detectors, a box hiding part (or all) of the right detector from the field."""
+    scene = flat_scene(mi, res=res, field=40.0)
+    # a thin wall at x = 100 reaching up to z = 250 (half) or 300 (all) across the right detector's view
+    top = 215.0 if half else 320.0
+    scene["blocker"] = {"type": "rectangle", "bsdf": {"type": "elo_bse", "material": "316L"},
+                        "to_world": mi.ScalarTransform4f().translate([100.0, 0.0, top / 2])
+                        @ mi.ScalarTransform4f().rotate([0, 1, 0], -90.0)
+                        @ mi.ScalarTransform4f().scale([top / 2, 80.0, 1.0])}
+    return scene
+
+
+def test_partial_occlusion_sampled_visibility_is_unbiased():
+    """A wall hides part of the right detector: the quadrature with one sampled shadow ray per
+    detector agrees with unbiased stratified sampling; the analysis does not skip these rays."""
+    scene = _blocked_scene(mi)
+    q, integ = render(scene, spp=256, seed=5, detector_sampling="quadrature", quadrature_triangles=24)
+    assert integ._free[0] == []  # right: blocked, shadow rays needed
+    ref, _ = render(scene, spp=512, seed=6, detector_sampling="stratified", detector_samples=16)
+    clear, _ = render(flat_scene(mi, res=6, field=40.0), spp=1, detector_sampling="quadrature")
+    assert np.all(ref["right"] < 0.95 * clear["right"])  # the wall does hide part of it
+    assert np.all(ref["right"] > 0.05 * clear["right"])
+    # one binary visibility ray per detector and sample: about sqrt(p(1-p)/spp) ~ 3-6% per pixel
+    np.testing.assert_allclose(q["right"], ref["right"], rtol=0.25)
+    assert q["right"].mean() == pytest.approx(ref["right"].mean(), rel=0.015)
+    tri, _ = render(scene, spp=1, detector_sampling="quadrature", quadrature_triangles=96,
+                    quadrature_visibility="triangle")
+    np.testing.assert_allclose(tri["right"], ref["right"], rtol=0.05)  # visibility at 96 centroids
+
+
+def test_occlusion_analysis_skips_only_unblockable_rays():
+    scene = mi.load_dict(flat_scene(mi, res=5, field=80.0, wall=True, events=2))
+    integ = scene.integrator()
+    integ.count_rays = True
+    img = np.array(mi.render(scene, spp=4, seed=2), dtype=np.float64)
+    assert all(integ._free)  # nothing can block a detector from the plate
+    first = integ.ray_counts["shadow_rays"]
+    integ.occlusion_analysis = False
+    off = np.array(mi.render(scene, spp=4, seed=2), dtype=np.float64)
+    assert not any(integ._free)
+    assert integ.ray_counts["shadow_rays"] - first == pytest.approx(4.0, abs=1e-6)  # 4 per sample
+    np.testing.assert_allclose(img, off, rtol=1e-6)  # the skipped rays could not have hit anything
+    # a blocker: the analysis must keep the rays of the detector it can hide, and only those
+    _, integ2 = render(_blocked_scene(mi), spp=1)
+    assert integ2._free[0] == [] and all(integ2._free[1:])
+
+
+def test_inline_g_tables_equal_bsdf_eval():
+    """The per-BSDF tables (no virtual call) give what elo_bse's eval gives, incl. the wall."""
+    scene = flat_scene(mi, res=4, field=200.0, wd=150.0, wall=True, events=2)
+    a, integ = render(scene, spp=16, seed=4)
+    assert integ._tables is not None
+
+    class Dispatch(type(integ)):
+        @staticmethod
+        def _material_tables(scatterers):
+            return None
+
+    mi.register_integrator("elo_test_dispatch", Dispatch)
+    scene["integrator"] = {"type": "elo_test_dispatch", "events": 2}
+    b, integ_b = render(scene, spp=16, seed=4)
+    assert integ_b._tables is None
+    for n in a:
+        np.testing.assert_allclose(a[n], b[n], rtol=2e-5, atol=1e-12)
+
+
+# ---- events >= 2 -----------------------------------------------------------------------------------
+def test_bounce_fraction_and_samples_are_unbiased():
+    scene = flat_scene(mi, res=16, field=80.0, wall=True, events=2)
+    opts = {"detector_sampling": "quadrature", "quadrature_triangles": 4}
+    full, _ = render(scene, spp=256, seed=1, **opts)
+    part, _ = render(scene, spp=256, seed=2, bounce_fraction=0.25, **opts)
+    split, _ = render(scene, spp=64, seed=3, bounce_samples=4, **opts)
+    for n in DETECTORS:
+        ref = full[f"{n}.e2"].mean()
+        assert ref > 0.01 * full[n].mean()
+        assert part[f"{n}.e2"].mean() == pytest.approx(ref, rel=0.06)  # ~2.5% noise (1 sigma)
+        assert split[f"{n}.e2"].mean() == pytest.approx(ref, rel=0.06)
+        np.testing.assert_allclose(part[f"{n}.e1"], full[f"{n}.e1"], rtol=1e-6)  # untouched
+
+
+def test_bounce_filter_reduces_noise_and_stops_at_edges():
+    """Flat plate + wall: the filtered 2nd event is far less noisy at the same cost and keeps
+    its mean; with a 45-degree ramp in the field the filter does not mix ramp and plate."""
+    scene = flat_scene(mi, res=48, field=20.0, wall=True, events=2)
+    opts = {"detector_sampling": "quadrature", "quadrature_triangles": 4}
+    ref, _ = render(scene, spp=512, seed=9, **opts)
+    raw, _ = render(scene, spp=4, seed=10, **opts)
+    filt, _ = render(scene, spp=4, seed=10, bounce_filter=2.0, **opts)
+    for n in ("right", "left"):
+        e_raw = np.sqrt(np.mean((raw[f"{n}.e2"] - ref[f"{n}.e2"]) ** 2))
+        e_filt = np.sqrt(np.mean((filt[f"{n}.e2"] - ref[f"{n}.e2"]) ** 2))
+        assert e_filt < 0.35 * e_raw
+        assert filt[f"{n}.e2"].mean() == pytest.approx(ref[f"{n}.e2"].mean(), rel=0.05)
+        np.testing.assert_allclose(filt[n], filt[f"{n}.e1"] + filt[f"{n}.e2"], rtol=1e-5)
+    # an edge: a 45-degree ramp covering x > 0 (its 2nd event differs from the plate's)
+    ramp = flat_scene(mi, res=48, field=20.0, wall=True, events=2)
+    half = 30.0 / np.sqrt(2.0)
+    ramp["ramp"] = {"type": "rectangle", "bsdf": {"type": "elo_bse"},
+                    "to_world": mi.ScalarTransform4f().translate([half, 0, half + 1e-3])
+                    @ mi.ScalarTransform4f().rotate([0, 1, 0], -45.0) @ mi.ScalarTransform4f().scale(30.0)}
+    ref, _ = render(ramp, spp=1024, seed=1, **opts)
+    guided, _ = render(ramp, spp=32, seed=2, bounce_filter=3.0, **opts)
+    blind, _ = render(ramp, spp=32, seed=2, bounce_filter=3.0, bounce_filter_angle=89.0, **opts)
+    near = slice(18, 31)  # the edge is between columns 23 and 24
+    left = ref["left.e2"].mean(axis=0)
+    assert left[25:30].mean() > 2 * left[18:23].mean()  # the 2nd event jumps at the edge
+    for n in ("right", "left"):
+        r = ref[f"{n}.e2"].mean(axis=0)[near]
+        e_guided = np.sqrt(np.mean((guided[f"{n}.e2"].mean(axis=0)[near] / r - 1) ** 2))
+        e_blind = np.sqrt(np.mean((blind[f"{n}.e2"].mean(axis=0)[near] / r - 1) ** 2))
+        assert e_guided < 0.05 and e_guided < 0.5 * e_blind, (n, e_guided, e_blind)
+
+
+def test_top_up_pass_reaches_the_minimum_paths():
+    scene = flat_scene(mi, res=12, field=80.0, wall=True, events=2)
+    opts = {"detector_sampling": "quadrature", "quadrature_triangles": 4}
+    ref, _ = render(scene, spp=256, seed=1, **opts)
+    low, _ = render(scene, spp=1, seed=2, bounce_fraction=0.25, **opts)
+    top, _ = render(scene, spp=1, seed=2, bounce_fraction=0.25, bounce_min=16, **opts)
+    for n in ("right", "left"):
+        e_low = np.sqrt(np.mean((low[f"{n}.e2"] - ref[f"{n}.e2"]) ** 2))
+        e_top = np.sqrt(np.mean((top[f"{n}.e2"] - ref[f"{n}.e2"]) ** 2))
+        assert e_top < 0.5 * e_low
+        np.testing.assert_allclose(top[f"{n}.e1"], low[f"{n}.e1"], rtol=1e-6)
+        np.testing.assert_allclose(top[n], top[f"{n}.e1"] + top[f"{n}.e2"], rtol=1e-5)
+
+
+def test_top_up_pass_hits_exactly_its_pixels():
+    """The top-up pass selects pixels by lane index // spp (Mitsuba's lane order): only the
+    masked pixels get events >= 2, and nothing else is computed in that pass."""
+    scene = mi.load_dict(flat_scene(mi, res=5, field=80.0, wall=True, events=2))
+    integ = scene.integrator()
+    mask = np.zeros((5, 5), bool)
+    mask[1, 3] = mask[4, 0] = True
+    integ._pass2 = (mi.Bool(mask.ravel()), dr.opaque(mi.UInt32, 64))
+    try:
+        img = np.array(mi.render(scene, spp=64, seed=1), dtype=np.float64)
+    finally:
+        integ._pass2 = None
+    ch = {n: img[..., i + 1] for i, n in enumerate(integ.channel_names())}
+    e2 = sum(ch[f"{n}.e2"] for n in DETECTORS)
+    assert np.all(e2[mask] > 0) and np.all(e2[~mask] == 0)
+    assert all(np.all(ch[f"{n}.e1"] == 0) for n in DETECTORS)
+
+
+def test_planar_scene_traces_no_bounce():
+    scene = flat_scene(mi, res=4, events=3)
+    ch, integ = render(scene, spp=4)
+    assert not integ.bounce_possible and integ.notes
+    for n in DETECTORS:
+        assert np.all(ch[f"{n}.e2"] == 0) and np.all(ch[f"{n}.e3"] == 0)
+        np.testing.assert_array_equal(ch[n], ch[f"{n}.e1"])
+    integ.count_rays = True
+    mi.render(mi.load_dict(scene), integrator=integ, spp=2)
+    assert integ.ray_counts["intersections"] == pytest.approx(1.0)
+
+
+# ---- presets ------------------------------------------------------------------------------------------
+def test_quality_presets():
+    from elo_mitsuba.render import QUALITY_PRESETS
+
+    assert set(QUALITY_PRESETS) == {"draft", "default", "reference"}
+    scene = em.load_scene("athene_flat", res=64)
+    for q in QUALITY_PRESETS:
+        spp = scene.set_quality(q)
+        assert spp >= 1 and scene.integrator.detector_sampling == "quadrature"
+        assert 0 < scene.integrator.bounce_fraction <= 1 and scene.integrator.bounce_samples >= 1
+    assert scene.set_quality("scene") == 16
+    blurred = em.load_scene("flat_plate", res=8, fwhm=0.27)
+    assert blurred.set_quality("default") == QUALITY_PRESETS["default"]["spp_blur"]
+    with pytest.raises(em.EloInputError, match="quality"):
+        scene.set_quality("ultra")
+
+
+def test_default_preset_first_event_error_below_one_percent():
+    """The promise of the default preset: <= 1% per pixel on the 1st-event channels, here at the
+    plate's corner region and centre of the chamber scene against the disc quadrature."""
+    res, field = 6, 80.0
+    scene = em.load_scene("athene_flat", res=res)
+    result = scene.render(quality="default", seed=3)
+    xs, ys = pixel_points(res, field)
+    mat = get_material("Ti-6Al-4V")
+    for j in (0, 2, 5):
+        for i in (0, 3, 5):
+            p = np.array([xs[i], ys[j], 0.0])
+            for name in DETECTORS:
+                c = np.array(CENTRES[name])
+                ref = disc_integral(p, p - np.array([0, 0, 400.0]), [0, 0, 1], c, -c, 25.0, mat)
+                assert result.channels[f"{name}.e1"][j, i] == pytest.approx(ref, rel=0.01)
+
+
+def test_quadrature_reuses_kernels_when_a_detector_moves():
+    scene = em.load_scene("flat_plate", res=8)
+    scene.set_quality("default")
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    a = scene.render(seed=0)
+    dr.kernel_history()
+    scene.set_detector("right", center=(150.0, 0.0, 250.0))
+    b = scene.render(seed=1)
+    hist = [k for k in dr.kernel_history() if str(k["type"]).endswith("JIT") and k["size"] > 1]
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert hist and all(k.get("cache_hit") for k in hist)
+    assert b.channels["right"].mean() != a.channels["right"].mean()
+    # and the moved detector is integrated where it now is
+    mat = get_material("Ti-6Al-4V")
+    p = np.array([-35.0, 35.0, 0.0])
+    c = np.array([150.0, 0.0, 250.0])
+    ref = disc_integral(p, p - np.array([0, 0, 400.0]), [0, 0, 1], c, -c, 25.0, mat)
+    assert b.channels["right"][0, 0] == pytest.approx(ref, rel=2e-3)
+
+
+def test_detector_shapes_for_quadrature():
+    """A rectangle detector and a mesh detector are integrated by their own triangles."""
+    scene = flat_scene(mi, res=3, field=60.0)
+    scene["right"] = {"type": "rectangle", "emitter": {"type": "area"},
+                      "bsdf": {"type": "diffuse", "reflectance": 0.0},
+                      "to_world": mi.ScalarTransform4f().look_at(origin=[127, 0, 272], target=[0, 0, 0], up=[0, 0, 1])
+                      @ mi.ScalarTransform4f().scale(20.0)}
+    q, _ = render(scene, spp=1, detector_sampling="quadrature", quadrature_triangles=32)
+    s, _ = render(scene, spp=1024, seed=2, detector_sampling="stratified", detector_samples=4)
+    np.testing.assert_allclose(q["right"], s["right"], rtol=2e-3)
+    sphere = flat_scene(mi, res=2)
+    sphere["right"] = {"type": "sphere", "center": [127, 0, 272], "radius": 20.0, "emitter": {"type": "area"}}
+    loaded = mi.load_dict(sphere)
+    loaded.integrator().detector_sampling = "quadrature"
+    with pytest.raises(em.EloInputError, match="quadrature supports disk, rectangle and mesh"):
+        loaded.integrator().prepare_scene(loaded)
