@@ -1,7 +1,8 @@
 """One benchmark job in its own process: ``python -m benchmarks.worker '<json job>'``.
 
-Prints one JSON line (prefixed ``RESULT ``) with the timings, the process's peak memory
-(``ru_maxrss``) and what the job measured. Job kinds:
+Prints one JSON line (prefixed ``RESULT ``) with the timings, peak memory (``peak_mb``: the
+peak resident set of one timed render, reset before each; ``maxrss_mb``: of the whole process)
+and what the job measured. Job kinds:
 
 * ``render``: load a scene (shipped name or XML path, ``params`` as -D), set integrator options,
   render once to compile/warm up (``first_s``), then time ``seeds`` renders of ``spp``
@@ -25,6 +26,29 @@ import numpy as np
 
 def _maxrss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _reset_peak():
+    """Reset the process's peak resident set (Linux: VmHWM), so that the next :func:`_peak_mb`
+    is the peak of what runs in between; False where the kernel does not allow it."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_mb():
+    """Peak resident set since the last :func:`_reset_peak` (or since the start), MB."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return _maxrss_mb()
 
 
 def _sync(dr, *values):
@@ -59,20 +83,23 @@ def job_render(job):
     if job.get("warm", True):
         scene.render(spp=spp, seed=20_000)
     out["first_s"] = time.perf_counter() - t
-    times, first = [], None
-    for seed in job.get("seeds", [0]):
+    # peak memory of one render as a user's process sees it (import, scene, Dr.Jit's caches
+    # included): the peak is reset before each timed render and no earlier result is held
+    times, peaks = [], []
+    for i, seed in enumerate(job.get("seeds", [0])):
+        _reset_peak()
         t = time.perf_counter()
         result = scene.render(spp=spp, seed=seed)
         times.append(time.perf_counter() - t)
-        if first is None:
-            first = result
-    out.update(times=times, maxrss_mb=_maxrss_mb(), ray_counts=counts, notes=list(integ.notes),
+        peaks.append(_peak_mb())
+        if i == 0 and job.get("save"):
+            np.savez(job["save"], **result.channels)
+        del result
+    out.update(times=times, peak_mb=max(peaks), maxrss_mb=_maxrss_mb(), ray_counts=counts, notes=list(integ.notes),
                free_detectors=[bool(f) for f in integ._free], spp=spp,
                settings={k: getattr(integ, k) for k in (
                    "detector_sampling", "detector_samples", "quadrature_triangles", "bounce_fraction",
                    "bounce_samples", "bounce_filter", "bounce_min")})
-    if job.get("save"):
-        np.savez(job["save"], **first.channels)
     return out
 
 
@@ -194,7 +221,95 @@ def job_raw(job):
             "bounce_hit_fraction": n2 / max(n1, 1)}
 
 
-JOBS = {"render": job_render, "path": job_path, "raw": job_raw}
+def job_skeleton(job):
+    """Our integrator against a ray-only skeleton of itself in Mitsuba's render loop: the same
+    rays (beam, one shadow ray per detector and event to a point drawn on it, cosine-distributed
+    bounce), the same 13 film channels, but no g_BSE, no BSDF sampling, no quadrature. Both timed
+    through ``mi.render`` (kernel, film), interleaved; every shadow ray cast."""
+    import elo_mitsuba as em
+
+    mi = em.ensure_variant()
+    import drjit as dr
+
+    from elo_mitsuba.plugins.integrator_elo import EloIntegrator
+
+    class Skeleton(EloIntegrator):
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            si = scene.ray_intersect(ray, active)
+            alive = si.is_valid() & ~si.shape.is_emitter()
+            per_event = []
+            for event in range(self.events):
+                row = []
+                for _, shape in self.detectors:
+                    ds, w = shape.emitter().sample_direction(si, sampler.next_2d(alive), alive)
+                    seen = alive & ~scene.ray_test(si.spawn_ray_to(ds.p), alive)
+                    row.append(dr.select(seen, w[0], 0.0))
+                per_event.append(row)
+                if event + 1 < self.events:
+                    d = si.to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(alive)))
+                    si = scene.ray_intersect(si.spawn_ray(d), alive)
+                    alive &= si.is_valid() & ~si.shape.is_emitter()
+            aovs = []
+            for k in range(len(self.detectors)):
+                events = [per_event[e][k] for e in range(self.events)]
+                total = events[0]
+                for e in events[1:]:
+                    total = total + e
+                aovs += [total] + (events if self.events > 1 else [])
+            return mi.Spectrum(0.0), mi.Bool(True), aovs
+
+    mi.register_integrator("elo_benchmark_skeleton", Skeleton)
+    scene = em.load_scene(job["scene"], **job.get("params", {}))
+    events = int(job.get("events", scene.integrator.events))
+    ours = mi.load_dict({"type": "elo", "events": events})
+    skel = mi.load_dict({"type": "elo_benchmark_skeleton", "events": events})
+    ours.occlusion_analysis = skel.occlusion_analysis = False
+    spp = int(job["spp"])
+    sc, sensor = scene.scene, scene.sensor
+    ours.prepare_scene(sc, sensor)
+    dets = [shape for _, shape in ours.detectors]
+    w, h = sensor.resolution
+    n = w * h * spp
+
+    def rays_only(seed):
+        """The same rays in one kernel outside Mitsuba's render loop: no sampler object, no
+        emitter pdf, one output channel; the fastest a one-kernel (megakernel) design can be."""
+        lane = dr.arange(mi.UInt32, n)
+        pixel = lane // spp
+        film = mi.Point2f((mi.Float(pixel % w) + 0.5) / w, (mi.Float(pixel // w) + 0.5) / h)
+        ray, _ = sensor.sample_ray(0.0, 0.0, film, mi.Point2f(0.5))
+        rng = mi.PCG32(n, lane + dr.opaque(mi.UInt32, seed * n))
+        si = sc.ray_intersect(ray)
+        alive = si.is_valid() & ~si.shape.is_emitter()
+        acc = mi.Float(0.0)
+        for event in range(events):
+            u = mi.Point2f(rng.next_float32(), rng.next_float32())
+            for shape in dets:
+                blocked = sc.ray_test(si.spawn_ray_to(shape.sample_position(0.0, u).p), alive)
+                acc += dr.select(alive & ~blocked, 1.0, 0.0)
+            if event + 1 < events:
+                u = mi.Point2f(rng.next_float32(), rng.next_float32())
+                si = sc.ray_intersect(si.spawn_ray(si.to_world(mi.warp.square_to_cosine_hemisphere(u))), alive)
+                alive &= si.is_valid() & ~si.shape.is_emitter()
+        out = dr.zeros(mi.Float, w * h)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, acc, pixel)
+        return out
+
+    runs = {"ours": lambda seed: mi.render(sc, integrator=ours, spp=spp, seed=seed),
+            "skeleton": lambda seed: mi.render(sc, integrator=skel, spp=spp, seed=seed),
+            "rays only": rays_only}
+    times = {key: [] for key in runs}
+    for fn in runs.values():
+        _sync(dr, fn(0))
+    for rep in range(int(job.get("repeat", 5))):
+        for key, fn in runs.items():
+            t = time.perf_counter()
+            _sync(dr, fn(rep + 1))
+            times[key].append(time.perf_counter() - t)
+    return {"times": times, "maxrss_mb": _maxrss_mb()}
+
+
+JOBS = {"render": job_render, "path": job_path, "raw": job_raw, "skeleton": job_skeleton}
 
 
 def main(argv=None):
