@@ -25,10 +25,8 @@ images are cached in out/bench_cache/ (``--fresh`` to recompute).
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -160,38 +158,15 @@ def median(x):
 
 # ---- machine ---------------------------------------------------------------------------------------------
 def machine_info():
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = "unknown"
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
-    except OSError:
-        pass
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
-                               capture_output=True, text=True).stdout.strip()
-        commit += " (+ uncommitted changes)" if dirty else ""
-    except OSError:
-        commit = "unknown"
-    import drjit as dr
-    import mitsuba as mi
+    from elo_mitsuba import ensure_variant
+    from elo_mitsuba.provenance import machine, software, source_state, utc_now
 
-    try:
-        llvm = ".".join(map(str, dr.detail.llvm_version()))
-    except Exception:  # noqa: BLE001
-        llvm = "?"
-    return {"date": datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z"), "nproc": os.cpu_count(),
-            "cpu": cpu, "mem": mem, "load": os.getloadavg(), "commit": commit, "python": platform.python_version(),
-            "mitsuba": mi.__version__, "drjit": dr.__version__, "llvm": llvm}
+    ensure_variant()
+    m, sw, src = machine(), software(), source_state(ROOT)
+    commit = src["commit"] + ("" if src["state"] in ("clean", "unknown") else f" (working tree: {src['state']})")
+    return {"date": utc_now(), "nproc": m["cores"], "cpu": m["cpu"],
+            "mem": f"{m['mem_gib']:.1f} GiB" if m["mem_gib"] else "unknown", "load": m["load"] or (0, 0, 0),
+            "commit": commit, **sw}
 
 
 # ---- references -----------------------------------------------------------------------------------------
@@ -729,7 +704,6 @@ def main(argv=None):
     sections = args.only or SECTIONS
     t0 = time.perf_counter()
     parts = {}
-    target_results = {}
     state = {"target_results": {}}
     titles = {"targets": "Targets: 1500², four detectors, events 1 + 2 (athene_flat)",
               "path": "The alternative: four renders of Mitsuba's `path` integrator",
@@ -750,7 +724,7 @@ def main(argv=None):
             "reported as medians, so their ratios are reliable.",
             f"- commit: {info['commit']}",
             f"- Python {info['python']}, Mitsuba {info['mitsuba']}, Dr.Jit {info['drjit']}, LLVM {info['llvm']}, "
-            "variant llvm_ad_mono", ""]
+            f"variant {info['variant']}, elo-mitsuba {info['elo_mitsuba']}", ""]
         body = []
         if state["target_results"]:
             body += ["## Summary: the targets", "", summary(b, state["target_results"], res_targets), "",

@@ -59,7 +59,7 @@ def _sync(dr, *values):
 def job_render(job):
     import elo_mitsuba as em
 
-    mi = em.ensure_variant()
+    em.ensure_variant()
     t0 = time.perf_counter()
     scene = em.load_scene(job["scene"], **job.get("params", {}))
     integ = scene.integrator

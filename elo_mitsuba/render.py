@@ -360,8 +360,6 @@ class EloScene:
         kernel (with a progress line on stderr when ``progress`` or a terminal).
         """
         mi = self.mi
-        import drjit as dr
-
         if events is not None:
             self.set_events(events)
         preset_spp = self.set_quality(quality) if quality is not None else None
@@ -452,8 +450,6 @@ def _disk_geometry(to_world, shape) -> dict:
 
 def _shape_geometry(mi, shape, n_samples: int = 4096) -> dict:
     """Area-weighted centroid, mean unit normal and equivalent radius of a shape (mm)."""
-    import drjit as dr
-
     u = (np.arange(n_samples) + 0.5) / n_samples
     v = np.modf(np.arange(n_samples) * 0.6180339887498949)[0]
     ps = shape.sample_position(0.0, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))))

@@ -344,7 +344,7 @@ def test_hypothesis_random_directions_and_widths(mi):
     """Property test: for random wi, wo, material and lobe width, eval and pdf are finite and
     non-negative, zero exactly when a direction is at/below the surface, eval agrees with the
     numpy g_BSE (tolerance grows with k: float32 cos(beta)^k), and sampling gives weight = eval/pdf."""
-    hypothesis = pytest.importorskip("hypothesis")
+    pytest.importorskip("hypothesis")
     from hypothesis import given, settings
     from hypothesis import strategies as st
 

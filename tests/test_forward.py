@@ -15,7 +15,6 @@ import elo_mitsuba as em
 from elo_mitsuba.physics import get_material
 
 mi = em.ensure_variant()
-import drjit as dr  # noqa: E402  (after the variant is set)
 
 DETECTORS = ("right", "left", "back", "front")
 DH, DW, R = 272.0, 127.0, 25.0

@@ -89,3 +89,29 @@ def test_cli_validate_is_registered_and_explains_missing_checkout(tmp_path):
     assert args.quick and callable(args.run)
     with pytest.raises(EloEnvironmentError, match="source checkout"):
         _find_validation(roots=[tmp_path])
+
+
+def test_cli_benchmark_is_registered_and_checks_sections(tmp_path, capsys):
+    from elo_mitsuba.cli import build_parser, main
+    from elo_mitsuba.cli.validate import find_checkout_module
+    from elo_mitsuba.errors import EloEnvironmentError
+
+    args = build_parser().parse_args(["benchmark", "--quick", "--only", "targets", "path"])
+    assert args.quick and args.only == ["targets", "path"] and callable(args.run)
+    assert main(["benchmark", "--only", "nonsense"]) == 2  # nothing runs
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nonsense" in err[0] and "ceiling" in err[0]
+    with pytest.raises(EloEnvironmentError, match="elo-mitsuba benchmark.*source checkout"):
+        find_checkout_module("benchmarks", "run", "benchmark", roots=[tmp_path])
+
+
+def test_provenance_names_machine_software_and_source(mi, tmp_path):
+    from elo_mitsuba.provenance import machine, software, source_state
+
+    m = machine()
+    assert m["cores"] >= 1 and m["cpu"]
+    sw = software()
+    assert sw["mitsuba"] and sw["variant"].startswith(("llvm", "cuda", "scalar"))
+    assert source_state(tmp_path) == {"commit": "unknown (not a git checkout)", "state": "unknown"}
+    repo = source_state(Path(__file__).resolve().parents[1])
+    assert len(repo["commit"]) == 40 or repo["commit"].startswith("unknown")

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import importlib
 import json
-import os
-import platform
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -101,60 +97,20 @@ class Validation:
     header: dict
 
 
-def _git(*args):
-    try:
-        out = subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=20,
-                             stdin=subprocess.DEVNULL)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
-
-
 def environment_info(quick: bool, mode_cmd: str) -> dict:
     """Date, commit and machine for the report header (read-only git only)."""
-    import drjit as dr
-    import mitsuba as mi
-    import numpy as np
+    from elo_mitsuba.provenance import machine, software, source_state, utc_now
 
-    import elo_mitsuba
-
-    commit = _git("rev-parse", "HEAD") or "unknown (not a git checkout)"
-    changed = _git("diff-index", "--name-only", "HEAD")
-    untracked = _git("ls-files", "--others", "--exclude-standard")
-    n_changed = len([ln for ln in (changed or "").splitlines() if ln])
-    n_untracked = len([ln for ln in (untracked or "").splitlines() if ln])
-    state = "clean" if (n_changed + n_untracked) == 0 else f"{n_changed} modified, {n_untracked} untracked files"
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = ""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = f"{int(line.split()[1]) / 1024 ** 2:.0f} GiB"
-                break
-    except OSError:
-        pass
-    try:
-        llvm = ".".join(map(str, dr.detail.llvm_version()))
-    except Exception:  # pragma: no cover
-        llvm = "?"
-    try:
-        load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    except OSError:
-        load = "?"
+    m, sw, src = machine(), software(), source_state(REPO_ROOT)
+    load = ", ".join(f"{v:.1f}" for v in m["load"]) if m["load"] else "?"
+    mem = f"{m['mem_gib']:.0f} GiB" if m["mem_gib"] else ""
     return {
-        "Date (UTC)": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M"),
-        "Commit": f"`{commit}` (working tree: {state})",
-        "Machine": f"{platform.system()} {platform.machine()}, {cpu}, {os.cpu_count()} cores, {mem} "
+        "Date (UTC)": utc_now(),
+        "Commit": f"`{src['commit']}` (working tree: {src['state']})",
+        "Machine": f"{m['system']}, {m['cpu']}, {m['cores']} cores, {mem} "
                    f"(load average at start {load}; shared with other jobs)",
-        "Software": f"elo-mitsuba {elo_mitsuba.__version__}, Mitsuba {mi.__version__} ({mi.variant()}), "
-                    f"Dr.Jit {dr.__version__}, LLVM {llvm}, Python {platform.python_version()}, numpy {np.__version__}",
+        "Software": f"elo-mitsuba {sw['elo_mitsuba']}, Mitsuba {sw['mitsuba']} ({sw['variant']}), "
+                    f"Dr.Jit {sw['drjit']}, LLVM {sw['llvm']}, Python {sw['python']}, numpy {sw['numpy']}",
         "Mode": ("quick (`--quick`: tiny resolutions, for CI; numbers are noisy)" if quick
                  else "default settings"),
         "Command": f"`{mode_cmd}`",

@@ -88,7 +88,7 @@ def run(ctx):
         "C2", "Eq. 5 / App. A (A2): the detector integral of g_BSE over Ω_d — our Monte Carlo estimate is unbiased",
         "Eq. 5 (exact integral)", f"converged 1st event / quadrature of Eq. 5 over the disc − 1 = {fmt(bias, 2)} "
         f"± {fmt(se, 2)} (pixel rms {fmt(float(np.sqrt(np.mean(rel ** 2))), 2)}, expected noise "
-        f"{fmt(f1['a'] / math.sqrt(ref_spp), 2)})", settings.split(";")[0] + f"; quadrature 32×96 nodes per pixel",
+        f"{fmt(f1['a'] / math.sqrt(ref_spp), 2)})", settings.split(";")[0] + "; quadrature 32×96 nodes per pixel",
         verdict_from(abs(bias) < max(3 * se, 2e-4)), "criterion |bias| < 3σ", {"bias": bias, "bias_se": se}, "convergence"))
 
     # detector samples at fixed spp
@@ -234,7 +234,6 @@ def _strategies(ctx, cfg, kw, quad, st, settings):
     q = out["quadrature"]
     tris = sorted(q)
     falls = all(q[b][0] <= q[a][0] * 1.05 for a, b in zip(tris, tris[1:]))
-    best = min(tris, key=lambda n: q[n][0])
     need = next((n for n in tris if q[n][1] < 1e-3), None)
     gain = out["sampled"]["independent"] / max(out["sampled"]["stratified"], 1e-30)
     st.add(Row(

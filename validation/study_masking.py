@@ -107,7 +107,7 @@ def run(ctx):
         st.add(Row(
             tag, "Fig. 14b, Fig. 15: the number of masked pixels (no electron reaches the detector) grows with ζ; "
             "only the ζ = 25° image is > 0 everywhere", "masked pixels grow with ζ; none at 25°",
-            f"masked pixels (%, ζ = 25/50/60/75°): " + ", ".join(f"{100 * v:.2f}" for v in vals) + f" ({d['label']})",
+            "masked pixels (%, ζ = 25/50/60/75°): " + ", ".join(f"{100 * v:.2f}" for v in vals) + f" ({d['label']})",
             settings if why_input else settings.replace("middle square", f"relief × {scale:g}, middle square"),
             verdict_from(ok) if not (why_input and not ok) else ("partly" if vals[0] == 0 else "disagrees"),
             ("input, as 14a: ζ = 25° masks nothing as in the paper, but without slopes beyond the masking lines "
@@ -161,7 +161,7 @@ def _fig_hist(ctx, st, datasets):
 
     from elo_mitsuba.constants import TABLE1_LAYOUTS
 
-    from .plotting import CMAP_SEQ, save
+    from .plotting import CMAP_SEQ
 
     fig, axs = plt.subplots(1, 2, figsize=(11.5, 4.8))
     for ax, d in zip(axs, datasets):

@@ -35,24 +35,29 @@ examples:
 STUDIES_HINT = "checks, stsa, corrugated, reflectance, masking, melt_plate, convergence"
 
 
-def _find_validation(roots=None):
-    """Import ``validation.runner`` from the source checkout this elo_mitsuba comes from (or the
-    current directory); ``roots`` overrides where to look."""
+def find_checkout_module(package: str, module: str, command: str, roots=None):
+    """Import ``package.module`` from the source checkout this elo_mitsuba comes from (or the
+    current directory): ``validation/`` and ``benchmarks/`` live there and are not installed.
+    ``roots`` overrides where to look; a clear error names ``command`` where none is found."""
     candidates = [Path(__file__).resolve().parents[2], Path.cwd()] if roots is None else [Path(r) for r in roots]
     for root in candidates:
-        if (root / "validation" / "__init__.py").is_file() and (root / "validation" / "runner.py").is_file():
+        if (root / package / "__init__.py").is_file() and (root / package / f"{module}.py").is_file():
             if str(root) not in sys.path:
                 sys.path.insert(0, str(root))
             try:
-                module = importlib.import_module("validation.runner")
+                found = importlib.import_module(f"{package}.{module}")
             except ModuleNotFoundError as exc:  # pragma: no cover - broken checkout
-                raise EloEnvironmentError(f"cannot import the validation package from {root}: {exc}") from None
-            if Path(module.__file__).resolve().parents[1] == root.resolve():
-                return module
+                raise EloEnvironmentError(f"cannot import the {package} package from {root}: {exc}") from None
+            if Path(found.__file__).resolve().parents[1] == root.resolve():
+                return found
     raise EloEnvironmentError(
-        "'elo-mitsuba validate' needs a source checkout: the validation/ package is not installed with "
-        "elo-mitsuba. Clone the repository, install it with 'pip install -e .', and run 'elo-mitsuba validate' "
-        "(or 'python -m validation') from its root.")
+        f"'elo-mitsuba {command}' needs a source checkout: the {package}/ package is not installed with "
+        f"elo-mitsuba. Clone the repository, install it with 'pip install -e .', and run 'elo-mitsuba {command}' "
+        f"(or 'python -m {package}') from its root.")
+
+
+def _find_validation(roots=None):
+    return find_checkout_module("validation", "runner", "validate", roots)
 
 
 def add_parser(subparsers):
