@@ -105,11 +105,11 @@ def pixel_centres(shape, pixel_size_mm) -> tuple[np.ndarray, np.ndarray]:
     ``x`` increases with the column index, ``y`` decreases with the row index (row 0 = +y edge);
     both are centred on 0.
     """
+    from .analysis.geometry import pixel_axes  # the one definition of the image orientation
+
     h, w = int(shape[0]), int(shape[1])
     p = float(pixel_size_mm)
-    x = (np.arange(w) - (w - 1) / 2.0) * p
-    y = ((h - 1) / 2.0 - np.arange(h)) * p
-    return x, y
+    return pixel_axes((h, w), (w * p, h * p))
 
 
 def heightmap_gradient(height_mm, pixel_size_mm) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ from .geometry import (
     field_xy,
     geometry_from_metadata,
     masking_condition,
+    pixel_axes,
     pixel_coordinates,
     pixel_size,
     zeta_deg,
@@ -62,7 +63,7 @@ __all__ = [
     "field_xy", "flat_plate_images", "geometry_from_metadata", "gradient_from_differences",
     "height_gradient", "image_statistics", "integrate_dct", "integrate_fft", "integrate_gradient",
     "integrate_masked", "layout_geometry", "masked_normal_fraction", "masking_condition", "masking_lines",
-    "normal_histogram", "normalised_differences", "normalized_differences", "pixel_coordinates",
+    "normal_histogram", "normalised_differences", "normalized_differences", "pixel_axes", "pixel_coordinates",
     "pixel_size", "point_detector_images", "point_solid_angle", "pq_grid", "raw_gradient",
     "reflectance_map", "stsa_correct", "sum_images", "surface_gradient", "zeta_deg",
 ]

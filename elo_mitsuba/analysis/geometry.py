@@ -46,6 +46,30 @@ def pixel_size(shape, field_mm) -> tuple[float, float]:
     return fx / w, fy / h
 
 
+def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates (mm) of the pixel-centre columns and rows of an image (the package's orientation).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Image shape (H, W) (extra trailing dimensions are ignored).
+    field_mm : float or (float, float)
+        Scan field width (x) and height (y) in mm; a scalar means a square field.
+
+    Returns
+    -------
+    xs : ndarray, shape (W,)
+        x of each column, growing with the column index, centred on 0.
+    ys : ndarray, shape (H,)
+        y of each row, *decreasing* with the row index (row 0 is the +y edge), centred on 0.
+    """
+    h, w = _shape_hw(shape)
+    fx, fy = field_xy(field_mm)
+    xs = -fx / 2 + (np.arange(w) + 0.5) * (fx / w)
+    ys = fy / 2 - (np.arange(h) + 0.5) * (fy / h)
+    return xs, ys
+
+
 def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
     """Coordinates (mm) of the pixel centres of an image, following the package's orientation.
 
@@ -59,14 +83,9 @@ def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     x, y : ndarray, shape (H, W)
-        x grows along columns, y *decreases* along rows (row 0 is the +y edge).
+        x grows along columns, y *decreases* along rows (row 0 is the +y edge); see :func:`pixel_axes`.
     """
-    h, w = _shape_hw(shape)
-    fx, fy = field_xy(field_mm)
-    xs = -fx / 2 + (np.arange(w) + 0.5) * (fx / w)
-    ys = fy / 2 - (np.arange(h) + 0.5) * (fy / h)
-    x, y = np.meshgrid(xs, ys)
-    return x, y
+    return tuple(np.meshgrid(*pixel_axes(shape, field_mm)))
 
 
 def check_detector_geometry(d_h, d_w) -> tuple[float, float]:
