@@ -105,7 +105,7 @@ def environment_info(quick: bool, mode_cmd: str) -> dict:
     load = ", ".join(f"{v:.1f}" for v in m["load"]) if m["load"] else "?"
     mem = f"{m['mem_gib']:.0f} GiB" if m["mem_gib"] else ""
     return {
-        "Date (UTC)": utc_now(),
+        "Date (UTC)": utc_now().removesuffix(" UTC"),
         "Commit": f"`{src['commit']}` (working tree: {src['state']})",
         "Machine": f"{m['system']}, {m['cpu']}, {m['cores']} cores, {mem} "
                    f"(load average at start {load}; shared with other jobs)",
