@@ -29,7 +29,16 @@ reference set the spp and how the detectors are integrated: the 1st event by the
 quadrature of Appendix A (no noise with a single-ray beam), events >= 2 traced for a fraction of
 the pixels and averaged over a window that stops at changes of the surface normal. "scene" keeps
 the scene file's settings (independent sampling, 2.4%/sqrt(spp) noise per pixel on the 1st event).
-An explicit --spp or --detector-samples wins over the preset.
+An explicit --spp or --detector-samples wins over the preset. Measured on athene_flat, 1500 x 1500,
+events 1 + 2, 2 CPU cores (render time; per-pixel RMS error against a converged reference):
+
+  preset      time     1st event   events 1+2   note
+  draft       1.4 s    0.024 %     0.61 %       events >= 2 averaged over ~1 mm windows
+  default     1.6 s    0.024 %     0.20 %       the same with 4x the paths; edges topped up
+  reference   130 s    0.007 %     0.25 %       no window average: unbiased on any scene
+  (brute force, independent sampling at 7 spp: 7.7 s for 0.97 % on the 1st event)
+
+With a beam profile (fwhm > 0) the presets take more spp (4 / 16 / 256) to average over it.
 """
 
 EPILOG = """\
