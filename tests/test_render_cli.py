@@ -101,3 +101,14 @@ def test_help_teaches():
     assert r.returncode == 0
     for word in ("N_d/N_0", "row 0", "--events", "-D", "examples"):
         assert word in r.stdout
+
+
+def test_render_reports_what_each_event_adds(tmp_path):
+    """A flat plate without chamber cannot scatter twice: the render says so, reports the event
+    shares (e1 = 100 %) and that --events 1 would do."""
+    out = tmp_path / "flat3.exr"
+    r = run("render", "flat_plate", "-o", out, "--resolution", 16, "--spp", 2, "--events", 3)
+    assert r.returncode == 0, r.stderr
+    assert "e1 100.00% (100.00%), e2 0.00% (0.00%), e3 0.00% (0.00%)" in r.stderr
+    assert "--events 1 gives the same images" in r.stderr
+    assert "exactly zero" in r.stderr
