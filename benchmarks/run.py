@@ -25,6 +25,7 @@ images are cached in out/bench_cache/ (``--fresh`` to recompute).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -76,14 +77,16 @@ class Bench:
         return out
 
     def cached(self, name, job):
-        """Run a saving job unless its image is cached; returns the channels (dict)."""
+        """Run a saving job unless its image is cached for the same job AND the same code and
+        scenes (:func:`code_fingerprint`); returns the channels (dict)."""
         path = CACHE / f"{name}.npz"
         meta = CACHE / f"{name}.json"
-        if self.fresh or not path.exists() or not meta.exists() or json.loads(meta.read_text()) != job:
+        key = {**job, "code": code_fingerprint()}
+        if self.fresh or not path.exists() or not meta.exists() or json.loads(meta.read_text()) != key:
             self.log(f"reference {name} ...")
             t = time.perf_counter()
             self.job({**job, "save": str(path)})
-            meta.write_text(json.dumps(job))
+            meta.write_text(json.dumps(key))
             self.log(f"reference {name} done in {time.perf_counter() - t:.0f} s")
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
@@ -95,6 +98,21 @@ class Bench:
         with np.load(path) as z:
             channels = {k: z[k] for k in z.files}
         return out, channels
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """Hash of everything a cached reference image depends on: the package, the plugins and the
+    shipped scenes (a reference computed by older code or an older scene is recomputed)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for folder in ("elo_mitsuba", "plugins", "scenes_xml"):
+        for f in sorted((ROOT / folder).rglob("*")):
+            if f.is_file() and f.suffix in (".py", ".xml", ".ply", ".npy", ".obj"):
+                h.update(str(f.relative_to(ROOT)).encode())
+                h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def rel_error(img, ref):
@@ -515,13 +533,16 @@ def mesh_scene(n_grid, flat=False):
     tag = f"{'flat' if flat else 'melt'}_{n_grid}"
     scene_path = CACHE / f"mesh_{tag}.xml"
     mesh_path = CACHE / f"mesh_{tag}.ply"
-    if not scene_path.exists() or not mesh_path.exists():
+    stamp = CACHE / f"mesh_{tag}.code"  # regenerate when the mesh/melt-plate code changed
+    if (not scene_path.exists() or not mesh_path.exists() or not stamp.exists()
+            or stamp.read_text() != code_fingerprint()):
         p = 99.8 / n_grid
         c = -49.9 + (np.arange(n_grid) + 0.5) * p
         xx, yy = np.meshgrid(c, -c)
         z = np.zeros_like(xx) if flat else melt_plate_height(xx, yy)
         write_mesh(heightmap_to_mesh(z, p), mesh_path, overwrite=True)
         write_scene(scene_path, mesh_path, overwrite=True)
+        stamp.write_text(code_fingerprint())
     return str(scene_path), 2 * (n_grid - 1) ** 2
 
 
