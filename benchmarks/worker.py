@@ -152,17 +152,11 @@ def job_path(job):
     return out
 
 
-def job_raw(job):
-    """Raw ray casting: the same kinds of rays as the integrator, without any physics."""
-    import elo_mitsuba as em
-
-    mi = em.ensure_variant()
-    import drjit as dr
-
-    scene = em.load_scene(job["scene"], **job.get("params", {}))
+def _raw_tests(mi, dr, scene, spp):
+    """The kinds of rays the integrator casts, prepared in memory and cast raw (no physics):
+    {name: (function casting them once, number of rays)} and the bounce-hit fraction."""
     sc, sensor = scene.scene, scene.sensor
     res = sensor.resolution
-    spp = int(job.get("spp", 1))
     n = res[0] * res[1] * spp
     idx = dr.arange(mi.UInt32, n)
     pix = idx // spp
@@ -209,23 +203,40 @@ def job_raw(job):
     }
     for fn, _ in tests.values():
         fn()  # compile
-    reps = int(job.get("repeat", 5))
-    times = {k: [] for k in tests}
-    for _ in range(reps):  # interleaved
-        for key, (fn, _) in tests.items():
-            t = time.perf_counter()
-            fn()
-            times[key].append(time.perf_counter() - t)
-    rates = {k: tests[k][1] / float(np.median(v)) for k, v in times.items()}
+    return tests, n2 / max(n1, 1)
+
+
+def _time_raw(tests):
+    """Cast each kind of ray once; rays per second of each."""
+    rates = {}
+    for key, (fn, count) in tests.items():
+        t = time.perf_counter()
+        fn()
+        rates[key] = count / (time.perf_counter() - t)
+    return rates
+
+
+def job_raw(job):
+    """Raw ray casting: the same kinds of rays as the integrator, without any physics."""
+    import elo_mitsuba as em
+
+    mi = em.ensure_variant()
+    import drjit as dr
+
+    scene = em.load_scene(job["scene"], **job.get("params", {}))
+    tests, bounce_hits = _raw_tests(mi, dr, scene, int(job.get("spp", 1)))
+    per_rep = [_time_raw(tests) for _ in range(int(job.get("repeat", 5)))]  # interleaved
+    rates = {k: float(np.median([r[k] for r in per_rep])) for k in tests}
     return {"rates": rates, "counts": {k: v[1] for k, v in tests.items()}, "maxrss_mb": _maxrss_mb(),
-            "bounce_hit_fraction": n2 / max(n1, 1)}
+            "bounce_hit_fraction": bounce_hits}
 
 
 def job_skeleton(job):
     """Our integrator against a ray-only skeleton of itself in Mitsuba's render loop: the same
     rays (beam, one shadow ray per detector and event to a point drawn on it, cosine-distributed
-    bounce), the same 13 film channels, but no g_BSE, no BSDF sampling, no quadrature. Both timed
-    through ``mi.render`` (kernel, film), interleaved; every shadow ray cast."""
+    bounce), the same film channels, but no g_BSE, no BSDF sampling, no quadrature. Both timed
+    through ``mi.render`` (kernel, film), interleaved with the same rays in one bare kernel and
+    with the raw ray casts (the ceiling); every shadow ray cast."""
     import elo_mitsuba as em
 
     mi = em.ensure_variant()
@@ -298,15 +309,20 @@ def job_skeleton(job):
     runs = {"ours": lambda seed: mi.render(sc, integrator=ours, spp=spp, seed=seed),
             "skeleton": lambda seed: mi.render(sc, integrator=skel, spp=spp, seed=seed),
             "rays only": rays_only}
+    # the raw ceiling in the same process, interleaved with the renders: each repetition gives
+    # one (raw rates, our time) pair measured under the same machine load
+    raw_tests, _ = _raw_tests(mi, dr, scene, 4)
     times = {key: [] for key in runs}
+    raw_rates = []
     for fn in runs.values():
         _sync(dr, fn(0))
     for rep in range(int(job.get("repeat", 5))):
+        raw_rates.append(_time_raw(raw_tests))
         for key, fn in runs.items():
             t = time.perf_counter()
             _sync(dr, fn(rep + 1))
             times[key].append(time.perf_counter() - t)
-    return {"times": times, "maxrss_mb": _maxrss_mb()}
+    return {"times": times, "raw_rates": raw_rates, "maxrss_mb": _maxrss_mb()}
 
 
 JOBS = {"render": job_render, "path": job_path, "raw": job_raw, "skeleton": job_skeleton}
