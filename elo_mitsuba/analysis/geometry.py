@@ -71,19 +71,13 @@ def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
-    """Coordinates (mm) of the pixel centres of an image, following the package's orientation.
-
-    Parameters
-    ----------
-    shape : tuple of int
-        Image shape (H, W) (extra trailing dimensions are ignored).
-    field_mm : float or (float, float)
-        Scan field width (x) and height (y) in mm; a scalar means a square field.
+    """Coordinates (mm) of the pixel centres of an image, following the package's orientation:
+    the 2-D grids of :func:`pixel_axes` (same parameters).
 
     Returns
     -------
     x, y : ndarray, shape (H, W)
-        x grows along columns, y *decreases* along rows (row 0 is the +y edge); see :func:`pixel_axes`.
+        x grows along columns, y *decreases* along rows (row 0 is the +y edge).
     """
     return tuple(np.meshgrid(*pixel_axes(shape, field_mm)))
 
