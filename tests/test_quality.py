@@ -346,33 +346,36 @@ def test_detector_shapes_for_quadrature():
 
 
 def test_event_shares_and_negligible_events_on_known_images():
-    """Shares computed by hand: e1 = 0.9, e2 = 0.0995, e3 = 5e-4 of every pixel's total (one
-    pixel with e3 = 0.002 of its total, under the 99th percentile); a dark pixel is ignored."""
+    """Shares computed by hand: e1 = 0.9, e2 = 0.0995 and e3 a ramp from 0 to 1.5e-3 over the
+    pixels (mean share 7.5e-4 < 0.1 %, but above 0.1 % in a third of the pixels, so the
+    99th-percentile pixel needs it); a dark pixel is ignored."""
     import numpy as np
 
     from elo_mitsuba.render import NEGLIGIBLE_EVENT_SHARE, RenderResult
 
     shape = (20, 10)
-    e = {1: np.full(shape, 0.9), 2: np.full(shape, 0.0995), 3: np.full(shape, 5e-4)}
-    e[3][0, 0] = 0.002
+    e = {1: np.full(shape, 0.9), 2: np.full(shape, 0.0995), 3: np.linspace(0.0, 1.5e-3, 200).reshape(shape)}
+    dark = (5, 5)
     channels = {}
     for d in ("right", "left"):
         channels[d] = (e[1] + e[2] + e[3]).astype(np.float32)
-        channels[d][5, 5] = 0.0
+        channels[d][dark] = 0.0
         for k in (1, 2, 3):
             channels[f"{d}.e{k}"] = e[k].astype(np.float32)
-            channels[f"{d}.e{k}"][5, 5] = 0.0
+            channels[f"{d}.e{k}"][dark] = 0.0
     result = RenderResult(channels, {"events": 3})
     shares = result.event_shares()
     total = e[1] + e[2] + e[3]
-    total[5, 5] = 0
-    lit = total > 0
+    lit = np.ones(shape, bool)
+    lit[dark] = False
     assert [s["event"] for s in shares] == [1, 2, 3]
-    assert shares[2]["mean"] == pytest.approx(e[3][lit].sum() / total[lit].sum(), rel=1e-6)
-    assert shares[1]["p99"] == pytest.approx(0.0995 / (0.9 + 0.0995 + 5e-4), rel=1e-6)
+    assert shares[2]["mean"] == pytest.approx(e[3][lit].sum() / total[lit].sum(), rel=1e-5)
+    assert shares[2]["mean"] < NEGLIGIBLE_EVENT_SHARE
+    assert shares[2]["p99"] == pytest.approx(np.percentile(e[3][lit] / total[lit], 99), rel=1e-5)
+    assert shares[1]["p99"] == pytest.approx(0.0995 / (0.9 + 0.0995), rel=1e-2)
     assert sum(s["mean"] for s in shares) == pytest.approx(1.0, rel=1e-6)
     assert NEGLIGIBLE_EVENT_SHARE == 1e-3
-    assert result.negligible_events() == 2          # e3 < 0.1 % in 99 % of the pixels
-    assert result.negligible_events(threshold=1e-4) is None  # e3 needed at 0.01 %
+    assert result.negligible_events() is None        # e3 > 0.1 % in the brightest 1 % of pixels
+    assert result.negligible_events(threshold=2e-3) == 2
     assert result.negligible_events(threshold=0.2) == 1
     assert RenderResult({"right": channels["right"]}, {"events": 1}).event_shares() == []
