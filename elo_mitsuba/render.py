@@ -179,18 +179,20 @@ class RenderResult:
             return []
         total = sum(self.channels[d].astype(np.float64) for d in self.detectors)
         lit = total > 0
+        signal = float(total.sum())
         out = []
         for k in range(1, events + 1):
             ek = sum(self.channels[f"{d}.e{k}"].astype(np.float64) for d in self.detectors)
-            mean = float(ek.sum() / total.sum()) if total.sum() > 0 else 0.0
+            mean = float(ek.sum()) / signal if signal > 0 else 0.0
             p99 = float(np.percentile(ek[lit] / total[lit], 99)) if np.any(lit) else 0.0
             out.append({"event": k, "mean": mean, "p99": p99})
         return out
 
-    def negligible_events(self, threshold: float = NEGLIGIBLE_EVENT_SHARE) -> int | None:
+    def negligible_events(self, threshold: float = NEGLIGIBLE_EVENT_SHARE, shares=None) -> int | None:
         """The number of events that would do: the smallest n such that every event above n adds
-        less than ``threshold`` of the signal in 99 % of the pixels (None if all are needed)."""
-        shares = self.event_shares()
+        less than ``threshold`` of the signal in 99 % of the pixels (None if all are needed).
+        ``shares``: :meth:`event_shares` if already computed."""
+        shares = self.event_shares() if shares is None else shares
         n = len(shares)
         while n > 1 and shares[n - 1]["p99"] < threshold:
             n -= 1
@@ -408,7 +410,7 @@ class EloScene:
         # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
         # float32 channel-major array (and summed in float32 over passes: relative rounding 1e-7
         # per pass), so that peak memory stays near the film's own (issue 6: <= 1 GB at 1500^2)
-        accum = None
+        channels = None
         done = 0
         t0 = time.perf_counter()
         for p in range(passes):
@@ -417,19 +419,18 @@ class EloScene:
             planes = _channel_planes(img)  # (C, H, W) float32: one gather, one copy
             del img
             if passes == 1:
-                accum = {name: planes[i + 1] for i, name in enumerate(names)}
+                channels = {name: planes[i + 1] for i, name in enumerate(names)}
             else:
-                if accum is None:
-                    accum = {name: np.zeros(planes.shape[1:], np.float32) for name in names}
+                if channels is None:
+                    channels = {name: np.zeros(planes.shape[1:], np.float32) for name in names}
                 for i, name in enumerate(names):
-                    accum[name] += planes[i + 1] * np.float32(n / spp)
+                    channels[name] += planes[i + 1] * np.float32(n / spp)
             del planes
             done += n
             if progress:
                 _progress(done, spp, time.perf_counter() - t0)
         if progress:
             print(file=sys.stderr)
-        channels = accum
         for name, img in channels.items():
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")

@@ -122,7 +122,7 @@ def run(args) -> int:
         if shares:
             print("event shares of the signal (mean; 99th-percentile pixel): " + ", ".join(
                 f"e{s['event']} {100 * s['mean']:.2f}% ({100 * s['p99']:.2f}%)" for s in shares), file=sys.stderr)
-            enough = result.negligible_events()
+            enough = result.negligible_events(shares=shares)
             if enough is not None:
                 print(f"note: events above {enough} add less than {100 * NEGLIGIBLE_EVENT_SHARE:g}% of the signal "
                       f"in 99% of the pixels: --events {enough} gives the same images within that, faster",
