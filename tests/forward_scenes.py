@@ -58,20 +58,11 @@ def disc_integral(point, beam_dir, normal, centre, disc_normal, radius, material
 
     Gauss-Legendre in the radius, uniform (spectrally accurate) in the azimuth.
     """
+    from elo_mitsuba.analysis.geometry import disc_nodes
     from elo_mitsuba.physics import g_bse
 
     disc_normal = np.asarray(disc_normal, float) / np.linalg.norm(disc_normal)
-    a = np.cross(disc_normal, [0.0, 0.0, 1.0] if abs(disc_normal[2]) < 0.9 else [1.0, 0.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(disc_normal, a)
-    x, w = np.polynomial.legendre.leggauss(n_r)
-    r = 0.5 * (x + 1.0) * radius
-    wr = 0.5 * w * radius
-    phi = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
-    R, PHI = np.meshgrid(r, phi, indexing="ij")
-    WA = (wr[:, None] * R) * (2.0 * np.pi / n_phi)
-    q = (np.asarray(centre, float) + R[..., None] * np.cos(PHI)[..., None] * a
-         + R[..., None] * np.sin(PHI)[..., None] * b)
+    q, WA = disc_nodes(centre, disc_normal, radius, n_r, n_phi)
     d = q - np.asarray(point, float)
     dist2 = np.sum(d * d, axis=-1)
     dirs = d / np.sqrt(dist2)[..., None]

@@ -51,21 +51,14 @@ def disc_integral_flat(points, wd, centre, radius, material, n_r=32, n_phi=96):
 
     ``points`` (N, 2) beam targets on z = 0, the beam from the pivot (0, 0, wd); the disc of
     ``radius`` at ``centre`` faces the origin. Gauss-Legendre in the radius, midpoint in the
-    azimuth: int g_BSE cos(psi)/r^2 dA. (After tests/forward_scenes.disc_integral, with C(theta)
-    evaluated once per point.)
+    azimuth (:func:`elo_mitsuba.analysis.geometry.disc_nodes`): int g_BSE cos(psi)/r^2 dA, with C(theta)
+    evaluated once per point.
     """
+    from elo_mitsuba.analysis.geometry import disc_nodes
+
     centre = np.asarray(centre, float)
     dn = -centre / np.linalg.norm(centre)
-    a = np.cross(dn, [0.0, 0.0, 1.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(dn, a)
-    xg, wg = np.polynomial.legendre.leggauss(n_r)
-    r = 0.5 * (xg + 1.0) * radius
-    wr = 0.5 * wg * radius
-    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
-    R, PHI = np.meshgrid(r, phi, indexing="ij")
-    wa = (wr[:, None] * R) * (2 * np.pi / n_phi)
-    q = centre + R[..., None] * np.cos(PHI)[..., None] * a + R[..., None] * np.sin(PHI)[..., None] * b
+    q, wa = disc_nodes(centre, dn, radius, n_r, n_phi)
     out = np.empty(len(points))
     for i, (x, y) in enumerate(np.asarray(points, float)):
         p = np.array([x, y, 0.0])

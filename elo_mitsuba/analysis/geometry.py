@@ -124,6 +124,42 @@ def detector_vectors(x, y, d_h, d_w, detectors=DETECTOR_NAMES) -> dict[str, np.n
     return out
 
 
+def disc_nodes(centre, normal, radius, n_r=32, n_phi=96) -> tuple[np.ndarray, np.ndarray]:
+    """Quadrature nodes and area weights on a disc detector, for integrals such as Eq. 5 written
+    over the detector area (int f dA = sum f(q) w): Gauss-Legendre in the radius, midpoint
+    (spectrally accurate for periodic integrands) in the azimuth.
+
+    Parameters
+    ----------
+    centre, normal : array_like (3,)
+        Disc centre (mm) and normal (any length).
+    radius : float
+        Disc radius (mm).
+    n_r, n_phi : int
+        Nodes in the radius and the azimuth.
+
+    Returns
+    -------
+    points : ndarray (n_r, n_phi, 3)
+        Node positions (mm).
+    weights : ndarray (n_r, n_phi)
+        Area weights (mm^2), summing to pi radius^2.
+    """
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.99 else [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    x, w = np.polynomial.legendre.leggauss(n_r)
+    r = 0.5 * (x + 1.0) * radius
+    wr = 0.5 * w * radius
+    phi = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
+    rr, pp = np.meshgrid(r, phi, indexing="ij")
+    weights = (wr[:, None] * rr) * (2.0 * np.pi / n_phi)
+    points = (np.asarray(centre, float) + rr[..., None] * np.cos(pp)[..., None] * a
+              + rr[..., None] * np.sin(pp)[..., None] * b)
+    return points, weights
+
+
 def masking_condition(p, q, d_x, d_y, margin=0.0):
     """Geometric masking test of Sec. 4.3: ``p d_x + q d_y + 1 <= margin``.
 
