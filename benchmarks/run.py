@@ -544,8 +544,9 @@ def section_path(b, target_results):
 
 def mesh_scene(n_grid, flat=False):
     """A melt-plate scene whose mesh is the height map sampled on n_grid x n_grid points."""
-    from elo_mitsuba.melt_plate import melt_plate_height
-    from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh, write_scene
+    from elo_mitsuba.objects.melt_plate import melt_plate_height
+    from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh
+    from elo_mitsuba.scene_files import write_scene
 
     tag = f"{'flat' if flat else 'melt'}_{n_grid}"
     scene_path = CACHE / f"mesh_{tag}.xml"

@@ -14,8 +14,7 @@ happen at the first render (:func:`elo_mitsuba.runtime.ensure_variant`), which s
 actionable line instead of the abort that Debian 12's LLVM 15/16 would cause.
 """
 
-__version__ = "0.1.0"
-
+from ._version import __version__  # noqa: E402
 from .errors import EloEnvironmentError, EloError, EloInputError  # noqa: E402
 from .runtime import ensure_variant  # noqa: E402
 from .render import EloScene, RenderResult, load_scene, render  # noqa: E402

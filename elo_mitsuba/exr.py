@@ -5,24 +5,23 @@ with per-event channels ``<id>.e<k>`` (EXR layers), or by quantity (``dzdx``, ``
 The metadata dictionary is stored as JSON in the header attribute ``elo_mitsuba`` and, for the
 most used scalars, also as plain attributes readable by any EXR viewer.
 
-Image orientation everywhere: array row 0 is the +y edge of the scan field, columns run towards
-+x (the build plate seen from above with +y up). Pixel (i, j) (column i, row j) is centred at
-x = -field_x/2 + (i + 1/2) field_x/W, y = +field_y/2 - (j + 1/2) field_y/H, in millimetres.
+Arrays are stored in the package's image orientation (:mod:`elo_mitsuba.grid`), recorded in
+every header as ``orientation``.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
 from .errors import EloInputError
+from .files import atomic_write, check_output
+from .grid import ORIENTATION
 
 METADATA_ATTRIBUTE = "elo_mitsuba"
-ORIENTATION = "row 0 = +y edge, columns towards +x (plate seen from above, +y up)"
 _PLAIN_ATTRIBUTES = ("units", "events", "spp", "material", "work_distance_mm")
 
 
@@ -35,9 +34,7 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
     """
     import OpenEXR
 
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise EloInputError(f"{path} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    path = check_output(path, overwrite=overwrite)
     if not channels:
         raise EloInputError(f"{path}: no channels to write")
     shapes = {np.shape(v) for v in channels.values()}
@@ -59,17 +56,12 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
     for key in _PLAIN_ATTRIBUTES:
         if key in meta and isinstance(meta[key], (int, float, str)) and not isinstance(meta[key], bool):
             header[key] = meta[key] if not isinstance(meta[key], int) else int(meta[key])
-    if path.parent and not path.parent.exists():
-        raise EloInputError(f"{path}: directory {path.parent} does not exist")
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.exr")
-    try:
+
+    def write(tmp):
         with OpenEXR.File(header, data) as f:
             f.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+
+    return atomic_write(path, write)
 
 
 def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:

@@ -9,150 +9,35 @@
 >>> scene.set_material("plate", "316L")                     # change a material: same kernel
 >>> result.write_exr("right.exr")
 
-Channels are float32 images with row 0 at the +y edge and columns towards +x (see
-:mod:`elo_mitsuba.exr`): ``<id>`` is the total over the counted events, ``<id>.e<k>`` event k
+Channels are float32 images in the package orientation (:mod:`elo_mitsuba.grid`: row 0 at the
++y edge, columns towards +x): ``<id>`` is the total over the counted events, ``<id>.e<k>`` event k
 alone (only when ``events > 1``). Values are N_d/N_0 (or volts with ``units="voltage"``).
 """
 
 from __future__ import annotations
 
 import math
-import re
 import sys
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
-from . import __version__
-from .constants import TABLE1_LAYOUTS
+from ._version import __version__
 from .errors import EloError, EloInputError
-from .exr import ORIENTATION, write_exr
+from .exr import write_exr
+from .grid import ORIENTATION
+from .options import QUALITIES, EloOptions, quality_options
 from .runtime import ensure_variant
+from .scene_files import declared_parameters, explain_mitsuba_error, layout_parameters, resolve_scene_path
 
-#: Quality presets (issue 6; measured in benchmarks/RESULTS.md). The 1st event uses the triangle
-#: quadrature of Appendix A (``quadrature_triangles``; deterministic with a single-ray beam, so one
-#: sample per pixel suffices; ``spp_blur`` samples when the beam has a profile, fwhm > 0). Events
-#: >= 2 get ``bounce_budget`` continuation paths per window of ``bounce_filter`` mm half-width
-#: (a normal-guided average, see the elo integrator; 0 = per pixel), spread over the pixels by
-#: ``bounce_fraction`` / ``bounce_samples`` for the scene's resolution; pixels where the window
-#: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. ``scene`` keeps the scene
-#: file's own settings.
-QUALITY_PRESETS = {
-    "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
-              "bounce_min": 0.0},
-    "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 400,
-                "bounce_min": 2.0},
-    "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
-                  "bounce_budget": 128, "bounce_min": 0.0},
-}
 #: An event order adding less than this share of the signal in 99 % of the pixels is reported as
 #: negligible (0.1 %: below the default preset's per-pixel error of events >= 2, 0.2 %).
 NEGLIGIBLE_EVENT_SHARE = 1e-3
-#: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
-MAX_BOUNCE_SAMPLES = 8
-QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
-
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
 SAMPLES_PER_PASS = 1 << 24
-
-
-# ---- scene lookup and parameters -------------------------------------------------------------------
-def shipped_scenes() -> dict[str, Path]:
-    """Names and paths of the scenes shipped in ``scenes_xml/`` (``elo_mitsuba.scenes``)."""
-    root = Path(str(resources.files("elo_mitsuba.scenes")))
-    return {p.stem: p for p in sorted(root.glob("*.xml"))}
-
-
-def resolve_scene_path(scene: str | Path) -> Path:
-    """A path to an XML file, or the name of a shipped scene (``flat_plate``, ``athene_flat``, ...)."""
-    path = Path(scene)
-    if path.is_file():
-        return path
-    shipped = shipped_scenes()
-    if str(scene) in shipped:
-        return shipped[str(scene)]
-    if path.suffix.lower() == ".xml" or path.parent != Path("."):
-        raise EloInputError(f"scene file {str(scene)!r} does not exist")
-    names = ", ".join(shipped) or "(none installed)"
-    raise EloInputError(f"scene {str(scene)!r} is neither an XML file nor a shipped scene ({names})")
-
-
-def declared_parameters(path: Path, values: Mapping[str, str] | None = None) -> dict[str, str]:
-    """The ``<default name=... value=...>`` parameters of a scene file and the files it includes.
-
-    ``values`` (the user's -D settings) decide which file an ``<include filename="...$name...">``
-    pulls in, as Mitsuba's loader does.
-    """
-    values = dict(values or {})
-    declared: dict[str, str] = {}
-    _collect_defaults(Path(path), values, declared, depth=0)
-    return declared
-
-
-def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> None:
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise EloInputError(f"{path}: malformed XML ({exc})") from None
-    except OSError as exc:
-        raise EloInputError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if root.tag != "scene":
-        raise EloInputError(f"{path}: root element is <{root.tag}>, expected <scene>")
-    for node in root.iter():
-        if node.tag == "default" and node.get("name"):
-            declared.setdefault(node.get("name"), node.get("value"))
-        elif node.tag == "include" and node.get("filename") and depth < 8:
-            name = node.get("filename")
-            known = {**declared, **values}
-            name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), name)
-            inc = (path.parent / name)
-            if inc.is_file():
-                _collect_defaults(inc, values, declared, depth + 1)
-
-
-def layout_parameters(layout: str | int) -> dict[str, float]:
-    """-D parameters of a Table 1 detector layout: ``"zeta50"``, ``"50"`` or ``50``."""
-    key = str(layout).lower().removeprefix("zeta").removesuffix("deg").strip()
-    try:
-        zeta = int(float(key))
-    except ValueError:
-        zeta = None
-    if zeta not in TABLE1_LAYOUTS:
-        allowed = ", ".join(f"zeta{z}" for z in TABLE1_LAYOUTS)
-        raise EloInputError(f"unknown detector layout {layout!r}; Table 1 layouts are {allowed}")
-    dh, dw = TABLE1_LAYOUTS[zeta]
-    return {"dh": dh, "dw": dw}
-
-
-def _explain_mitsuba_error(exc: Exception, path: Path) -> str:
-    """One line from Mitsuba's multi-line loader error: where, and the innermost message."""
-    text = str(exc)
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    where = ""
-    m = re.search(r"\(line (\d+), col (\d+)\)", text)
-    if m:
-        where = f" line {m.group(1)}"
-    # innermost Python error ("EloInputError: ...") if a plugin of ours refused a value
-    for ln in reversed(lines):
-        mm = re.match(r"^(?:\w+\.)*(\w*Error): (.*)$", ln)
-        if mm and mm.group(2):
-            return f"{path}{where}: {mm.group(2)}"
-    first = lines[0] if lines else type(exc).__name__
-    if first.endswith(":") and len(lines) > 1:  # e.g. "unreferenced property ...:" + "- name" lines
-        first = first + " " + " ".join(ln.lstrip("- ") for ln in lines[1:4])
-    first = re.sub(r"^\[[\w.]+:\d+\]\s*", "", first)
-    first = re.sub(r"^(At|While loading) .*?\(line \d+, col \d+\): ", "", first)
-    first = re.sub(r"^(At|While loading) .*?: ", "", first)
-    if "unused parameters" in text.lower():
-        unused = ", ".join(re.findall(r"\$(\w+)=", text))
-        return f"{path}: parameter(s) {unused} not used by this scene"
-    return f"{path}{where}: {first}"
 
 
 # ---- results -----------------------------------------------------------------------------------------
@@ -234,7 +119,7 @@ class EloScene:
         except EloError:
             raise
         except Exception as exc:  # Mitsuba wraps everything in RuntimeError
-            raise EloInputError(_explain_mitsuba_error(exc, self.path)) from None
+            raise EloInputError(explain_mitsuba_error(exc, self.path)) from None
         self.integrator = self.scene.integrator()
         self.sensor = self.scene.sensors()[0]
         if not hasattr(self.integrator, "prepare_scene"):
@@ -288,9 +173,7 @@ class EloScene:
             "events": self.integrator.events,
             "detector_samples": self.integrator.detector_samples,
             "quality": getattr(self, "quality", "scene"),
-            "integrator_options": {k: getattr(self.integrator, k) for k in (
-                "detector_sampling", "quadrature_triangles", "bounce_detector_samples",
-                "bounce_fraction", "bounce_filter") if hasattr(self.integrator, k)},
+            "integrator_options": self.integrator.options.as_dict(),
             "notes": list(getattr(self.integrator, "notes", [])),
             "spp": int(spp),
             "seed": int(seed),
@@ -319,10 +202,19 @@ class EloScene:
                 )
 
     # -- changing parameters without reloading --
+    @property
+    def options(self) -> EloOptions:
+        """The integrator's options (:class:`~elo_mitsuba.options.EloOptions`) for the next render."""
+        return self.integrator.options
+
+    def configure(self, **changes) -> EloOptions:
+        """Change integrator options for the following renders (validated; same kernel where only
+        values change), e.g. ``scene.configure(units="voltage", detector_samples=4)``."""
+        self.integrator.configure(self.integrator.options.replace(**changes))
+        return self.integrator.options
+
     def set_events(self, events: int):
-        if int(events) < 1:
-            raise EloInputError(f"events={events}; must be >= 1 (1 = first event only)")
-        self.integrator.events = int(events)
+        self.configure(events=events)
 
     def set_material(self, shape_id: str, material) -> None:
         """Give the ``elo_bse`` BSDF of shape ``shape_id`` another material (same kernel)."""
@@ -356,7 +248,7 @@ class EloScene:
         self._check_detectors()
 
     def set_quality(self, quality: str) -> int:
-        """Apply a quality preset (:data:`QUALITY_PRESETS`) to the integrator for this scene's
+        """Apply a quality preset (:data:`~elo_mitsuba.options.QUALITY_PRESETS`) to the integrator for this scene's
         resolution, events and beam; returns its spp (``scene``: the scene file's sampler count,
         options untouched)."""
         if quality not in QUALITIES:
@@ -364,20 +256,10 @@ class EloScene:
         if quality == "scene":
             self.quality = quality
             return int(self.sensor.sampler().sample_count())
-        preset = QUALITY_PRESETS[quality]
-        integ = self.integrator
-        spp = int(preset["spp_blur"] if self.sensor.fwhm > 0 else preset["spp"])
-        integ.detector_sampling = "quadrature"
-        integ.quadrature_triangles = preset["quadrature_triangles"]
-        integ.bounce_filter = preset["bounce_filter"]
-        integ.bounce_min = preset["bounce_min"]  # paths per pixel where the filter cannot average
-        radius = round(preset["bounce_filter"] / (self.sensor.field / self.sensor.resolution[0]))
-        per_pixel = preset["bounce_budget"] / (2 * radius + 1) ** 2  # continuation paths per pixel
-        if integ.traced_events() > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
-            spp = math.ceil(per_pixel / MAX_BOUNCE_SAMPLES)
-        per_sample = per_pixel / spp
-        integ.bounce_samples = max(1, math.ceil(per_sample))
-        integ.bounce_fraction = min(1.0, per_sample / integ.bounce_samples)
+        pixel_mm = self.sensor.field / self.sensor.resolution[0]
+        options, spp = quality_options(quality, self.integrator.options, pixel_mm=pixel_mm,
+                                       fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events())
+        self.integrator.configure(options)
         self.quality = quality
         return spp
 
@@ -386,7 +268,8 @@ class EloScene:
                progress: bool | None = None, quality: str | None = None) -> RenderResult:
         """Render all detector channels; returns numpy images and metadata.
 
-        ``spp`` defaults to the quality preset's (``quality``, see :data:`QUALITY_PRESETS`), or
+        ``spp`` defaults to the quality preset's (``quality``, see
+        :data:`~elo_mitsuba.options.QUALITY_PRESETS`), or
         without one to the scene's sampler. Large jobs run as several passes of one compiled
         kernel (with a progress line on stderr when ``progress`` or a terminal).
         """
@@ -409,7 +292,7 @@ class EloScene:
         names = self.integrator.channel_names()
         # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
         # float32 channel-major array (and summed in float32 over passes: relative rounding 1e-7
-        # per pass), so that peak memory stays near the film's own (issue 6: <= 1 GB at 1500^2)
+        # per pass), so that peak memory stays near the film's own (<= 1 GB at 1500^2)
         channels = None
         done = 0
         t0 = time.perf_counter()
@@ -440,7 +323,7 @@ class EloScene:
 def _channel_planes(img, group: int = 4) -> np.ndarray:
     """A developed film (Dr.Jit tensor, H x W x C) as a numpy array C x H x W (each channel
     contiguous): a few channels per gather on the device, then one copy each, so that time and
-    peak memory stay low (issue 6)."""
+    peak memory stay low."""
     import drjit as dr
     import mitsuba as mi
 

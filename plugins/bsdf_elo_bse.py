@@ -150,4 +150,89 @@ class EloBSE(mi.BSDF):
                 f"lobe_width={float(self.lobe_width[0]):g} deg, {mode}]")
 
 
+# ---- g_BSE in world coordinates, from the tables of every elo_bse of a scene ------------------------
+# The integrator evaluates g_BSE for many detector directions per scattering point. Instead of one
+# virtual call per direction it gathers, by the BSDF id of the surface interaction, the same
+# quantities _lobe and _terms use (eta0, 1/lobe_width, the W(theta) table) and evaluates Eq. 13 in
+# world coordinates; the setup (angle of incidence, table lookup, mirror direction) is shared by
+# all directions of one point.
+def scene_tables(scatterers):
+    """g_BSE of every scattering surface from per-BSDF tables, without a virtual call: the
+    BSDF id of a surface interaction indexes (eta0, 1/lobe_width, W(theta) table) of its
+    ``elo_bse``. None (use ``bsdf.eval`` by dispatch) if a scatterer has another BSDF."""
+    bsdfs = {}
+    for shape in scatterers:
+        bsdf = shape.bsdf()
+        if not all(hasattr(bsdf, a) for a in ("eta0", "lobe_table", "lobe_width")):
+            return None
+        bid = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+        bsdfs[bid] = bsdf
+    if not bsdfs:
+        return None
+    table_size = len(next(iter(bsdfs.values())).lobe_table)
+    slot_of = np.zeros(max(bsdfs) + 1, np.uint32)  # slot 0: not a scatterer, g = 0
+    eta0 = np.zeros(len(bsdfs) + 1, np.float32)
+    inv_width = np.zeros(len(bsdfs) + 1, np.float32)
+    lobe = np.zeros((len(bsdfs) + 1) * table_size, np.float32)
+    for slot, (bid, bsdf) in enumerate(sorted(bsdfs.items()), start=1):
+        table = np.array(bsdf.lobe_table, dtype=np.float32)
+        if len(table) != table_size:
+            return None
+        slot_of[bid] = slot
+        eta0[slot] = float(np.array(bsdf.eta0).ravel()[0])
+        inv_width[slot] = 1.0 / float(np.array(bsdf.lobe_width).ravel()[0])
+        lobe[slot * table_size:(slot + 1) * table_size] = table
+    return {"size": table_size, "slot_of": mi.UInt32(slot_of), "eta0": mi.Float(eta0),
+            "inv_width": mi.Float(inv_width), "lobe": mi.Float(lobe)}
+
+
+def world_setup(tables, si, wi_world, alive):
+    """Per scattering point: what g_BSE shares between directions (same formulas as
+    elo_bse's ``_terms``, in world coordinates)."""
+    t = tables
+    size = t["size"]
+    bid = dr.reinterpret_array(mi.UInt32, si.bsdf())
+    slot = dr.gather(mi.UInt32, t["slot_of"], bid, alive & (bid < dr.width(t["slot_of"])))
+    eta0 = dr.gather(mi.Float, t["eta0"], slot, alive)
+    inv_width = dr.gather(mi.Float, t["inv_width"], slot, alive)
+    n = si.sh_frame.n
+    cos_t = dr.dot(n, wi_world)
+    theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
+    k = theta_deg * inv_width
+    pos = theta_deg * ((size - 1) / 90.0)
+    i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, size - 2))
+    frac = pos - mi.Float(i0)
+    base = slot * size + i0
+    w0 = dr.gather(mi.Float, t["lobe"], base, alive)
+    w1 = dr.gather(mi.Float, t["lobe"], base + 1, alive)
+    weight = dr.fma(frac, w1 - w0, w0)
+    mirror = n * (2.0 * cos_t) - wi_world  # mirror direction of p_E = -wi about n
+    return (eta0 * (1.0 / dr.pi), weight, k, n, mirror, alive & (cos_t > 0))
+
+
+def world_eval(setup, d):
+    """g_BSE (cosine included) towards the world direction ``d`` from a :func:`world_setup`."""
+    diffuse, weight, k, n, mirror, ok = setup
+    cos_a = dr.dot(n, d)
+    cos_b = dr.dot(mirror, d)
+    lobe = dr.select(cos_b > 0, dr.power(dr.maximum(cos_b, 1e-30), k), 0.0)
+    g = dr.fma(diffuse, cos_a, weight * lobe)
+    return dr.select(ok & (cos_a > 0), g, 0.0)
+
+
+def _eval_directions(bsdf, ctx, si, wos, active):
+    """g_BSE for several local directions in ONE dispatch; identical work (angle of incidence,
+    table lookup) is shared by Dr.Jit's common-subexpression elimination."""
+    return [bsdf.eval(ctx, si, wo, active)[0] for wo in wos]
+
+
+def eval_world(tables, si, bsdf, ctx, ray, alive, dirs_world):
+    """g_BSE for the world directions ``dirs_world`` at ``si`` (reached along ``ray``): from
+    :func:`scene_tables` when every scatterer has ``elo_bse``, else by one dispatch of ``bsdf``."""
+    if tables is not None:
+        setup = world_setup(tables, si, -ray.d, alive)
+        return [world_eval(setup, d) for d in dirs_world]
+    return dr.dispatch(bsdf, _eval_directions, ctx, si, [si.to_local(d) for d in dirs_world], active=alive)
+
+
 PLUGIN_CLASS = EloBSE

@@ -1,13 +1,9 @@
 """Sensor ``elo_beam``: the scanned electron gun (Renner et al. 2023, Sec. 2.1.1, Fig. 1a).
 
-Film pixel (i, j) is scan point (i, j). Pixel centres lie on the scan grid
-
-    x_i = -field_x/2 + (i + 1/2) field_x / W,   y_j = +field_y/2 - (j + 1/2) field_y / H   [mm],
-
-(nudged by less than 1 % of a pixel, see ``_AIM_NUDGE``), so columns run towards +x and row 0
-is the +y edge (the plate seen from above, +y up);
-field_y = field W/H keeps pixels square. Every beam ray leaves the pivot (0, 0, wd) towards its
-grid point on the build plane z = 0 (``projection="perspective"``, deflection angle phi grows
+Film pixel (i, j) is scan point (i, j): the beam aims at the pixel centre of the package's image
+orientation (:func:`elo_mitsuba.grid.film_to_plane`: columns towards +x, row 0 at the +y edge),
+nudged by less than 1 % of a pixel (``_AIM_NUDGE``); field_y = field H/W keeps pixels square.
+Every beam ray leaves the pivot (0, 0, wd) towards its grid point on the build plane z = 0 (``projection="perspective"``, deflection angle phi grows
 towards the edges, so theta = phi on a flat plate), or runs parallel to -z from (x, y, wd)
 (``"orthographic"``).
 
@@ -28,6 +24,7 @@ import numpy as np
 
 from elo_mitsuba.constants import FIELD_MM, WORK_DISTANCE_MM
 from elo_mitsuba.errors import EloInputError
+from elo_mitsuba.grid import film_to_plane
 
 _FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 #: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
@@ -95,8 +92,9 @@ class EloBeam(mi.Sensor):
         scaled = film_sample * res
         pixel = dr.floor(scaled)
         centre = (pixel + 0.5) / res  # on the scan grid (up to _AIM_NUDGE)
-        x = (centre.x - 0.5) * self._field.x + self._nudge[0]
-        y = (0.5 - centre.y) * self._field.y + self._nudge[1]
+        x, y = film_to_plane(centre.x, centre.y, self._field.x, self._field.y)
+        x = x + self._nudge[0]
+        y = y + self._nudge[1]
         if self.fwhm > 0:
             jitter = dr.clip(scaled - pixel, 1e-7, 1.0 - 1e-7)  # uniform in the pixel
             offset = mi.warp.square_to_std_normal(jitter) * self.sigma

@@ -13,17 +13,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from elo_mitsuba import melt_plate
 from elo_mitsuba.cli import main
 from elo_mitsuba.errors import EloInputError
-from elo_mitsuba.mesh import (
-    corrugated_profile,
-    corrugated_sheet_mesh,
-    heightmap_to_mesh,
-    load_heightmap,
-    pixel_centres,
-    write_mesh,
-)
+from elo_mitsuba.heightmap import load_heightmap, pixel_centres
+from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh
+from elo_mitsuba.objects import melt_plate
+from elo_mitsuba.objects.corrugated_sheet import corrugated_profile, corrugated_sheet_mesh
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 MESHES = REPO_ROOT / "scenes_xml" / "meshes"

@@ -51,19 +51,13 @@ class Renderer:
         opts = dict(options or {})
         if detector_samples is not None:
             opts["detector_samples"] = int(detector_samples)
-        old = {}
-        for k in opts:
-            if not hasattr(integ, k):
-                raise AttributeError(f"the elo integrator has no option {k!r}")
-            old[k] = getattr(integ, k)
+        saved = integ.options
         t0 = time.perf_counter()
         try:
-            for k, v in opts.items():
-                setattr(integ, k, v)
+            s.configure(**opts)
             result = s.render(spp=int(spp), events=int(events), seed=int(seed), progress=False)
         finally:
-            for k, v in old.items():
-                setattr(integ, k, v)
+            integ.configure(saved)
         dt = time.perf_counter() - t0
         res = result.metadata["resolution"]
         n = float(res[0] * res[1] * int(spp))

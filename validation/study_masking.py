@@ -14,8 +14,9 @@ MAP_FIELD = 100.0  # the shipped height map: 500 x 500 pixels of 0.2 mm
 
 def _steep_scene(ctx, scale):
     """Scene of the melt plate with its relief scaled by ``scale`` (a steeper stand-in), in tmp."""
-    from elo_mitsuba.melt_plate import PIXEL_SIZE_MM, MESH_TOLERANCE_MM
-    from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh, write_scene
+    from elo_mitsuba.objects.melt_plate import PIXEL_SIZE_MM, MESH_TOLERANCE_MM
+    from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh
+    from elo_mitsuba.scene_files import write_scene
 
     h = np.load(_height_path()).astype(float) * scale
     mesh = heightmap_to_mesh(h, PIXEL_SIZE_MM, tolerance_mm=MESH_TOLERANCE_MM)
@@ -24,7 +25,7 @@ def _steep_scene(ctx, scale):
 
 
 def _height_path():
-    from elo_mitsuba.melt_plate import HEIGHTMAP_NAME, assets_dir
+    from elo_mitsuba.objects.melt_plate import HEIGHTMAP_NAME, assets_dir
 
     return assets_dir() / HEIGHTMAP_NAME
 
@@ -33,7 +34,7 @@ def _analyse(ctx, scene, height, label):
     """Normal histogram + masked normal fractions (height map) and the four rendered layouts."""
     import elo_mitsuba.analysis as A
     from elo_mitsuba.constants import TABLE1_LAYOUTS
-    from elo_mitsuba.melt_plate import in_squares
+    from elo_mitsuba.objects.melt_plate import in_squares
 
     cfg = ctx.settings["masking"]
     field, res, spp = cfg["field"], cfg["res"], cfg["spp"]

@@ -15,7 +15,7 @@ FWHM = 0.27
 
 def _full(ctx):
     import elo_mitsuba.analysis as A
-    from elo_mitsuba.melt_plate import in_squares, melt_plate_height
+    from elo_mitsuba.objects.melt_plate import in_squares, melt_plate_height
 
     cfg = ctx.settings["melt_plate"]
     res, spp = cfg["full_res"], cfg["full_spp"]
@@ -38,7 +38,7 @@ def _full(ctx):
 
 def _zoom(ctx):
     import elo_mitsuba.analysis as A
-    from elo_mitsuba.melt_plate import in_squares, melt_plate_gradient
+    from elo_mitsuba.objects.melt_plate import in_squares, melt_plate_gradient
 
     cfg = ctx.settings["melt_plate"]
     field, res = cfg["zoom_field"], cfg["zoom_res"]
@@ -77,7 +77,7 @@ def _material(ctx, field):
 
 def run(ctx):
     import elo_mitsuba.analysis as A
-    from elo_mitsuba.melt_plate import in_squares
+    from elo_mitsuba.objects.melt_plate import in_squares
 
     st = StudyResult("melt_plate", "Figs. 6, 7, 11 (and 3b) — the melt plate: M_x, Eq. 26, beam blur, "
                                    "reconstruction (Secs. 3.2, 4.2)")

@@ -2,7 +2,7 @@
 
 * :func:`half_asymmetry` — (top - bottom)/mean of an image with its Monte Carlo standard error;
 * :func:`disc_integral_flat` — Eq. 5 by quadrature over a disc detector (exact reference);
-* :func:`triangle_solid_angle` — Van Oosterom-Strackee (Eq. A1) as printed and corrected;
+* :func:`triangle_solid_angle_printed` — Van Oosterom-Strackee (Eq. A1) as printed;
 * :func:`facet_gradient` — the gradient of the mesh the electrons actually hit (ray cast);
 * :func:`fit_gaussian_blur` — FWHM of the Gaussian that maps a sharp image onto a blurred one;
 * :func:`line_fit` — least-squares slope/intercept with the slope's standard error.
@@ -75,17 +75,15 @@ def disc_integral_flat(points, wd, centre, radius, material, n_r=32, n_phi=96):
     return out
 
 
-def triangle_solid_angle(v1, v2, v3, printed=False):
-    """Solid angle of a plane triangle seen from the origin, Van Oosterom & Strackee (Eq. A1).
-
-    ``printed=True`` uses the denominator as printed in the paper, whose last term is
-    (v1.v3)|v1|; the correct term is (v2.v3)|v1| (ERRATA.md item 2).
-    """
+def triangle_solid_angle_printed(v1, v2, v3):
+    """Solid angle of a plane triangle seen from the origin by Eq. A1 **as printed**: the last
+    term of the denominator is (v1.v3)|v1| instead of (v2.v3)|v1| (docs/paper-notes.md §2). The
+    corrected formula is :func:`elo_mitsuba.physics.triangle_solid_angle`."""
     v1, v2, v3 = (np.asarray(v, float) for v in (v1, v2, v3))
     n1, n2, n3 = (np.linalg.norm(v, axis=-1) for v in (v1, v2, v3))
     num = np.sum(v1 * np.cross(v2, v3), axis=-1)
-    last = np.sum(v1 * v3, axis=-1) * n1 if printed else np.sum(v2 * v3, axis=-1) * n1
-    den = n1 * n2 * n3 + np.sum(v1 * v2, axis=-1) * n3 + np.sum(v1 * v3, axis=-1) * n2 + last
+    den = (n1 * n2 * n3 + np.sum(v1 * v2, axis=-1) * n3 + np.sum(v1 * v3, axis=-1) * n2
+           + np.sum(v1 * v3, axis=-1) * n1)
     return np.abs(2.0 * np.arctan2(num, den))
 
 

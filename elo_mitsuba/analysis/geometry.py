@@ -1,12 +1,7 @@
 """Scan-field and detector geometry shared by every analysis function.
 
-Image orientation (the same as :mod:`elo_mitsuba.exr`): array row 0 is the +y edge of the scan
-field, columns run towards +x (the build plate seen from above, +y up). Pixel (column i, row j)
-of an image of shape (H, W) covering ``field_mm = (field_x, field_y)`` is centred at
-
-    x = -field_x/2 + (i + 1/2) field_x / W,    y = +field_y/2 - (j + 1/2) field_y / H   [mm].
-
-:func:`pixel_coordinates` is the one place that implements this; everything else calls it.
+Pixel positions follow the package's one image orientation, defined in :mod:`elo_mitsuba.grid`
+(:func:`pixel_axes`, :func:`pixel_coordinates`, re-exported here).
 
 Detectors (Eq. 17): right (+x), left (-x), back (+y), front (-y), each at height ``d_h`` above the
 build plane and at distance ``d_w`` from the z-axis. Vectors are in p,q-form (scaled to z = 1,
@@ -23,63 +18,11 @@ import numpy as np
 
 from ..constants import DETECTOR_DIRECTIONS, DETECTOR_NAMES
 from ..errors import EloInputError
+from ..grid import field_xy, pixel_axes, pixel_coordinates, pixel_size  # noqa: F401  (re-exported)
 
 #: Relative tolerance on the agreement of the four detectors' d_h and d_w read from a header, and
 #: on their lying along +x, -x, +y, -y (Eq. 17 assumes this symmetric layout).
 GEOMETRY_RTOL = 1e-3
-
-
-def field_xy(field_mm) -> tuple[float, float]:
-    """Return ``(field_x, field_y)`` in mm from a scalar (square field) or a pair; validated > 0."""
-    arr = np.atleast_1d(np.asarray(field_mm, dtype=float)).ravel()
-    if arr.size == 1:
-        arr = np.repeat(arr, 2)
-    if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise EloInputError(f"field_mm={field_mm!r}: give one or two finite lengths > 0 in mm")
-    return float(arr[0]), float(arr[1])
-
-
-def pixel_size(shape, field_mm) -> tuple[float, float]:
-    """Pixel pitch ``(dx, dy)`` in mm of an image of ``shape`` (H, W) covering ``field_mm``."""
-    h, w = _shape_hw(shape)
-    fx, fy = field_xy(field_mm)
-    return fx / w, fy / h
-
-
-def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
-    """Coordinates (mm) of the pixel-centre columns and rows of an image (the package's orientation).
-
-    Parameters
-    ----------
-    shape : tuple of int
-        Image shape (H, W) (extra trailing dimensions are ignored).
-    field_mm : float or (float, float)
-        Scan field width (x) and height (y) in mm; a scalar means a square field.
-
-    Returns
-    -------
-    xs : ndarray, shape (W,)
-        x of each column, growing with the column index, centred on 0.
-    ys : ndarray, shape (H,)
-        y of each row, *decreasing* with the row index (row 0 is the +y edge), centred on 0.
-    """
-    h, w = _shape_hw(shape)
-    fx, fy = field_xy(field_mm)
-    xs = -fx / 2 + (np.arange(w) + 0.5) * (fx / w)
-    ys = fy / 2 - (np.arange(h) + 0.5) * (fy / h)
-    return xs, ys
-
-
-def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
-    """Coordinates (mm) of the pixel centres of an image, following the package's orientation:
-    the 2-D grids of :func:`pixel_axes` (same parameters).
-
-    Returns
-    -------
-    x, y : ndarray, shape (H, W)
-        x grows along columns, y *decreases* along rows (row 0 is the +y edge).
-    """
-    return tuple(np.meshgrid(*pixel_axes(shape, field_mm)))
 
 
 def check_detector_geometry(d_h, d_w) -> tuple[float, float]:
@@ -235,10 +178,3 @@ def geometry_from_metadata(meta: Mapping, source: str = "metadata", *, d_h=None,
         d_w = float(np.mean(list(ws.values()))) if d_w is None else d_w
     d_h, d_w = check_detector_geometry(d_h, d_w)
     return {"field_mm": (fx, fy), "d_h": d_h, "d_w": d_w, "resolution": resolution}
-
-
-def _shape_hw(shape) -> tuple[int, int]:
-    shape = tuple(int(s) for s in shape)
-    if len(shape) < 2 or shape[0] < 1 or shape[1] < 1:
-        raise EloInputError(f"image shape {shape}: expected (H, W) with H, W >= 1")
-    return shape[0], shape[1]

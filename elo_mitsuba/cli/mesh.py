@@ -49,23 +49,16 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from pathlib import Path
-
-    from ..mesh import heightmap_to_mesh, load_heightmap, validate_pixel_size, write_mesh, write_scene
+    from ..files import check_output
+    from ..heightmap import load_heightmap, validate_pixel_size
+    from ..mesh import heightmap_to_mesh, write_mesh
+    from ..scene_files import write_scene
 
     if args.material is not None and args.scene is None:
         raise EloInputError("--material sets the object's material in --scene; give --scene SCENE.xml too")
-    out = Path(args.output)
-    if out.suffix.lower() != ".ply":
-        raise EloInputError(f"--output {args.output!r} must end in .ply (binary PLY is written)")
-    if out.exists() and not args.overwrite:
-        raise EloInputError(f"--output {args.output!r} exists; pass --overwrite to replace it")
+    out = check_output(args.output, (".ply",), overwrite=args.overwrite, what="--output")
     if args.scene is not None:
-        scene = Path(args.scene)
-        if scene.suffix.lower() != ".xml":
-            raise EloInputError(f"--scene {args.scene!r} must end in .xml")
-        if scene.exists() and not args.overwrite:
-            raise EloInputError(f"--scene {args.scene!r} exists; pass --overwrite to replace it")
+        check_output(args.scene, (".xml",), overwrite=args.overwrite, what="--scene")
         from ..physics.materials import get_material
 
         get_material(args.material)

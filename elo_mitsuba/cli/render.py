@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..errors import EloInputError
+from ..files import check_output
 from ._args import define, non_negative_int, positive_int
 
 HELP = "render the detector images of an XML scene to a multichannel EXR"
@@ -78,29 +78,17 @@ def add_parser(subparsers):
 def run(args) -> int:
     from ..render import NEGLIGIBLE_EVENT_SHARE, load_scene
 
-    out = Path(args.output)
-    if out.suffix.lower() != ".exr":
-        raise EloInputError(f"output {out}: must end in .exr")
-    if out.exists() and not args.overwrite:
-        raise EloInputError(f"output {out} exists; pass --overwrite to replace it")
-    if not out.parent.exists():
-        raise EloInputError(f"output {out}: directory {out.parent} does not exist")
-    preview = Path(args.preview) if args.preview else None
-    if preview is not None:
-        if preview.suffix.lower() != ".png":
-            raise EloInputError(f"preview {preview}: must end in .png")
-        if preview.exists() and not args.overwrite:
-            raise EloInputError(f"preview {preview} exists; pass --overwrite to replace it")
+    out = check_output(args.output, (".exr",), overwrite=args.overwrite)
+    preview = check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview") if args.preview else None
     params = dict(args.defines)
     if args.resolution is not None:
         params["res"] = args.resolution
     t0 = time.perf_counter()
     scene = load_scene(args.scene, variant=args.variant, detector_layout=args.layout, **params)
     if args.units:
-        scene.integrator.units = args.units
+        scene.configure(units=args.units)
     if args.detector_samples:  # explicit wins over the preset (which does not set it)
-        scene.integrator.detector_samples = args.detector_samples
-        scene.integrator.bounce_detector_samples = args.detector_samples
+        scene.configure(detector_samples=args.detector_samples, bounce_detector_samples=args.detector_samples)
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False)
     result.write_exr(out, overwrite=args.overwrite)
@@ -118,7 +106,7 @@ def run(args) -> int:
               file=sys.stderr)
         for note in m.get("notes", []):
             print(f"note: {note}", file=sys.stderr)
-        shares = result.event_shares()  # what each event order adds (issue 6)
+        shares = result.event_shares()  # what each event order adds
         if shares:
             print("event shares of the signal (mean; 99th-percentile pixel): " + ", ".join(
                 f"e{s['event']} {100 * s['mean']:.2f}% ({100 * s['p99']:.2f}%)" for s in shares), file=sys.stderr)

@@ -1,7 +1,8 @@
 """The physics of the model as pure numpy functions (paper Sec. 2.1, Eqs. 10-14).
 
-Nothing here needs Mitsuba: analysis code and tests use it directly; the Mitsuba plugins use
-the Dr.Jit forms in :mod:`elo_mitsuba.physics.kernels` built on the same constants and tables.
+Nothing here needs Mitsuba: analysis code and tests use it directly. The Mitsuba plugins build
+on the same constants and tables; the Dr.Jit forms of g_BSE live in the ``elo_bse`` BSDF
+(:mod:`elo_mitsuba.plugins.bsdf_elo_bse`).
 """
 
 from .backscatter import eta0_element, eta_castaing, eta_darlington
@@ -14,9 +15,11 @@ from .scattering import (
     lobe_normalisation_eq14_repaired,
     lobe_normalisation_table,
 )
+from .solid_angle import triangle_solid_angle, vos_denominator
 
 __all__ = [
     "ATOMIC_NUMBER", "PRESETS", "Material", "eta0_element", "eta_castaing", "eta_darlington",
     "g_bse", "g_bse_local", "get_material", "lobe_exponent", "lobe_normalisation",
     "lobe_normalisation_eq14_repaired", "lobe_normalisation_table", "parse_composition",
+    "triangle_solid_angle", "vos_denominator",
 ]

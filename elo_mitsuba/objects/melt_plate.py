@@ -18,8 +18,8 @@ map is not published, so this module synthesises a plausible one, deterministica
 
 :func:`melt_plate_height` evaluates the relief at any (x, y) (scene mm); :func:`melt_plate_gradient`
 gives its exact gradient (central differences of the analytic function, step 1e-5 mm, error
-~1e-9); :func:`melt_plate_heightmap` samples it on the shipped grid with the orientation of
-:mod:`elo_mitsuba.mesh` (row 0 = +y edge, columns towards +x). :func:`write_assets` regenerates
+~1e-9); :func:`melt_plate_heightmap` samples it on the shipped grid in the package orientation
+(:mod:`elo_mitsuba.grid`). :func:`write_assets` regenerates
 ``scenes_xml/meshes/melt_plate.ply`` and ``melt_plate_height.npy``.
 """
 
@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .mesh import heightmap_to_mesh, pixel_centres, write_mesh
+from ..heightmap import pixel_centres
+from ..mesh import heightmap_to_mesh, write_mesh
 
 #: Seed of the synthetic relief.
 SEED = 20230426
@@ -198,9 +199,9 @@ def relief_statistics(height=None, pixel_size_mm: float = PIXEL_SIZE_MM) -> dict
 
 def assets_dir() -> Path:
     """scenes_xml/meshes/ of this source tree (installed as elo_mitsuba.scenes)."""
-    from . import scenes  # noqa: F401  (package elo_mitsuba.scenes = scenes_xml/)
+    from ..scene_files import scenes_dir
 
-    return Path(scenes.__file__).parent / "meshes"
+    return scenes_dir() / "meshes"
 
 
 def write_assets(directory=None, overwrite: bool = True) -> tuple[Path, Path]:

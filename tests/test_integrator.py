@@ -17,10 +17,8 @@ from elo_mitsuba.physics import get_material
 mi = em.ensure_variant()
 import drjit as dr  # noqa: E402
 
-from elo_mitsuba.plugins.integrator_elo import (  # noqa: E402
-    _local_disk_triangles,
-    solid_angle_triangle,
-)
+from elo_mitsuba.physics import triangle_solid_angle  # noqa: E402
+from elo_mitsuba.plugins._detectors import _local_disk_triangles  # noqa: E402
 
 DETECTORS = ("right", "left", "back", "front")
 CENTRES = {"right": (127.0, 0, 272.0), "left": (-127.0, 0, 272.0), "back": (0, 127.0, 272.0),
@@ -30,8 +28,7 @@ CENTRES = {"right": (127.0, 0, 272.0), "left": (-127.0, 0, 272.0), "back": (0, 1
 def render(scene_dict, spp, seed=0, **options):
     scene = mi.load_dict(scene_dict)
     integ = scene.integrator()
-    for k, v in options.items():
-        setattr(integ, k, v)
+    integ.configure(integ.options.replace(**options))
     img = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
     return {n: img[..., i + 1] for i, n in enumerate(integ.channel_names())}, integ
 
@@ -47,8 +44,8 @@ def test_van_oosterom_strackee_corrected():
     (v2.v3)|v1| gives another value for a general triangle, so the test can tell them apart."""
     o = np.zeros(3)
     e = np.eye(3)
-    assert solid_angle_triangle(o, e[0], e[1], e[2]) == pytest.approx(np.pi / 2, rel=1e-12)
-    assert solid_angle_triangle(o, e[0], e[2], e[1]) == pytest.approx(-np.pi / 2, rel=1e-12)  # other side
+    assert triangle_solid_angle(o, e[0], e[1], e[2]) == pytest.approx(np.pi / 2, rel=1e-12)
+    assert triangle_solid_angle(o, e[0], e[2], e[1]) == pytest.approx(-np.pi / 2, rel=1e-12)  # other side
     # a general triangle: compare with a fine Monte Carlo-free quadrature of the spherical area
     v1, v2, v3 = np.array([3.0, 0.2, 1.0]), np.array([0.5, 2.0, 1.5]), np.array([-0.4, 0.3, 2.5])
     n = 300  # n^2 equal sub-triangles, each evaluated at its centroid
@@ -61,7 +58,7 @@ def test_van_oosterom_strackee_corrected():
     da = np.linalg.norm(normal) / (2 * n * n)
     r = np.linalg.norm(p, axis=1)
     omega = np.sum(np.abs(p @ normal / np.linalg.norm(normal)) / r**3) * da
-    got = abs(solid_angle_triangle(o, v1, v2, v3))
+    got = abs(triangle_solid_angle(o, v1, v2, v3))
     assert got == pytest.approx(omega, rel=1e-4)
     l1, l2, l3 = (np.linalg.norm(v) for v in (v1, v2, v3))
     misprint = abs(2 * np.arctan2(v1 @ np.cross(v2, v3),
@@ -132,7 +129,7 @@ def test_partial_occlusion_sampled_visibility_is_unbiased():
     detector agrees with unbiased stratified sampling; the analysis does not skip these rays."""
     scene = _blocked_scene(mi)
     q, integ = render(scene, spp=256, seed=5, detector_sampling="quadrature", quadrature_triangles=24)
-    assert integ._free[0] == []  # right: blocked, shadow rays needed
+    assert integ._unblockable_regions[0] == []  # right: blocked, shadow rays needed
     ref, _ = render(scene, spp=512, seed=6, detector_sampling="stratified", detector_samples=16)
     clear, _ = render(flat_scene(mi, res=6, field=40.0), spp=1, detector_sampling="quadrature")
     assert np.all(ref["right"] < 0.95 * clear["right"])  # the wall does hide part of it
@@ -148,35 +145,35 @@ def test_partial_occlusion_sampled_visibility_is_unbiased():
 def test_occlusion_analysis_skips_only_unblockable_rays():
     scene = mi.load_dict(flat_scene(mi, res=5, field=80.0, wall=True, events=2))
     integ = scene.integrator()
-    integ.count_rays = True
+    integ.configure(integ.options.replace(count_rays=True))
     img = np.array(mi.render(scene, spp=4, seed=2), dtype=np.float64)
-    assert all(integ._free)  # nothing can block a detector from the plate
+    assert all(integ._unblockable_regions)  # nothing can block a detector from the plate
     first = integ.ray_counts["shadow_rays"]
-    integ.occlusion_analysis = False
+    integ.configure(integ.options.replace(occlusion_analysis=False))
     off = np.array(mi.render(scene, spp=4, seed=2), dtype=np.float64)
-    assert not any(integ._free)
+    assert not any(integ._unblockable_regions)
     assert integ.ray_counts["shadow_rays"] - first == pytest.approx(4.0, abs=1e-6)  # 4 per sample
     np.testing.assert_allclose(img, off, rtol=1e-6)  # the skipped rays could not have hit anything
     # a blocker: the analysis must keep the rays of the detector it can hide, and only those
     _, integ2 = render(_blocked_scene(mi), spp=1)
-    assert integ2._free[0] == [] and all(integ2._free[1:])
+    assert integ2._unblockable_regions[0] == [] and all(integ2._unblockable_regions[1:])
 
 
 def test_inline_g_tables_equal_bsdf_eval():
     """The per-BSDF tables (no virtual call) give what elo_bse's eval gives, incl. the wall."""
     scene = flat_scene(mi, res=4, field=200.0, wd=150.0, wall=True, events=2)
     a, integ = render(scene, spp=16, seed=4)
-    assert integ._tables is not None
+    assert integ._g_tables is not None
 
     class Dispatch(type(integ)):
-        @staticmethod
-        def _material_tables(scatterers):
-            return None
+        def prepare_scene(self, scene, sensor=None):
+            super().prepare_scene(scene, sensor)
+            self._g_tables = None  # g_BSE by one dispatch of bsdf.eval per point
 
     mi.register_integrator("elo_test_dispatch", Dispatch)
     scene["integrator"] = {"type": "elo_test_dispatch", "events": 2}
     b, integ_b = render(scene, spp=16, seed=4)
-    assert integ_b._tables is None
+    assert integ_b._g_tables is None
     for n in a:
         np.testing.assert_allclose(a[n], b[n], rtol=2e-5, atol=1e-12)
 
@@ -250,11 +247,11 @@ def test_top_up_pass_hits_exactly_its_pixels():
     integ = scene.integrator()
     mask = np.zeros((5, 5), bool)
     mask[1, 3] = mask[4, 0] = True
-    integ._pass2 = (mi.Bool(mask.ravel()), dr.opaque(mi.UInt32, 64))
+    integ._top_up_pass = (mi.Bool(mask.ravel()), dr.opaque(mi.UInt32, 64))
     try:
         img = np.array(mi.render(scene, spp=64, seed=1), dtype=np.float64)
     finally:
-        integ._pass2 = None
+        integ._top_up_pass = None
     ch = {n: img[..., i + 1] for i, n in enumerate(integ.channel_names())}
     e2 = sum(ch[f"{n}.e2"] for n in DETECTORS)
     assert np.all(e2[mask] > 0) and np.all(e2[~mask] == 0)
@@ -268,14 +265,14 @@ def test_planar_scene_traces_no_bounce():
     for n in DETECTORS:
         assert np.all(ch[f"{n}.e2"] == 0) and np.all(ch[f"{n}.e3"] == 0)
         np.testing.assert_array_equal(ch[n], ch[f"{n}.e1"])
-    integ.count_rays = True
+    integ.configure(integ.options.replace(count_rays=True))
     mi.render(mi.load_dict(scene), integrator=integ, spp=2)
     assert integ.ray_counts["intersections"] == pytest.approx(1.0)
 
 
 # ---- presets ------------------------------------------------------------------------------------------
 def test_quality_presets():
-    from elo_mitsuba.render import QUALITY_PRESETS
+    from elo_mitsuba.options import QUALITY_PRESETS
 
     assert set(QUALITY_PRESETS) == {"draft", "default", "reference"}
     scene = em.load_scene("athene_flat", res=64)
@@ -340,7 +337,7 @@ def test_detector_shapes_for_quadrature():
     sphere = flat_scene(mi, res=2)
     sphere["right"] = {"type": "sphere", "center": [127, 0, 272], "radius": 20.0, "emitter": {"type": "area"}}
     loaded = mi.load_dict(sphere)
-    loaded.integrator().detector_sampling = "quadrature"
+    loaded.integrator().configure(loaded.integrator().options.replace(detector_sampling="quadrature"))
     with pytest.raises(em.EloInputError, match="quadrature supports disk, rectangle and mesh"):
         loaded.integrator().prepare_scene(loaded)
 

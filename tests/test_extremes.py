@@ -18,8 +18,7 @@ STRATEGIES = ({}, {"detector_sampling": "stratified", "detector_samples": 4},
 def render(scene_dict, spp=4, seed=0, **options):
     scene = mi.load_dict(scene_dict)
     integ = scene.integrator()
-    for k, v in options.items():
-        setattr(integ, k, v)
+    integ.configure(integ.options.replace(**options))
     img = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
     assert np.all(np.isfinite(img)), "NaN/Inf in the image"
     assert np.all(img >= 0), "negative electron counts"
@@ -151,7 +150,7 @@ def test_impossible_input_gives_clear_errors(tmp_path):
     scene["right"] = disk([127.0, 0.0, 272.0], [-127.0, 0.0, -272.0], radius=1e-30)
     loaded = mi.load_dict(scene)
     integ = loaded.integrator()
-    integ.detector_sampling = "quadrature"
+    integ.configure(integ.options.replace(detector_sampling="quadrature"))
     with pytest.raises(em.EloInputError, match="zero area|non-finite"):
         integ.prepare_scene(loaded)
     # an edge-on detector and one facing away from the field: refused by name

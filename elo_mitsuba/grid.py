@@ -1,0 +1,87 @@
+"""The image orientation and the scan grid: the one definition, used by every module.
+
+Every image of the package (detector channels, EXR, PNG, gradients, height maps, meshes built
+from height maps) is the build plate **seen from above with +y up**: array row 0 is the +y edge
+of the scan field, columns run towards +x. Pixel (column i, row j) of an image of shape (H, W)
+covering ``field = (field_x, field_y)`` mm is centred at
+
+    x = -field_x/2 + (i + 1/2) field_x / W,    y = +field_y/2 - (j + 1/2) field_y / H   [mm],
+
+so the field is centred on the z-axis. The scanned beam (sensor ``elo_beam``) aims film pixel
+(i, j) at exactly this point (:func:`film_to_plane`); :func:`pixel_axes` gives the same points for
+numpy images. Both are this one map, written once for Dr.Jit film coordinates and once for numpy
+index grids; ``tests/test_grid.py`` holds them to each other.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import EloInputError
+
+#: The orientation in words, stored in every output header.
+ORIENTATION = "row 0 = +y edge, columns towards +x (plate seen from above, +y up)"
+
+
+def field_xy(field_mm) -> tuple[float, float]:
+    """Return ``(field_x, field_y)`` in mm from a scalar (square field) or a pair; validated > 0."""
+    arr = np.atleast_1d(np.asarray(field_mm, dtype=float)).ravel()
+    if arr.size == 1:
+        arr = np.repeat(arr, 2)
+    if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise EloInputError(f"field_mm={field_mm!r}: give one or two finite lengths > 0 in mm")
+    return float(arr[0]), float(arr[1])
+
+
+def shape_hw(shape) -> tuple[int, int]:
+    """``(H, W)`` of an image shape (extra trailing dimensions ignored), validated >= 1."""
+    shape = tuple(int(s) for s in shape)
+    if len(shape) < 2 or shape[0] < 1 or shape[1] < 1:
+        raise EloInputError(f"image shape {shape}: expected (H, W) with H, W >= 1")
+    return shape[0], shape[1]
+
+
+def pixel_size(shape, field_mm) -> tuple[float, float]:
+    """Pixel pitch ``(dx, dy)`` in mm of an image of ``shape`` (H, W) covering ``field_mm``."""
+    h, w = shape_hw(shape)
+    fx, fy = field_xy(field_mm)
+    return fx / w, fy / h
+
+
+def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates (mm) of the pixel-centre columns and rows of an image.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Image shape (H, W) (extra trailing dimensions are ignored).
+    field_mm : float or (float, float)
+        Scan field width (x) and height (y) in mm; a scalar means a square field.
+
+    Returns
+    -------
+    xs : ndarray, shape (W,)
+        x of each column, growing with the column index, centred on 0.
+    ys : ndarray, shape (H,)
+        y of each row, *decreasing* with the row index (row 0 is the +y edge), centred on 0.
+    """
+    h, w = shape_hw(shape)
+    fx, fy = field_xy(field_mm)
+    xs = -fx / 2 + (np.arange(w) + 0.5) * (fx / w)
+    ys = fy / 2 - (np.arange(h) + 0.5) * (fy / h)
+    return xs, ys
+
+
+def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
+    """The 2-D grids ``(x, y)`` (each of shape (H, W)) of :func:`pixel_axes` (same parameters)."""
+    return tuple(np.meshgrid(*pixel_axes(shape, field_mm)))
+
+
+def film_to_plane(u, v, field_x, field_y):
+    """Build-plane point ``(x, y)`` (mm) of film coordinates ``(u, v)`` in [0, 1]^2.
+
+    ``u`` runs along the columns (towards +x), ``v`` down the rows (towards -y); a pixel centre
+    (u = (i + 1/2)/W, v = (j + 1/2)/H) maps to the point of :func:`pixel_axes`. Works on numpy
+    and Dr.Jit arrays alike (the sensor calls it on its film samples).
+    """
+    return (u - 0.5) * field_x, (0.5 - v) * field_y

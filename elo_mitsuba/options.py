@@ -1,0 +1,238 @@
+"""The options of the ``elo`` integrator, validated once, and the quality presets that set them.
+
+:class:`EloOptions` is the one description of how a render estimates the detector signals: the
+integrator reads it from the scene file (:meth:`EloOptions.from_props`), the Python API and the
+CLI change it only through :meth:`EloOptions.replace` and ``integrator.configure(options)``, and
+the output header records it whole (:meth:`EloOptions.as_dict`). A value outside its range is
+refused with one line naming the option, the value and what is allowed, before any work starts.
+
+:func:`quality_options` turns a preset of :data:`QUALITY_PRESETS` (measured in
+``benchmarks/RESULTS.md``) into options and a sample count for a scene's resolution, events and
+beam profile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from .constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
+from .errors import EloInputError
+
+UNITS = ("fraction", "voltage")
+STRATEGIES = ("independent", "stratified", "quadrature")
+VISIBILITY = ("sampled", "triangle")
+#: Most triangles of one detector in the quadrature (the loop over them is unrolled).
+MAX_QUADRATURE_TRIANGLES = 256
+#: Most paths per pixel ``bounce_min`` may ask for.
+MAX_BOUNCE_MIN = 4096
+
+
+def _option(default, doc: str, kind: str, *, xml: bool = True, choices=None, bounds=None):
+    """A dataclass field carrying its documentation, its kind and its allowed values."""
+    return field(default=default, metadata={"doc": doc, "kind": kind, "xml": xml, "choices": choices,
+                                            "bounds": bounds})
+
+
+@dataclass(frozen=True)
+class EloOptions:
+    """How the ``elo`` integrator estimates N_d/N_0 (all fields validated on construction).
+
+    The fields are the integrator's XML parameters (``<integer name="events" value="2"/>``, ...),
+    except ``occlusion_analysis`` and ``count_rays`` (Python only). See
+    :data:`elo_mitsuba.plugins.integrator_elo` for what each strategy does.
+    """
+
+    events: int = _option(1, "scattering events counted (1 = first event only); Mitsuba's max_depth = events + 1",
+                          "int", bounds=(1, None))
+    detector_sampling: str = _option("independent", "how the 1st event's detector integral (Eq. 5) is "
+                                     "estimated", "str", choices=STRATEGIES)
+    detector_samples: int = _option(1, "points sampled on each detector per event (independent, stratified)",
+                                    "int", bounds=(1, None))
+    bounce_detector_samples: int | None = _option(None, "points per detector at events >= 2 (default: "
+                                                  "detector_samples)", "int", bounds=(1, None))
+    quadrature_triangles: int = _option(8, "triangles per detector in the quadrature of Appendix A", "int",
+                                        bounds=(4, MAX_QUADRATURE_TRIANGLES))
+    quadrature_visibility: str = _option("sampled", "occlusion in the quadrature: one sampled ray per detector, "
+                                         "or one ray per triangle", "str", choices=VISIBILITY)
+    bounce_samples: int = _option(1, "continuation paths per sample (splitting, each weighted 1/k)", "int",
+                                  bounds=(1, None))
+    bounce_fraction: float = _option(1.0, "fraction f of the samples that trace events >= 2 (blocks of 32 "
+                                     "lanes, weight 1/f)", "float", bounds=(0.0, 1.0))
+    bounce_filter: float = _option(0.0, "half-width (mm) of the normal-guided window average of events >= 2 "
+                                   "(0 = off)", "float", bounds=(0.0, None))
+    bounce_filter_angle: float = _option(1.0, "normals differing by more than this (deg) stop the window",
+                                         "float", bounds=(0.0, 90.0))
+    bounce_min: float = _option(0.0, "paths per pixel below which a second pass tops events >= 2 up (0 = off)",
+                                "float", bounds=(0.0, MAX_BOUNCE_MIN))
+    units: str = _option("fraction", "N_d/N_0 ('fraction') or detector voltage U_d = N_d/N_0 I_b T "
+                         "('voltage', Eq. 9)", "str", choices=UNITS)
+    beam_current: float = _option(BEAM_CURRENT_A, "beam current I_b (A) of Eq. 9", "float", bounds=(0.0, None))
+    transimpedance: float = _option(TRANSIMPEDANCE_V_PER_A, "amplifier transimpedance T (V/A) of Eq. 9",
+                                    "float", bounds=(0.0, None))
+    occlusion_analysis: bool = _option(True, "skip shadow rays that provably cannot be blocked", "bool",
+                                       xml=False)
+    count_rays: bool = _option(False, "count the rays cast per sample (integrator.ray_counts; benchmarks)",
+                               "bool", xml=False)
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = _coerce(f, getattr(self, f.name))
+            object.__setattr__(self, f.name, value)
+        if self.bounce_detector_samples is None:
+            object.__setattr__(self, "bounce_detector_samples", self.detector_samples)
+
+    # -- construction --
+    @classmethod
+    def from_props(cls, props) -> "EloOptions":
+        """The options a scene file gives (``mi.Properties`` of ``<integrator type="elo">``)."""
+        given = {}
+        for f in dataclasses.fields(cls):
+            if f.metadata["xml"] and f.name in props:
+                given[f.name] = props.get(f.name)
+        return cls(**given)
+
+    def replace(self, **changes) -> "EloOptions":
+        """A copy with ``changes`` applied and validated; unknown names are refused."""
+        unknown = [k for k in changes if k not in _FIELDS]
+        if unknown:
+            raise EloInputError(f"elo: no option {unknown[0]!r}; options are {', '.join(_FIELDS)}")
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every option by name (what the output header records)."""
+        return {f: getattr(self, f) for f in _FIELDS}
+
+
+def _coerce(f: dataclasses.Field, value):
+    """``value`` as the field's kind, or :class:`EloInputError` naming option, value and range."""
+    kind, name = f.metadata["kind"], f.name
+    if value is None and f.default is None:
+        return None
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise EloInputError(f"elo: {name}={value!r}; must be true or false")
+        return value
+    if kind == "str":
+        value = str(value)
+        choices = f.metadata["choices"]
+        if value not in choices:
+            raise EloInputError(f"elo: {name}={value!r}; allowed: {', '.join(choices)}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
+        raise EloInputError(f"elo: {name}={value!r}; must be a number")
+    number = float(value)
+    if kind == "int":
+        if not (math.isfinite(number) and number == int(number)):
+            raise EloInputError(f"elo: {name}={value!r}; must be a whole number")
+        number = int(number)
+    lo, hi = f.metadata["bounds"]
+    if not _in_range(name, number, lo, hi):
+        raise EloInputError(f"elo: {name}={value!r}{_UNIT.get(name, '')}; must be {_range_text(name, kind, lo, hi)}")
+    return number
+
+
+#: Bounds that are open (the value may not equal them), by option.
+_OPEN = {"bounce_fraction": "lo", "bounce_filter_angle": "both", "beam_current": "lo", "transimpedance": "lo"}
+_UNIT = {"bounce_filter": " mm", "bounce_filter_angle": " deg"}
+_NOTE = {"events": " (1 = first event only)", "bounce_filter": " (0 = off)", "bounce_min": " (0 = off)"}
+
+
+def _in_range(name, x, lo, hi) -> bool:
+    if not math.isfinite(x):
+        return False
+    open_ = _OPEN.get(name, "")
+    if lo is not None and (x <= lo if open_ in ("lo", "both") else x < lo):
+        return False
+    return hi is None or (x < hi if open_ == "both" else x <= hi)
+
+
+def _range_text(name, kind, lo, hi) -> str:
+    open_ = _OPEN.get(name, "")
+    if hi is None:
+        text = f"> {lo:g}" if open_ else f">= {lo:g}"
+    else:
+        left = "(" if open_ in ("lo", "both") else "["
+        right = ")" if open_ == "both" else "]"
+        text = f"in {left}{lo:g}, {hi:g}{right}"
+    return text + _NOTE.get(name, "")
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(EloOptions))
+
+
+def parameter_table() -> str:
+    """The integrator's XML parameters as a text table (name, type, default, meaning)."""
+    rows = []
+    for f in dataclasses.fields(EloOptions):
+        if not f.metadata["xml"]:
+            continue
+        allowed = f.metadata["choices"]
+        kind = f.metadata["kind"] if not allowed else " | ".join(allowed)
+        default = "detector_samples" if f.default is None else repr(f.default)
+        rows.append((f.name, kind, default, f.metadata["doc"]))
+    width = [max(len(r[i]) for r in rows) for i in range(3)]
+    return "\n".join(f"    {n:<{width[0]}}  {k:<{width[1]}}  {d:<{width[2]}}  {doc}" for n, k, d, doc in rows)
+
+
+# ---- quality presets ----------------------------------------------------------------------------
+#: Quality presets (measured in benchmarks/RESULTS.md). The 1st event uses the triangle
+#: quadrature of Appendix A (``quadrature_triangles``; deterministic with a single-ray beam, so one
+#: sample per pixel suffices; ``spp_blur`` samples when the beam has a profile, fwhm > 0). Events
+#: >= 2 get ``bounce_budget`` continuation paths per window of ``bounce_filter`` mm half-width
+#: (a normal-guided average, see the elo integrator; 0 = per pixel), spread over the pixels by
+#: ``bounce_fraction`` / ``bounce_samples`` for the scene's resolution; pixels where the window
+#: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. ``scene`` keeps the scene
+#: file's own settings.
+QUALITY_PRESETS = {
+    "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
+              "bounce_min": 0.0},
+    "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 400,
+                "bounce_min": 2.0},
+    "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
+                  "bounce_budget": 128, "bounce_min": 0.0},
+}
+QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
+#: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
+MAX_BOUNCE_SAMPLES = 8
+
+
+def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm: float,
+                    traced_events: int) -> tuple[EloOptions, int]:
+    """The options and spp of a preset for a scene.
+
+    Parameters
+    ----------
+    quality : str
+        A name of :data:`QUALITY_PRESETS`.
+    base : EloOptions
+        The options to start from (events, units, detector_samples, ... are kept).
+    pixel_mm : float
+        Pixel pitch along x (field / width), for the window of ``bounce_filter``.
+    fwhm_mm : float
+        Beam profile FWHM; > 0 takes the preset's ``spp_blur`` samples.
+    traced_events : int
+        Events the scene can produce (1 when nothing can scatter an electron twice).
+
+    Returns
+    -------
+    options : EloOptions
+    spp : int
+    """
+    if quality not in QUALITY_PRESETS:
+        raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
+    preset = QUALITY_PRESETS[quality]
+    spp = int(preset["spp_blur"] if fwhm_mm > 0 else preset["spp"])
+    radius = round(preset["bounce_filter"] / pixel_mm)
+    per_pixel = preset["bounce_budget"] / (2 * radius + 1) ** 2  # continuation paths per pixel
+    if traced_events > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
+        spp = math.ceil(per_pixel / MAX_BOUNCE_SAMPLES)
+    per_sample = per_pixel / spp
+    bounce_samples = max(1, math.ceil(per_sample))
+    options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
+                           bounce_filter=preset["bounce_filter"], bounce_min=preset["bounce_min"],
+                           bounce_samples=bounce_samples,
+                           bounce_fraction=min(1.0, per_sample / bounce_samples))
+    return options, spp

@@ -1,0 +1,166 @@
+"""Scene files: the shipped scenes, their parameters, Mitsuba's loader errors, the scene writer.
+
+Scenes are Mitsuba XML files (``scenes_xml/``, installed as ``elo_mitsuba.scenes``) whose
+``<default name=... value=...>`` parameters the user sets with ``-D name=value`` (CLI) or keyword
+arguments (:func:`elo_mitsuba.load_scene`). This module finds a scene by name or path, lists the
+parameters a file (and the files it includes) declares, translates Mitsuba's multi-line loader
+errors into one line, and writes new scenes around a user's mesh.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import xml.etree.ElementTree as ET
+from importlib import resources
+from pathlib import Path
+from typing import Mapping
+
+from .constants import DEFAULT_MATERIAL, TABLE1_LAYOUTS
+from .errors import EloInputError
+from .files import atomic_write, check_output
+
+
+def scenes_dir() -> Path:
+    """The shipped scenes (scenes_xml/, installed as the package ``elo_mitsuba.scenes``)."""
+    return Path(str(resources.files("elo_mitsuba.scenes")))
+
+
+def shipped_scenes() -> dict[str, Path]:
+    """Names and paths of the scenes shipped in ``scenes_xml/`` (``elo_mitsuba.scenes``)."""
+    return {p.stem: p for p in sorted(scenes_dir().glob("*.xml"))}
+
+
+def resolve_scene_path(scene: str | Path) -> Path:
+    """A path to an XML file, or the name of a shipped scene (``flat_plate``, ``athene_flat``, ...)."""
+    path = Path(scene)
+    if path.is_file():
+        return path
+    shipped = shipped_scenes()
+    if str(scene) in shipped:
+        return shipped[str(scene)]
+    if path.suffix.lower() == ".xml" or path.parent != Path("."):
+        raise EloInputError(f"scene file {str(scene)!r} does not exist")
+    names = ", ".join(shipped) or "(none installed)"
+    raise EloInputError(f"scene {str(scene)!r} is neither an XML file nor a shipped scene ({names})")
+
+
+def declared_parameters(path: Path, values: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The ``<default name=... value=...>`` parameters of a scene file and the files it includes.
+
+    ``values`` (the user's -D settings) decide which file an ``<include filename="...$name...">``
+    pulls in, as Mitsuba's loader does.
+    """
+    values = dict(values or {})
+    declared: dict[str, str] = {}
+    _collect_defaults(Path(path), values, declared, depth=0)
+    return declared
+
+
+def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> None:
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise EloInputError(f"{path}: malformed XML ({exc})") from None
+    except OSError as exc:
+        raise EloInputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if root.tag != "scene":
+        raise EloInputError(f"{path}: root element is <{root.tag}>, expected <scene>")
+    for node in root.iter():
+        if node.tag == "default" and node.get("name"):
+            declared.setdefault(node.get("name"), node.get("value"))
+        elif node.tag == "include" and node.get("filename") and depth < 8:
+            name = node.get("filename")
+            known = {**declared, **values}
+            name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), name)
+            inc = (path.parent / name)
+            if inc.is_file():
+                _collect_defaults(inc, values, declared, depth + 1)
+
+
+def layout_parameters(layout: str | int) -> dict[str, float]:
+    """-D parameters of a Table 1 detector layout: ``"zeta50"``, ``"50"`` or ``50``."""
+    key = str(layout).lower().removeprefix("zeta").removesuffix("deg").strip()
+    try:
+        zeta = int(float(key))
+    except ValueError:
+        zeta = None
+    if zeta not in TABLE1_LAYOUTS:
+        allowed = ", ".join(f"zeta{z}" for z in TABLE1_LAYOUTS)
+        raise EloInputError(f"unknown detector layout {layout!r}; Table 1 layouts are {allowed}")
+    dh, dw = TABLE1_LAYOUTS[zeta]
+    return {"dh": dh, "dw": dw}
+
+
+def explain_mitsuba_error(exc: Exception, path: Path) -> str:
+    """One line from Mitsuba's multi-line loader error: where, and the innermost message."""
+    text = str(exc)
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    where = ""
+    m = re.search(r"\(line (\d+), col (\d+)\)", text)
+    if m:
+        where = f" line {m.group(1)}"
+    # innermost Python error ("EloInputError: ...") if a plugin of ours refused a value
+    for ln in reversed(lines):
+        mm = re.match(r"^(?:\w+\.)*(\w*Error): (.*)$", ln)
+        if mm and mm.group(2):
+            return f"{path}{where}: {mm.group(2)}"
+    first = lines[0] if lines else type(exc).__name__
+    if first.endswith(":") and len(lines) > 1:  # e.g. "unreferenced property ...:" + "- name" lines
+        first = first + " " + " ".join(ln.lstrip("- ") for ln in lines[1:4])
+    first = re.sub(r"^\[[\w.]+:\d+\]\s*", "", first)
+    first = re.sub(r"^(At|While loading) .*?\(line \d+, col \d+\): ", "", first)
+    first = re.sub(r"^(At|While loading) .*?: ", "", first)
+    if "unused parameters" in text.lower():
+        unused = ", ".join(re.findall(r"\$(\w+)=", text))
+        return f"{path}: parameter(s) {unused} not used by this scene"
+    return f"{path}{where}: {first}"
+
+
+def write_scene(scene_path, mesh_path, *, material: str | None = None, overwrite: bool = False) -> Path:
+    """Write a Mitsuba scene that renders ``mesh_path`` like ``scenes_xml/melt_plate.xml``.
+
+    The scene is the shipped melt-plate scene with its mesh replaced: same parameters (layout,
+    dh, dw, wd, field, res, spp, events, fwhm, projection, material), the four detectors and the
+    layouts included from the installed ``scenes_xml`` by absolute path. The mesh is referenced
+    relative to the scene file when possible. ``material`` (default Ti-6Al-4V) becomes the
+    default of the ``material`` parameter; it is validated here.
+    """
+    from xml.sax.saxutils import escape
+
+    from .physics.materials import get_material
+
+    material = DEFAULT_MATERIAL if material is None else material
+    get_material(material)  # raises EloInputError for an unknown material
+    scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene")
+    mesh_path = Path(mesh_path)
+    try:
+        mesh_ref = os.path.relpath(mesh_path.resolve(), scene_path.parent.resolve())
+    except ValueError:  # other drive on Windows
+        mesh_ref = str(mesh_path.resolve())
+    src = scenes_dir()
+    text = (src / "melt_plate.xml").read_text()
+    text = text[text.index("<scene") :]
+    replacements = {
+        '<include filename="layouts/$layout.xml"/>':
+            f'<include filename="{escape((src / "layouts").as_posix())}/$layout.xml"/>',
+        '<include filename="parts/detectors.xml"/>':
+            f'<include filename="{escape((src / "parts" / "detectors.xml").as_posix())}"/>',
+        'value="meshes/melt_plate.ply"': f'value="{escape(Path(mesh_ref).as_posix(), {chr(34): "&quot;"})}"',
+        'id="melt_plate"': 'id="object"',
+        f'<default name="material" value="{DEFAULT_MATERIAL}"/>':
+            f'<default name="material" value="{escape(material, {chr(34): "&quot;"})}"/>',
+    }
+    for old, new in replacements.items():
+        if old not in text:  # the template changed: fail loudly rather than write a wrong scene
+            raise RuntimeError(f"scenes_xml/melt_plate.xml no longer contains {old!r}")
+        text = text.replace(old, new)
+    header = (
+        "<!--\n"
+        f"  Generated by elo-mitsuba mesh from {mesh_path.name}: the object (id 'object', material\n"
+        f"  parameter default {material!r}) with the four detectors of the ATHENE set-up, no chamber.\n"
+        "  Parameters and conventions as scenes_xml/melt_plate.xml (see scenes_xml/README.md):\n"
+        "  layout, dh, dw, wd, field, res, spp, events, fwhm, projection, material.\n"
+        "-->\n"
+    )
+    return atomic_write(scene_path, lambda tmp: tmp.write_text(header + text))

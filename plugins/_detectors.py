@@ -1,0 +1,145 @@
+"""Detectors of an ELO scene: discovery, triangulation for the quadrature, planarity (set-up time).
+
+A detector is any shape carrying an emitter; its ``id`` is its channel name. For the triangle
+quadrature of Appendix A (Eq. A2) a detector is covered by triangles wound counter-clockwise about
+its front normal: a disk as an equal-area fan or rings, a rectangle as a grid, a mesh detector as
+its own triangles. numpy, run once per render before the kernel is built.
+"""
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from elo_mitsuba.constants import DETECTOR_NAMES
+from elo_mitsuba.errors import EloInputError
+from elo_mitsuba.options import MAX_QUADRATURE_TRIANGLES
+
+
+def find_detectors(scene):
+    """[(id, shape)] of the detector shapes (those carrying an emitter), in a stable order.
+
+    right, left, back, front first (the paper's order), then other ids alphabetically.
+    """
+    found = {}
+    for shape in scene.shapes():
+        if shape.is_emitter():
+            name = shape.id()
+            if not name:
+                raise EloInputError("a detector shape (one with an emitter) has no id; give it id=\"...\"")
+            if name in found:
+                raise EloInputError(f"two detector shapes share the id {name!r}")
+            found[name] = shape
+    order = [n for n in DETECTOR_NAMES if n in found] + sorted(n for n in found if n not in DETECTOR_NAMES)
+    return [(n, found[n]) for n in order]
+
+
+def _local_disk_triangles(n_tri):
+    """Equal-area triangulation of the unit disk (z = 0), counter-clockwise about +z.
+
+    n_tri <= 16: a fan of n_tri sectors; more: rings (inner fan + quads) of M sectors. Every
+    ring polygon is enlarged to the area of its circle, so the triangles cover pi exactly.
+    """
+    rings = 1 if n_tri <= 16 else max(1, int(round(math.sqrt(n_tri / 8.0))))
+    m = max(4, int(round(n_tri / (2 * rings - 1))))
+    grow = math.sqrt(2.0 * math.pi / (m * math.sin(2.0 * math.pi / m)))
+    phi = 2.0 * math.pi * np.arange(m) / m
+    ring_pts = [np.stack([np.cos(phi), np.sin(phi), np.zeros(m)], -1) * (math.sqrt((i + 1) / rings) * grow)
+                for i in range(rings)]
+    centre = np.zeros(3)
+    tris = []
+    for k in range(m):
+        k2 = (k + 1) % m
+        tris.append((centre, ring_pts[0][k], ring_pts[0][k2]))
+        for i in range(1, rings):
+            a, b = ring_pts[i - 1], ring_pts[i]
+            tris.append((a[k], b[k], b[k2]))
+            tris.append((a[k], b[k2], a[k2]))
+    return np.array(tris)
+
+
+def _local_rectangle_triangles(n_tri):
+    """[-1, 1]^2 at z = 0 as an n x n grid of 2 n^2 triangles, counter-clockwise about +z."""
+    n = max(1, int(round(math.sqrt(n_tri / 2.0))))
+    t = np.linspace(-1.0, 1.0, n + 1)
+    tris = []
+    for i in range(n):
+        for j in range(n):
+            p00, p10 = np.array([t[i], t[j], 0.0]), np.array([t[i + 1], t[j], 0.0])
+            p01, p11 = np.array([t[i], t[j + 1], 0.0]), np.array([t[i + 1], t[j + 1], 0.0])
+            tris += [(p00, p10, p11), (p00, p11, p01)]
+    return np.array(tris)
+
+
+def detector_triangles(shape, n_tri, name="detector"):
+    """World-space triangles (T, 3, 3) covering a detector, counter-clockwise about its front
+    normal (the side its one-sided emitter collects on)."""
+    stype = shape.shape_type()
+    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
+        params = mi.traverse(shape)
+        m = np.array(params["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
+        local = _local_disk_triangles(n_tri) if stype == mi.ShapeType.Disk else _local_rectangle_triangles(n_tri)
+        world = local @ m[:3, :3].T + m[:3, 3]
+        if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform flips the winding
+            world = world[:, ::-1]
+        return world
+    if stype == mi.ShapeType.Mesh:
+        n_faces = int(shape.face_count())
+        if n_faces > MAX_QUADRATURE_TRIANGLES:
+            raise EloInputError(
+                f"detector {name!r}: a mesh of {n_faces} triangles is too fine for "
+                f"detector_sampling=quadrature (at most {MAX_QUADRATURE_TRIANGLES}); use stratified")
+        v = np.array(shape.vertex_positions_buffer(), dtype=float).reshape(-1, 3)
+        f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+        return v[f]
+    raise EloInputError(
+        f"detector {name!r}: detector_sampling=quadrature supports disk, rectangle and mesh "
+        "detectors; use stratified for this shape")
+
+
+def is_planar(shape):
+    """True for a rectangle, a disk, or a mesh whose vertices all lie in one plane."""
+    stype = shape.shape_type()
+    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
+        return True
+    if stype != mi.ShapeType.Mesh:
+        return False
+    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+    if len(v) < 4:
+        return True
+    extent = max(float(np.ptp(v, axis=0).max()), 1e-30)
+    a = v[0]
+    b = v[np.argmax(np.sum((v - a) ** 2, axis=1))]
+    n = np.cross(b - a, v - a)
+    c = v[np.argmax(np.sum(n * n, axis=1))]
+    normal = np.cross(b - a, c - a)
+    length = np.linalg.norm(normal)
+    if not length > 0:
+        return True  # all vertices on one line
+    return bool(np.max(np.abs((v - a) @ (normal / length))) <= 1e-7 * extent)
+
+
+def quadrature_geometry(detectors, n_tri):
+    """Per detector: (vertices as opaque Point3f, [((i, j, k), opaque 2 A n)]) of its triangles.
+
+    Shared vertices are subtracted from the scattering point and normed once in the kernel. The
+    edge cross products (q2 - q1) x (q3 - q1) are taken in float64 here: Eq. A1's numerator is
+    v1 . (v2 x v3) = v1 . ((q2 - q1) x (q3 - q1)), without the float32 cancellation of v2 x v3
+    for small or distant triangles.
+    """
+    out = []
+    for name, shape in detectors:
+        tris = detector_triangles(shape, n_tri, name)
+        if not np.all(np.isfinite(tris)):
+            raise EloInputError(f"detector {name!r}: non-finite geometry")
+        area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+        if not np.sum(area) > 0:
+            raise EloInputError(f"detector {name!r} has zero area")
+        verts, index = np.unique(tris.reshape(-1, 3), axis=0, return_inverse=True)
+        index = index.reshape(-1, 3)
+        normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        out.append(([dr.opaque(mi.Point3f, [float(x) for x in v]) for v in verts],
+                    [(tuple(int(i) for i in t), dr.opaque(mi.Vector3f, [float(x) for x in n]))
+                     for t, n in zip(index, normals)]))
+    return out

@@ -1,0 +1,136 @@
+"""Occlusion analysis (set-up time): where shadow rays provably cannot be blocked.
+
+Per detector, the scan region on a horizontal planar surface from which nothing in the scene can
+block the view of the detector: no triangle of any other shape (or of the bounding box of a
+non-mesh shape) can cut the convex hull of that region and the detector. Shadow rays from there
+are not cast (flat plate, also inside the chamber); any other surface point casts them as usual.
+numpy and scipy, once per render; :func:`unblockable` is the kernel's test.
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ._detectors import is_planar
+
+
+def _to_world(shape):
+    return np.array(mi.traverse(shape)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
+
+
+def cover_triangles(shape):
+    """Triangles covering ``shape`` (a superset of its surface): a mesh's own, the square around
+    a disk or rectangle, else the 12 triangles of its bounding box."""
+    stype = shape.shape_type()
+    if stype == mi.ShapeType.Mesh:
+        v = np.array(shape.vertex_positions_buffer(), dtype=float).reshape(-1, 3)
+        f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+        return v[f]
+    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
+        m = _to_world(shape)
+        sq = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) @ m[:3, :3].T + m[:3, 3]
+        return np.array([[sq[0], sq[1], sq[2]], [sq[0], sq[2], sq[3]]])
+    bb = shape.bbox()
+    lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()
+    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1),
+             (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]
+    return c[np.array(faces)]
+
+
+def _all_separated(points, tris, tol):
+    """True if no triangle of ``tris`` (T, 3, 3) can intersect the convex hull of ``points``
+    (conservative: separating planes are the hull's faces and the triangles' own planes)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(points)
+    except (QhullError, ValueError):
+        return False
+    eq = hull.equations  # n . x + c <= 0 inside
+    lo, hi = points.min(axis=0) - tol, points.max(axis=0) + tol
+    for start in range(0, len(tris), 65536):
+        t = tris[start:start + 65536]
+        # triangles whose bounding box misses the hull's are separated
+        near = np.all(t.max(axis=1) >= lo, axis=1) & np.all(t.min(axis=1) <= hi, axis=1)
+        t = t[near]
+        if len(t) == 0:
+            continue
+        d = t @ eq[:, :3].T + eq[:, 3]  # (T, 3, F)
+        sep = np.any(np.all(d > tol, axis=1), axis=1)
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        length = np.linalg.norm(n, axis=1)
+        ok = length > 0
+        side = np.einsum("tpk,tk->tp", points[None, :, :] - t[:, None, 0, :], n / np.where(ok, length, 1.0)[:, None])
+        sep |= ok & (np.all(side >= -tol, axis=1) | np.all(side <= tol, axis=1))
+        if not np.all(sep):
+            return False
+    return True
+
+
+def _beam_region(shape, sensor):
+    """(z0, xmin, xmax, ymin, ymax) of the first-event points on a horizontal plane ``shape``
+    (rectangle, disk or planar mesh with normal +-z), or None."""
+    if not is_planar(shape) or not all(hasattr(sensor, a) for a in ("wd", "field", "field_y")):
+        return None
+    tris = cover_triangles(shape)
+    n = np.cross(tris[0, 1] - tris[0, 0], tris[0, 2] - tris[0, 0])
+    n /= np.linalg.norm(n)
+    if abs(abs(n[2]) - 1.0) > 1e-9:
+        return None
+    z0 = float(tris[0, 0, 2])
+    if not sensor.wd > z0:
+        return None
+    scale = (sensor.wd - z0) / sensor.wd if getattr(sensor, "projection", "perspective") == "perspective" else 1.0
+    margin = 5.0 * getattr(sensor, "fwhm", 0.0) + 1e-3 * max(sensor.field, sensor.field_y)
+    hx, hy = (0.5 * sensor.field + margin) * scale, (0.5 * sensor.field_y + margin) * scale
+    lo, hi = tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0)
+    box = (max(-hx, lo[0]), min(hx, hi[0]), max(-hy, lo[1]), min(hy, hi[1]))
+    if box[0] >= box[1] or box[2] >= box[3]:
+        return None
+    return (z0,) + box
+
+
+def shape_key(shape):
+    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
+
+
+def unoccluded_regions(scene, sensor, detectors):
+    """Per detector: [(shape, (z0, xmin, xmax, ymin, ymax))] of scan regions on horizontal planar
+    surfaces from which nothing in the scene can block the view of the detector, so that
+    shadow rays from there are not needed (e.g. the flat plate, also inside the chamber)."""
+    shapes = {shape_key(sh): sh for sh in scene.shapes()}
+    regions = [(k, sh, _beam_region(sh, sensor)) for k, sh in shapes.items() if not sh.is_emitter()]
+    regions = [(k, sh, r) for k, sh, r in regions if r is not None]
+    covers = {k: cover_triangles(sh) for k, sh in shapes.items()} if regions else {}
+    out = []
+    for _, det in detectors:
+        free = []
+        dk = shape_key(det)
+        for k, sh, (z0, x0, x1, y0, y1) in regions:
+            pts = np.vstack([[[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0]], covers[dk].reshape(-1, 3)])
+            tol = 1e-6 * max(1.0, float(np.ptp(pts, axis=0).max()))
+            others = [covers[o] for o in shapes if o not in (k, dk)]
+            tris = np.concatenate(others) if others else np.zeros((0, 3, 3))
+            if _all_separated(pts, tris, tol):
+                free.append((sh, (z0, x0, x1, y0, y1)))
+        out.append(free)
+    return out
+
+
+def unblockable_regions(scene, sensor, detectors):
+    """:func:`unoccluded_regions` as kernel constants: per detector [(opaque shape id, opaque
+    [xmin, xmax, ymin, ymax])]."""
+    return [[(dr.opaque(mi.UInt32, shape_key(sh)), [dr.opaque(mi.Float, float(b)) for b in bounds[1:]])
+             for sh, bounds in free] for free in unoccluded_regions(scene, sensor, detectors)]
+
+
+def unblockable(si, regions):
+    """Lanes whose surface point lies in one of ``regions`` (one detector's), or None if none."""
+    if not regions:
+        return None
+    shape_id = dr.reinterpret_array(mi.UInt32, si.shape)
+    skip = mi.Bool(False)
+    for sid, (x0, x1, y0, y1) in regions:
+        skip |= (shape_id == sid) & (si.p.x >= x0) & (si.p.x <= x1) & (si.p.y >= y0) & (si.p.y <= y1)
+    return skip
