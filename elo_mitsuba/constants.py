@@ -20,7 +20,7 @@ LOBE_WIDTH_DEG = 13.0
 ACCELERATION_VOLTAGE_KV = 60.0
 #: Tolerance on the sum of weight fractions of a composition.
 COMPOSITION_SUM_TOL = 1e-6
-#: Nominal composition used wherever the paper says Ti-6Al-4V (ERRATA.md).
+#: Nominal composition used wherever the paper says Ti-6Al-4V (docs/paper-notes.md §5).
 DEFAULT_MATERIAL = "Ti-6Al-4V"
 
 # --- Measurement chain (Eq. 3, Eq. 9, Sec. 2.4) -----------------------------------------------------

@@ -8,7 +8,7 @@ zero when either direction is at or below the surface.
     g_BSE = eta0/pi cos(alpha) + W(theta) max(cos beta, 0)^k,
     W(theta) = (eta(theta) - eta0)/C(theta) (k+1)/(2 pi),  k = theta / lobe_width,
 
-with eta by Eqs. 10/12 and C(theta) computed from its definition (ERRATA.md item 1); W is
+with eta by Eqs. 10/12 and C(theta) computed from its definition (docs/paper-notes.md §1); W is
 tabulated once per material in :func:`elo_mitsuba.physics.scattering.lobe_weight_table`.
 
 Sampling: with S(theta) = eta0 + (eta - eta0)/C the density g_BSE/S is a mixture of a cosine

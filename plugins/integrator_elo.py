@@ -141,6 +141,11 @@ class EloIntegrator(mi.SamplingIntegrator):
             if sensor is not None:
                 self._unblockable_regions = unblockable_regions(scene, sensor, detectors)
 
+    def unblockable_detectors(self):
+        """Ids of the detectors whose shadow rays the occlusion analysis skips somewhere (from
+        the last :meth:`prepare_scene`)."""
+        return [name for (name, _), regions in zip(self.detectors, self._unblockable_regions) if regions]
+
     def traced_events(self):
         """Events actually traced (1 when the scene cannot scatter twice)."""
         return self.events if self.bounce_possible else 1

@@ -1,7 +1,5 @@
 """Scene dictionaries for the forward-model tests, built independently of scenes_xml/."""
 
-import numpy as np
-
 
 def detector(mi, center, radius=25.0):
     """A disk detector at ``center`` facing the origin, absorbing (black) for Mitsuba's `path`."""
@@ -50,23 +48,3 @@ def flat_scene(mi, res=3, field=80.0, wd=400.0, spp=64, events=1, integrator=Non
             "bsdf": {"type": "elo_bse", "material": "316L"},
         }
     return scene
-
-
-def disc_integral(point, beam_dir, normal, centre, disc_normal, radius, material, n_r=64, n_phi=256,
-                  lobe=True):
-    """Eq. 5 by quadrature over a disc: int g_BSE dOmega = int g_BSE cos(theta_d) / r^2 dA.
-
-    Gauss-Legendre in the radius, uniform (spectrally accurate) in the azimuth.
-    """
-    from elo_mitsuba.analysis.geometry import disc_nodes
-    from elo_mitsuba.physics import g_bse
-
-    disc_normal = np.asarray(disc_normal, float) / np.linalg.norm(disc_normal)
-    q, WA = disc_nodes(centre, disc_normal, radius, n_r, n_phi)
-    d = q - np.asarray(point, float)
-    dist2 = np.sum(d * d, axis=-1)
-    dirs = d / np.sqrt(dist2)[..., None]
-    cos_d = np.clip(-np.sum(dirs * disc_normal, axis=-1), 0.0, None)
-    g = g_bse(np.broadcast_to(normal, dirs.shape), np.broadcast_to(beam_dir, dirs.shape), dirs,
-              material, lobe=lobe)
-    return float(np.sum(g * cos_d / dist2 * WA))

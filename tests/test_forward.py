@@ -9,7 +9,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from forward_scenes import disc_integral, flat_scene
+from forward_scenes import flat_scene
+
+from elo_mitsuba.analysis.first_event import disc_integral
 
 import elo_mitsuba as em
 from elo_mitsuba.physics import get_material

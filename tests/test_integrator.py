@@ -1,4 +1,4 @@
-"""The integrator's fast paths (issue 6) against independent computations.
+"""The integrator's fast paths against independent computations.
 
 Detector quadrature of Appendix A (Van Oosterom-Strackee with the corrected denominator),
 stratified sampling, the occlusion analysis that skips shadow rays, the inline g_BSE tables,
@@ -9,7 +9,9 @@ planar scenes without bounces, and the quality presets.
 import numpy as np
 import pytest
 
-from forward_scenes import disc_integral, flat_scene
+from forward_scenes import flat_scene
+
+from elo_mitsuba.analysis.first_event import disc_integral
 
 import elo_mitsuba as em
 from elo_mitsuba.physics import get_material

@@ -75,7 +75,7 @@ def test_ti6al4v_eta0_by_castaing():
     print(f"\nTi-6Al-4V eta0 (Eq. 12): module {mat.eta0:.6f}, reference {expected:.6f}")
     assert mat.eta0 == pytest.approx(expected, rel=1e-12)
     assert mat.eta_deg(0.0) == pytest.approx(expected, rel=1e-12)
-    # eta(theta): Eq. 10 element by element, summed with the weight fractions (ERRATA.md)
+    # eta(theta): Eq. 10 element by element, summed with the weight fractions (docs/paper-notes.md §5)
     for t in [0.0, 20.0, 45.0, 70.0, 85.0, 90.0]:
         ref = 0.90 * eq10(t, eq11(22)) + 0.06 * eq10(t, eq11(13)) + 0.04 * eq10(t, eq11(23))
         assert mat.eta_deg(t) == pytest.approx(ref, rel=1e-12)
@@ -183,7 +183,7 @@ def test_lobe_normalisation_k0_closed_form(theta):
 
 def test_printed_eq14_is_negative():
     """The printed Eq. 14, C = 1.01 - 4.06 theta + 1.36e-5 theta^2 - 1.71e-6 theta^3, is negative
-    for every theta above ~0.25 deg (ERRATA.md item 1): it cannot be what the authors used, and the
+    for every theta above ~0.25 deg (docs/paper-notes.md §1): it cannot be what the authors used, and the
     package must not use it. Documented here with numbers."""
     th = np.array([0.25, 0.5, 1.0, 10.0, 45.0, 89.0])
     printed = 1.01 - 4.06 * th + 1.36e-5 * th**2 - 1.71e-6 * th**3

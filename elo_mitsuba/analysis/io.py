@@ -1,7 +1,15 @@
-"""Reading detector images and writing gradient / height results (EXR, TIFF, NPY).
+"""The analysis file formats: detector image sets in, gradient EXR and height maps out.
 
-Arrays keep the package orientation (row 0 = +y edge, columns towards +x). Recorded machine
-images must be stored the same way; :func:`read_image` does not flip anything.
+* :func:`read_image`, :func:`read_detector_exr`, :func:`load_detector_set`: the four detector
+  images of one scan, from a forward-model EXR (with its geometry header) or from four
+  single-channel files (EXR, TIFF, NPY) of a machine.
+* :func:`write_gradient` / :func:`read_gradient`: the gradient EXR (channels
+  :data:`GRADIENT_CHANNELS`, the scan geometry in the header) that ``elo-mitsuba gradient`` writes
+  and ``elo-mitsuba reconstruct`` reads; the contract between the two, also for Python users.
+* :func:`write_height`: a height map as EXR (with mask and header), NPY or TIFF.
+
+Arrays keep the package orientation (:mod:`elo_mitsuba.grid`). Recorded machine images must be
+stored the same way; nothing here flips anything.
 """
 
 from __future__ import annotations
@@ -14,9 +22,14 @@ import numpy as np
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..exr import read_exr, write_exr
+from ..files import atomic_write, check_output
+from ..grid import field_xy
 
 IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
 HEIGHT_SUFFIXES = (".exr", ".npy", ".tif", ".tiff")
+#: Channels of the gradient EXR, in the order written: the Eq. 26 gradient, the normalised
+#: differences of Eq. 15, the sums of opposite detectors, the mask (1 = untrusted) and its reasons.
+GRADIENT_CHANNELS = ("dzdx", "dzdy", "Mx", "My", "sum_rl", "sum_bf", "mask", "mask_reason")
 
 
 def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
@@ -72,16 +85,103 @@ def read_detector_exr(path, event: int | None = None) -> tuple[dict[str, np.ndar
     return {n: channels[c].astype(float) for n, c in names.items()}, meta
 
 
-def check_output_path(path, suffixes, overwrite: bool) -> Path:
-    """Refuse an unsupported suffix, a missing directory, or an existing file without overwrite."""
-    path = Path(path)
-    if path.suffix.lower() not in suffixes:
-        raise EloInputError(f"{path}: output type must be one of {', '.join(suffixes)}")
-    if path.exists() and not overwrite:
-        raise EloInputError(f"{path} exists; pass --overwrite to replace it")
-    if not path.parent.exists():
-        raise EloInputError(f"{path}: directory {path.parent} does not exist")
-    return path
+def load_detector_set(exr_path=None, files: Mapping | None = None, what: str = "images",
+                      event: int | None = None) -> tuple[dict[str, np.ndarray] | None, dict]:
+    """The four detector images of one scan, from one EXR or from four single-channel files.
+
+    Parameters
+    ----------
+    exr_path : path, optional
+        A forward-model EXR with channels ``right`` ... (or ``right.e<event>``).
+    files : mapping, optional
+        ``{detector: path}`` of single-channel images; all four are needed.
+    what : str
+        How messages name the set ("object images", "flat-plate images").
+    event : int, optional
+        Read the per-event channels of this scattering event.
+
+    Returns
+    -------
+    images : dict or None
+        ``{detector: float64 image}``; None if neither an EXR nor files were given.
+    metadata : dict
+        The EXR header (empty for TIFF/NPY).
+    """
+    given = {n: f for n, f in (files or {}).items() if f}
+    if exr_path and given:
+        raise EloInputError(f"{what}: give either one EXR or the four single files, not both")
+    if exr_path:
+        return read_detector_exr(exr_path, event)
+    if not given:
+        return None, {}
+    missing = [n for n in DETECTOR_NAMES if n not in given]
+    if missing:
+        raise EloInputError(f"{what}: missing {', '.join(missing)} image(s); all four detectors are needed")
+    images, meta = {}, {}
+    for n, f in given.items():
+        images[n], m = read_image(f)
+        meta = meta or m
+    return images, meta
+
+
+def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, stsa_corrected: bool,
+                   event: int | None = None, sources=None, header: Mapping | None = None,
+                   overwrite: bool = False) -> Path:
+    """Write a :class:`~elo_mitsuba.analysis.GradientResult` as the gradient EXR.
+
+    The header records the geometry (``field_mm``, ``resolution``, ``d_h_mm``, ``d_w_mm``), the
+    mask thresholds, whether the images were STSA-corrected, the event, the input files, and
+    from the forward model's ``header`` (if any) material, events, spp, work distance,
+    projection and detectors.
+    """
+    from .gradient import MASK_BITS
+
+    path = check_output(path, (".exr",), overwrite=overwrite)
+    h, w = result.dzdx.shape
+    meta = {
+        "quantity": "surface gradient (Renner et al. 2023, Eq. 26)",
+        "field_mm": list(field_xy(field_mm)),
+        "resolution": [w, h],
+        "d_h_mm": d_h,
+        "d_w_mm": d_w,
+        "units": "mm/mm",
+        "mask": "1 = untrusted pixel (gradient set to 0 there), 0 = trusted",
+        "mask_reason_bits": MASK_BITS,
+        "thresholds": dict(thresholds),
+        "stsa_corrected": bool(stsa_corrected),
+        "event": event,
+        "sources": sources,
+    }
+    for key in ("material", "events", "spp", "work_distance_mm", "projection", "detectors"):
+        if key in (header or {}):
+            meta[key] = header[key]
+    channels = {"dzdx": result.dzdx, "dzdy": result.dzdy, "Mx": result.mx, "My": result.my,
+                "sum_rl": result.sum_x, "sum_bf": result.sum_y,
+                "mask": result.mask.astype(np.float32), "mask_reason": result.reasons.astype(np.float32)}
+    return write_exr(path, channels, meta, overwrite=overwrite)
+
+
+def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
+    """Read a gradient EXR (:func:`write_gradient`, or any EXR with ``dzdx`` and ``dzdy``).
+
+    Returns
+    -------
+    dict
+        ``dzdx``, ``dzdy`` (float32 images), ``mask`` (bool, True = untrusted; None if the file
+        has none or ``use_mask`` is False), ``field_mm`` (``field_mm`` if given, else the
+        header's) and ``metadata`` (the header).
+    """
+    channels, meta = read_exr(path)
+    missing = [c for c in ("dzdx", "dzdy") if c not in channels]
+    if missing:
+        raise EloInputError(f"{path}: missing channel(s) {', '.join(missing)}; "
+                            "expected the output of 'elo-mitsuba gradient'")
+    field = field_mm if field_mm is not None else meta.get("field_mm")
+    if field is None:
+        raise EloInputError(f"{path}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
+    mask = channels["mask"] > 0.5 if "mask" in channels and use_mask else None
+    return {"dzdx": channels["dzdx"], "dzdy": channels["dzdy"], "mask": mask, "field_mm": field_xy(field),
+            "metadata": meta}
 
 
 def write_height(path, height, mask=None, metadata: Mapping | None = None, overwrite: bool = False) -> Path:
@@ -91,7 +191,7 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     ``.npy``: the float64 height array; ``.tif``: float32. NPY/TIFF carry no mask: masked pixels
     hold 0 there (use EXR to keep the mask).
     """
-    path = check_output_path(path, HEIGHT_SUFFIXES, overwrite)
+    path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
     height = np.asarray(height, dtype=float)
     if not np.all(np.isfinite(height)):
         raise EloInputError(f"{path}: height holds NaN or Inf; refusing to write it")
@@ -101,9 +201,9 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
         write_exr(path, {"height": height, "mask": mask.astype(np.float32)}, dict(metadata or {}),
                   overwrite=overwrite)
     elif suffix == ".npy":
-        np.save(path, height)
+        atomic_write(path, lambda tmp: np.save(tmp, height))
     else:
         import tifffile
 
-        tifffile.imwrite(path, height.astype(np.float32))
+        atomic_write(path, lambda tmp: tifffile.imwrite(tmp, height.astype(np.float32)))
     return path

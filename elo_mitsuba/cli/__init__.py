@@ -13,6 +13,7 @@ import importlib
 import sys
 
 from ..errors import EloError
+from . import checkout
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = (
@@ -21,8 +22,6 @@ COMMANDS = (
     "gradient",
     "reconstruct",
     "reflectance_map",
-    "validate",
-    "benchmark",
 )
 
 DESCRIPTION = """\
@@ -57,16 +56,24 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    from .. import __version__
+    from .._version import __version__
 
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"{__name__}.{name}").add_parser(sub)
+    checkout.add_parsers(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in checkout.COMMANDS:  # validation/benchmarks parse their own options
+        try:
+            return checkout.run(argv[0], argv[1:])
+        except EloError as exc:
+            print(f"elo-mitsuba: error: {exc}", file=sys.stderr)
+            return 2
     parser = build_parser()
     args = parser.parse_args(argv)
     if not hasattr(args, "run"):

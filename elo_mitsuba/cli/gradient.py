@@ -99,48 +99,26 @@ def add_parser(subparsers):
     return p
 
 
-def _load_set(exr_path, files: dict, what: str, event):
-    """Four images from one EXR or from four single-channel files, plus metadata (or {})."""
-    from ..analysis.io import read_detector_exr, read_image
-
-    given = {n: f for n, f in files.items() if f}
-    if exr_path and given:
-        raise EloInputError(f"{what}: give either one EXR or the four single files, not both")
-    if exr_path:
-        return read_detector_exr(exr_path, event)
-    if not given:
-        return None, {}
-    missing = [n for n in DETECTOR_NAMES if n not in given]
-    if missing:
-        raise EloInputError(f"{what}: missing {', '.join(missing)} image(s); all four detectors are needed")
-    images, meta = {}, {}
-    for n, f in given.items():
-        images[n], m = read_image(f)
-        meta = meta or m
-    return images, meta
-
-
 def _same(a, b, rtol=1e-6):
     return np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=rtol, atol=0)
 
 
 def run(args) -> int:
-    from ..analysis import MASK_BITS, geometry_from_metadata, surface_gradient
+    from ..analysis import geometry_from_metadata, surface_gradient
     from ..analysis.gradient import MIN_CORRECTED, MIN_DENOMINATOR
-    from ..analysis.io import check_output_path
-    from ..analysis.plots import check_png_path, preview_gradient
+    from ..analysis.io import load_detector_set, write_gradient
+    from ..analysis.plots import preview_gradient
     from ..analysis.stsa import MIN_SUM
-    from ..exr import write_exr
+    from ..files import check_output
 
-    out = check_output_path(args.output, (".exr",), args.overwrite)
+    out = check_output(args.output, (".exr",), overwrite=args.overwrite)
     if args.preview:
-        prev = check_png_path(args.preview)
-        if prev.exists() and not args.overwrite:
-            raise EloInputError(f"{prev} exists; pass --overwrite to replace it")
-    images, meta = _load_set(args.object, {n: getattr(args, n) for n in DETECTOR_NAMES}, "object images", args.event)
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+    images, meta = load_detector_set(args.object, {n: getattr(args, n) for n in DETECTOR_NAMES}, "object images",
+                                     args.event)
     if images is None:
         raise EloInputError("no object images: give OBJECT.exr or --right/--left/--back/--front")
-    flats, flat_meta = _load_set(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES},
+    flats, flat_meta = load_detector_set(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES},
                                  "flat-plate images", args.event)
     if flats is None and not args.no_flat:
         raise EloInputError("no flat-plate images: give --flat FLAT.exr (or --flat-right ...), "
@@ -174,28 +152,10 @@ def run(args) -> int:
               min_denominator=MIN_DENOMINATOR if args.min_denominator is None else args.min_denominator)
     res = surface_gradient(images, flats, geo["field_mm"], geo["d_h"], geo["d_w"], **kw)
 
-    out_meta = {
-        "quantity": "surface gradient (Renner et al. 2023, Eq. 26)",
-        "field_mm": list(geo["field_mm"]),
-        "resolution": [shape[1], shape[0]],
-        "d_h_mm": geo["d_h"],
-        "d_w_mm": geo["d_w"],
-        "units": "mm/mm",
-        "mask": "1 = untrusted pixel (gradient set to 0 there), 0 = trusted",
-        "mask_reason_bits": MASK_BITS,
-        "thresholds": kw,
-        "stsa_corrected": not args.no_flat,
-        "event": args.event,
-        "sources": {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
-                    "flat": args.flat or {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES}},
-    }
-    for key in ("material", "events", "spp", "work_distance_mm", "projection", "detectors"):
-        if key in header:
-            out_meta[key] = header[key]
-    channels = {"dzdx": res.dzdx, "dzdy": res.dzdy, "Mx": res.mx, "My": res.my,
-                "sum_rl": res.sum_x, "sum_bf": res.sum_y,
-                "mask": res.mask.astype(np.float32), "mask_reason": res.reasons.astype(np.float32)}
-    write_exr(out, channels, out_meta, overwrite=args.overwrite)
+    sources = {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
+               "flat": args.flat or {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES}}
+    write_gradient(out, res, geo["field_mm"], geo["d_h"], geo["d_w"], thresholds=kw, stsa_corrected=not args.no_flat,
+                   event=args.event, sources=sources, header=header, overwrite=args.overwrite)
     print(f"wrote {out}: {shape[1]}x{shape[0]} px, field {geo['field_mm'][0]:g}x{geo['field_mm'][1]:g} mm, "
           f"d_h={geo['d_h']:g} mm, d_w={geo['d_w']:g} mm, {100 * res.mask.mean():.2f} % masked")
     if args.preview:

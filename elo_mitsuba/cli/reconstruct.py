@@ -54,31 +54,19 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from ..analysis import field_xy, integrate_gradient
-    from ..analysis.io import HEIGHT_SUFFIXES, check_output_path, write_height
-    from ..analysis.plots import check_png_path, preview_height
-    from ..exr import read_exr
+    from ..analysis import integrate_gradient
+    from ..analysis.io import HEIGHT_SUFFIXES, read_gradient, write_height
+    from ..analysis.plots import preview_height
+    from ..files import check_output
 
-    out = check_output_path(args.output, HEIGHT_SUFFIXES, args.overwrite)
+    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
     if args.preview:
-        prev = check_png_path(args.preview)
-        if prev.exists() and not args.overwrite:
-            raise EloInputError(f"{prev} exists; pass --overwrite to replace it")
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
     if args.min_component < 1:
         raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
-    channels, meta = read_exr(args.gradient)
-    missing = [c for c in ("dzdx", "dzdy") if c not in channels]
-    if missing:
-        raise EloInputError(f"{args.gradient}: missing channel(s) {', '.join(missing)}; "
-                            "expected the output of 'elo-mitsuba gradient'")
-    field = args.field if args.field is not None else meta.get("field_mm")
-    if field is None:
-        raise EloInputError(f"{args.gradient}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
-    field = field_xy(field)
-    mask = None
-    if "mask" in channels and not args.ignore_mask:
-        mask = channels["mask"] > 0.5
-    height, mask_out = integrate_gradient(channels["dzdx"], channels["dzdy"], field, method=args.method,
+    grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
+    field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
+    height, mask_out = integrate_gradient(grad["dzdx"], grad["dzdy"], field, method=args.method,
                                           mask=mask, min_component_size=args.min_component)
     method = args.method if args.method != "auto" else ("masked" if mask is not None and mask.any() else "dct")
     out_meta = {

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
@@ -69,15 +68,13 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from ..analysis import beam_directions, detector_pq, layout_geometry, reflectance_map, zeta_deg
-    from ..analysis.plots import check_png_path, plot_reflectance_maps
+    from ..analysis.plots import plot_reflectance_maps
+    from ..files import atomic_write, check_output
     from ..physics import get_material
 
-    out = check_png_path(args.output)
-    for path in (out, Path(args.data) if args.data else None):
-        if path is not None and path.exists() and not args.overwrite:
-            raise EloInputError(f"{path} exists; pass --overwrite to replace it")
-    if args.data and not args.data.endswith(".npz"):
-        raise EloInputError(f"--data {args.data}: use a name ending in .npz")
+    out = check_output(args.output, (".png",), overwrite=args.overwrite)
+    if args.data:
+        check_output(args.data, (".npz",), overwrite=args.overwrite, what="--data")
     if args.zeta is not None and (args.dh is not None or args.dw is not None):
         raise EloInputError("give either --zeta or --dh/--dw, not both")
     d_h, d_w = layout_geometry(args.zeta, args.dh, args.dw)
@@ -96,7 +93,7 @@ def run(args) -> int:
     plot_reflectance_maps(p, q, g_full, g_diff, masked, d_pq, out, title=title, overwrite=args.overwrite)
     print(f"wrote {out}: d = [{d_pq[0]:.4g}, {d_pq[1]:.4g}, 1], {100 * masked.mean():.1f} % of the window masked")
     if args.data:
-        np.savez(args.data, p=p, q=q, g_full=g_full, g_diffuse=g_diff, masked=masked,
-                 d_pq=np.array(d_pq), d_h=d_h, d_w=d_w)
+        atomic_write(args.data, lambda tmp: np.savez(tmp, p=p, q=q, g_full=g_full, g_diffuse=g_diff,
+                                                     masked=masked, d_pq=np.array(d_pq), d_h=d_h, d_w=d_w))
         print(f"wrote {args.data}")
     return 0

@@ -1,7 +1,7 @@
 """Backscatter coefficients (paper Sec. 2.1.2, Eqs. 10-12).
 
 Pure numpy functions. Angles ``theta`` are in **radians** unless the name ends in ``_deg``;
-``theta`` is the angle between the surface normal and the reversed beam direction (ERRATA.md).
+``theta`` is the angle between the surface normal and the reversed beam direction (docs/paper-notes.md §4).
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def eta_darlington(theta, eta0, b=DARLINGTON_B):
 def eta_castaing(theta, fractions, eta0s, b=DARLINGTON_B):
     """Backscatter coefficient of a multicomponent target, Castaing's Eq. 12 applied to Eq. 10.
 
-    eta(theta) = sum_i c_i B (eta0_i / B)^cos(theta), element by element (ERRATA.md).
+    eta(theta) = sum_i c_i B (eta0_i / B)^cos(theta), element by element (docs/paper-notes.md §5).
 
     Parameters
     ----------

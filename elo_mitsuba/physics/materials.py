@@ -26,7 +26,7 @@ ATOMIC_NUMBER = {s: i + 1 for i, s in enumerate(_SYMBOLS)}
 
 #: Nominal compositions (weight fractions) of the presets.
 PRESETS: dict[str, dict[str, float]] = {
-    # ASTM F136 / Grade 5 nominal (ERRATA.md: Ti 0.90, Al 0.06, V 0.04)
+    # ASTM F136 / Grade 5 nominal (docs/paper-notes.md §5: Ti 0.90, Al 0.06, V 0.04)
     "Ti-6Al-4V": {"Ti": 0.90, "Al": 0.06, "V": 0.04},
     # 316L nominal (ASTM A240 mid-range; Fe balance)
     "316L": {"Fe": 0.655, "Cr": 0.17, "Ni": 0.12, "Mo": 0.025, "Mn": 0.02, "Si": 0.01},

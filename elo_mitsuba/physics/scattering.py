@@ -1,6 +1,6 @@
 """The BSE scattering function g_BSE of Eq. 13 and its lobe normalisation C(theta).
 
-Pure numpy. Conventions (ERRATA.md):
+Pure numpy. Conventions (docs/paper-notes.md §3, §4):
 
 * ``theta``: angle between the surface normal n_S and the reversed beam direction -p_E;
 * ``alpha``: angle between n_S and the outgoing direction d;
@@ -12,7 +12,7 @@ g_BSE(theta, alpha, beta) = eta0/pi cos(alpha) + (eta(theta) - eta0)/C(theta) (k
 is a probability per steradian (the cosine of alpha is inside it). Both cosines are clamped at 0:
 g_BSE vanishes below the surface and outside the lobe's hemisphere.
 
-C(theta) is **computed from its definition** (the printed Eq. 14 is wrong, ERRATA.md item 1): the
+C(theta) is **computed from its definition** (the printed Eq. 14 is wrong, docs/paper-notes.md §1): the
 integral over the upper hemisphere of the normalised lobe (k+1)/(2 pi) max(cos beta, 0)^k whose
 axis is tilted by theta from the normal, so that the lobe part of g_BSE integrates to
 eta(theta) - eta0 and all of g_BSE to eta(theta) (Eq. 2).
@@ -96,7 +96,7 @@ def lobe_normalisation_table(n=1025, lobe_width_deg=LOBE_WIDTH_DEG):
     return theta, lobe_normalisation(theta, lobe_width_deg)
 
 
-#: Repairs of the second coefficient of the printed Eq. 14 (ERRATA.md item 1).
+#: Repairs of the second coefficient of the printed Eq. 14 (docs/paper-notes.md §1).
 _EQ14_REPAIRS = {"4.06e-3": 4.06e-3, "4.06e-4": 4.06e-4}
 
 
