@@ -66,7 +66,7 @@ def software() -> dict:
     import mitsuba as mi
     import numpy as np
 
-    from . import __version__
+    from ._version import __version__
 
     try:
         llvm = ".".join(map(str, dr.detail.llvm_version()))

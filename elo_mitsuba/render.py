@@ -43,7 +43,8 @@ SAMPLES_PER_PASS = 1 << 24
 # ---- results -----------------------------------------------------------------------------------------
 @dataclass
 class RenderResult:
-    """Detector images (numpy float32, row 0 = +y edge) and the geometry that produced them."""
+    """Detector images (numpy float32, orientation of :mod:`elo_mitsuba.grid`) and the geometry that
+    produced them."""
 
     channels: dict[str, np.ndarray]
     metadata: dict = field(default_factory=dict)

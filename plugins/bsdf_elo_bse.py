@@ -36,6 +36,18 @@ TABLE_SIZE = 4097  # linear interpolation of W(theta): < 3e-6 relative even for 
 _INV_PI = 1.0 / np.pi
 
 
+def lobe_weight(table, theta_deg, size, offset=None, active=True):
+    """W(theta) by linear interpolation of ``table`` on the uniform 0..90 deg grid of ``size``
+    nodes, starting at index ``offset`` (a material's slot in a scene table)."""
+    pos = theta_deg * ((size - 1) / 90.0)
+    i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, size - 2))
+    frac = pos - mi.Float(i0)
+    index = i0 if offset is None else offset + i0
+    w0 = dr.gather(mi.Float, table, index, active)
+    w1 = dr.gather(mi.Float, table, index + 1, active)
+    return dr.fma(frac, w1 - w0, w0)
+
+
 class EloBSE(mi.BSDF):
     def __init__(self, props):
         mi.BSDF.__init__(self, props)
@@ -81,13 +93,7 @@ class EloBSE(mi.BSDF):
         """(k, W(theta)) for the local incident direction: exponent and tabulated lobe weight."""
         theta_deg = dr.acos(dr.clip(wi.z, 0.0, 1.0)) * (180.0 / dr.pi)
         k = theta_deg / self.lobe_width
-        # linear interpolation of W(theta) on the uniform 0..90 deg grid
-        pos = theta_deg * ((TABLE_SIZE - 1) / 90.0)
-        i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, TABLE_SIZE - 2))
-        frac = pos - mi.Float(i0)
-        w0 = dr.gather(mi.Float, self.lobe_table, i0)
-        w1 = dr.gather(mi.Float, self.lobe_table, i0 + 1)
-        return k, dr.fma(frac, w1 - w0, w0)
+        return k, lobe_weight(self.lobe_table, theta_deg, TABLE_SIZE)
 
     def _terms(self, wi, wo):
         """(g_BSE, S, valid) for local directions; g = 0 where wi or wo is at/below the surface."""
@@ -199,13 +205,7 @@ def world_setup(tables, si, wi_world, alive):
     cos_t = dr.dot(n, wi_world)
     theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
     k = theta_deg * inv_width
-    pos = theta_deg * ((size - 1) / 90.0)
-    i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, size - 2))
-    frac = pos - mi.Float(i0)
-    base = slot * size + i0
-    w0 = dr.gather(mi.Float, t["lobe"], base, alive)
-    w1 = dr.gather(mi.Float, t["lobe"], base + 1, alive)
-    weight = dr.fma(frac, w1 - w0, w0)
+    weight = lobe_weight(t["lobe"], theta_deg, size, slot * size, alive)
     mirror = n * (2.0 * cos_t) - wi_world  # mirror direction of p_E = -wi about n
     return (eta0 * (1.0 / dr.pi), weight, k, n, mirror, alive & (cos_t > 0))
 

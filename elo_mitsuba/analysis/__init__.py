@@ -5,7 +5,7 @@ Pipeline (Renner et al. 2023): four detector images R, L, B, F and flat-plate im
 :func:`gradient_from_differences` dZ/dx, dZ/dy (Eq. 26) -> :func:`integrate_gradient` Z(x, y).
 :func:`surface_gradient` runs the first three steps and returns a :class:`GradientResult`.
 
-Conventions: lengths in mm; image row 0 is the +y edge, columns run towards +x; pixel centres by
+Conventions: lengths in mm; the image orientation of :mod:`elo_mitsuba.grid`; pixel centres by
 :func:`pixel_coordinates`; n_S = [-dZ/dx, -dZ/dy, 1] (Eq. 16); masks are True (1) = untrusted, and
 untrusted pixels hold 0, never NaN/Inf.
 """

@@ -19,7 +19,7 @@ Three solvers, chosen after the survey of Quéau, Durou and Aujol, "Normal integ
   components are unknown (no gradient connects them). Components smaller than
   ``min_component_size`` pixels are added to the mask. Without any mask it reproduces ``"dct"``.
 
-Orientation as everywhere (row 0 = +y edge, columns towards +x); dZ/dy is the derivative along +y,
+Orientation as everywhere (:mod:`elo_mitsuba.grid`); dZ/dy is the derivative along +y,
 i.e. *against* the row index. All returned heights are finite; masked pixels hold 0.
 """
 

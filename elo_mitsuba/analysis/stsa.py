@@ -1,6 +1,6 @@
 """STSA contrast correction, sum images and normalised difference images (Sec. 2.1.4, Eqs. 15, 23).
 
-All functions take and return images in the package orientation (row 0 = +y edge, columns
+All functions take and return images in the package orientation (:mod:`elo_mitsuba.grid`: row 0 = +y edge, columns
 towards +x; see :mod:`elo_mitsuba.analysis.geometry`). Detector images are given as a mapping
 ``{"right": R, "left": L, "back": B, "front": F}`` in any consistent unit (N_d/N_0 from the
 forward model, or volts from a machine); the STSA correction divides the unit out.

@@ -1,0 +1,61 @@
+"""The layering of the house: what may import what, and docs that point inside the repository."""
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CHECKOUT_ONLY = ("validation", "benchmarks", "tests")
+
+
+def _imports(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module)
+    return names
+
+
+def _sources(*folders):
+    return sorted(p for f in folders for p in (ROOT / f).rglob("*.py"))
+
+
+def test_the_package_imports_nothing_of_the_checkout():
+    for path in _sources("elo_mitsuba", "plugins"):
+        bad = {n for n in _imports(path) if n.split(".")[0] in CHECKOUT_ONLY + ("forward_scenes", "golden_cases")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+@pytest.mark.parametrize("folder", ["validation", "benchmarks"])
+def test_validation_and_benchmarks_do_not_reach_into_tests(folder):
+    for path in _sources(folder):
+        text = path.read_text()
+        bad = {n for n in _imports(path) if n.split(".")[0] == "tests" or n.startswith("test_")
+               or n in ("forward_scenes", "golden_cases")}
+        assert not bad and "sys.path" not in text, f"{path.relative_to(ROOT)} reaches into tests/"
+
+
+def test_plugins_read_no_private_state_of_each_other_from_outside():
+    for path in _sources("elo_mitsuba", "validation", "benchmarks"):
+        text = path.read_text()
+        assert not re.search(r"integ\w*\._[a-z]", text), f"{path.relative_to(ROOT)} reads private integrator state"
+
+
+def test_every_cited_document_is_in_the_repository():
+    """Docstrings, comments and docs cite files by path: each must exist here (generated outputs
+    under out/ excepted)."""
+    cited = re.compile(r"(?<![\w/.-])((?:[\w-]+/)*[\w.-]+\.md)\b")
+    texts = [p for p in _sources("elo_mitsuba", "plugins", "validation", "benchmarks", "tests") if p != Path(__file__)]
+    texts += [ROOT / "README.md", ROOT / "scenes_xml" / "README.md", ROOT / "docs" / "paper-notes.md"]
+    missing = []
+    for path in texts:
+        for name in cited.findall(path.read_text()):
+            if name.startswith("out/") or name in ("REPORT.md", "RESULTS.md", "RESULTS-quick.md", "README.md"):
+                continue
+            if not (ROOT / name).is_file() and not (path.parent / name).is_file():
+                missing.append(f"{path.relative_to(ROOT)}: {name}")
+    assert not missing, "cited files not in the repository: " + "; ".join(missing)
