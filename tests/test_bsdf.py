@@ -5,9 +5,11 @@ Conventions (local frame, normal +z): ``si.wi`` points back to where the electro
 upper hemisphere is eta(theta) (Eq. 2 with Eqs. 10/12). Sampling is a mixture of a cosine lobe and
 a Phong lobe about the mirror direction; ``pdf`` is the density of that sampling.
 
-References are independent of the plugin: eta(theta) is computed here from Eqs. 10-12, the
-hemisphere integral by a 2-D Gauss product rule in a frame adapted to the lobe (no C table).
-``pytest -s`` prints the measured numbers; validation/bsdf_report.py prints them as a table.
+The references are independent of the plugin and live in :mod:`elo_mitsuba.analysis.bsdf_checks`
+(shared with validation/bsdf_report.py): eta(theta) from Eqs. 10-12, the hemisphere integral by a
+2-D Gauss product rule in a frame adapted to the lobe (no C table), and the calls of the plugin in
+its local frame. ``pytest -s`` prints the measured numbers; validation/bsdf_report.py prints them
+as a table.
 """
 
 from __future__ import annotations
@@ -17,169 +19,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from elo_mitsuba.analysis.bsdf_checks import (
+    CHI2_SAMPLES,
+    MATERIALS,
+    THETAS_CHI2,
+    THETAS_ENERGY,
+    binomial_se,
+    bsdf_eval,
+    bsdf_pdf,
+    bsdf_sample,
+    chi2_run,
+    energy,
+    eta0_ref,
+    eta_ref,
+    hemisphere_nodes,
+    wi_of,
+)
+
 PLUGIN_FILE = Path(__file__).resolve().parents[1] / "plugins" / "bsdf_elo_bse.py"
 pytestmark = pytest.mark.skipif(not PLUGIN_FILE.exists(), reason="plugins/bsdf_elo_bse.py missing")
 
-THETAS_ENERGY = [0.0, 10.0, 30.0, 50.0, 70.0, 80.0, 85.0, 89.0, 89.9]
-THETAS_CHI2 = [0.0, 30.0, 60.0, 75.0, 85.0, 89.0]
-MATERIALS = ["Ti-6Al-4V", "Cu", "316L"]
-CHI2_SAMPLES = 1_000_000
-
-# --- independent reference: Eqs. 10-12 ---------------------------------------------------------
-_Z = {"Al": 13, "Si": 14, "Ti": 22, "V": 23, "Cr": 24, "Mn": 25, "Fe": 26, "Ni": 28, "Cu": 29,
-      "Nb": 41, "Mo": 42}
-_COMPOSITIONS = {
-    "Ti-6Al-4V": {"Ti": 0.90, "Al": 0.06, "V": 0.04},
-    "Cu": {"Cu": 1.0},
-    "316L": None,  # taken from the preset table (its nominal fractions are data, not physics)
-}
-
-
-def composition(name):
-    comp = _COMPOSITIONS.get(name)
-    if comp is None:
-        from elo_mitsuba.physics import PRESETS
-
-        comp = PRESETS[name]
-    return comp
-
-
-def eta0_ref(name):
-    return sum(c * (-0.0254 + 0.016 * _Z[s] - 1.86e-4 * _Z[s] ** 2 + 8.3e-7 * _Z[s] ** 3)
-               for s, c in composition(name).items())
-
-
-def eta_ref(name, theta_deg):
-    """Eq. 10 per element, summed with the weight fractions (Eq. 12, ERRATA.md)."""
-    cos_t = np.cos(np.deg2rad(theta_deg))
-    total = 0.0
-    for s, c in composition(name).items():
-        e0 = -0.0254 + 0.016 * _Z[s] - 1.86e-4 * _Z[s] ** 2 + 8.3e-7 * _Z[s] ** 3
-        total += c * 0.89 * (e0 / 0.89) ** cos_t
-    return total
-
-
-def wi_of(theta_deg, phi_deg=0.0):
-    t, p = np.deg2rad(theta_deg), np.deg2rad(phi_deg)
-    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
-
-
-# --- independent reference: hemisphere quadrature ---------------------------------------------------
-
-def _gauss(n, a, b):
-    x, w = np.polynomial.legendre.leggauss(n)
-    return 0.5 * (b - a) * (x + 1.0) + a, 0.5 * (b - a) * w
-
-
-def hemisphere_nodes(theta_deg, lobe_width_deg=13.0, n_gamma=48, n_psi=48):
-    """Nodes and weights of a 2-D Gauss product rule over the upper hemisphere, in spherical
-    coordinates (gamma, psi) about the lobe axis r (the mirror direction of the beam, wi in the
-    xz-plane). Each ring gamma is clipped analytically to the part above the horizon, so the
-    integrand is smooth on every ring; gamma is split into panels at the lobe's scale
-    1/sqrt(k+1) (doubling), at 90 deg (edge of the lobe) and where rings touch the horizon, with
-    nodes clustered at panel ends. Integrates products of cos(alpha) and cos^k(beta) to ~1e-12.
-    """
-    th = np.deg2rad(theta_deg)
-    k = theta_deg / lobe_width_deg
-    st, ct = np.sin(th), np.cos(th)
-    r = np.array([-st, 0.0, ct])
-    e1 = np.array([ct, 0.0, st])
-    e2 = np.array([0.0, 1.0, 0.0])
-    breaks = {0.0, np.pi, np.pi / 2, abs(np.pi / 2 - th), min(np.pi, np.pi / 2 + th)}
-    g = 1.0 / np.sqrt(k + 1.0)
-    while g < np.pi:
-        breaks.add(g)
-        g *= 2.0
-    breaks = np.array(sorted(breaks))
-    breaks = breaks[np.concatenate([[True], np.diff(breaks) > 1e-12])]
-    t, wt = _gauss(n_gamma, 0.0, 1.0)
-    m, dm = 0.5 * (1 - np.cos(np.pi * t)), 0.5 * np.pi * np.sin(np.pi * t)
-    gam = np.concatenate([a + (b - a) * m for a, b in zip(breaks[:-1], breaks[1:])])
-    w_gam = np.concatenate([wt * dm * (b - a) for a, b in zip(breaks[:-1], breaks[1:])])
-    sg, cg = np.sin(gam), np.cos(gam)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # the ring is above the horizon for cos(psi) > a
-        a = np.where(sg * st > 0, -cg * ct / (sg * st), np.where(cg * ct > 0, -np.inf, np.inf))
-    psi_max = np.where(a <= -1, np.pi, np.where(a >= 1, 0.0, np.arccos(np.clip(a, -1, 1))))
-    s, ws = _gauss(n_psi, -1.0, 1.0)
-    psi = psi_max[:, None] * s[None, :]
-    w = (w_gam * sg * psi_max)[:, None] * ws[None, :]
-    wo = cg[:, None, None] * r + sg[:, None, None] * (
-        np.cos(psi)[..., None] * e1 + np.sin(psi)[..., None] * e2)
-    wo, w = wo.reshape(-1, 3), w.ravel()
-    keep = w > 0
-    return wo[keep], w[keep]
-
-
-# --- calling the plugin in the local frame ---------------------------------------------------------
-
-def _vec(mi, a):
-    a = np.asarray(a, dtype=np.float64)
-    return mi.Vector3f(*[np.ascontiguousarray(a[:, i]) for i in range(3)])
-
-
-def _si(mi, wi, n):
-    import drjit as dr
-
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = _vec(mi, np.broadcast_to(np.asarray(wi, dtype=np.float64), (n, 3)))
-    si.n = mi.Normal3f(0.0, 0.0, 1.0)
-    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
-    return si
-
-
-def bsdf_eval(mi, bsdf, wi, wo):
-    wo = np.atleast_2d(wo)
-    wi = np.broadcast_to(np.asarray(wi, dtype=np.float64), wo.shape)
-    v = bsdf.eval(mi.BSDFContext(), _si(mi, wi, len(wo)), _vec(mi, wo))
-    return np.array(v, dtype=np.float64).ravel()
-
-
-def bsdf_pdf(mi, bsdf, wi, wo):
-    wo = np.atleast_2d(wo)
-    wi = np.broadcast_to(np.asarray(wi, dtype=np.float64), wo.shape)
-    return np.array(bsdf.pdf(mi.BSDFContext(), _si(mi, wi, len(wo)), _vec(mi, wo)),
-                    dtype=np.float64).ravel()
-
-
-def bsdf_sample(mi, bsdf, wi, n, seed=0):
-    """n samples for one wi: returns (wo (n,3), weight (n,), pdf (n,))."""
-    rng = np.random.default_rng(seed)
-    u = rng.random((3, n))
-    bs, weight = bsdf.sample(mi.BSDFContext(), _si(mi, wi, n), mi.Float(u[0]),
-                             mi.Point2f(u[1], u[2]))
-    return (np.array(bs.wo, dtype=np.float64).T, np.array(weight, dtype=np.float64).ravel(),
-            np.array(bs.pdf, dtype=np.float64).ravel())
-
-
-def energy(mi, bsdf, theta_deg, lobe_width_deg=13.0):
-    """Hemisphere integral of eval at incidence theta (independent quadrature)."""
-    wo, w = hemisphere_nodes(theta_deg, lobe_width_deg)
-    return float(np.sum(w * bsdf_eval(mi, bsdf, wi_of(theta_deg), wo)))
-
-
-def chi2_run(mi, theta_deg, extra='<string name="material" value="Ti-6Al-4V"/>',
-             sample_count=CHI2_SAMPLES, test_count=len(THETAS_CHI2)):
-    """Mitsuba's chi2 harness at incidence theta; returns (accepted, p, hist mass, pdf mass, test)."""
-    import drjit as dr
-    from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
-
-    sample, pdf = BSDFAdapter("elo_bse", extra, wi=[float(x) for x in wi_of(theta_deg)])
-    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample, pdf_func=pdf,
-                         sample_dim=3, sample_count=sample_count, res=101)
-    test.tabulate_histogram()
-    test.tabulate_pdf()
-    ok = test.run(0.01, test_count=test_count, quiet=True)
-    hist_mass = float(dr.sum(test.histogram)[0]) / sample_count
-    pdf_mass = float(dr.sum(test.pdf)[0]) / sample_count
-    return ok, float(test.p_value), hist_mass, pdf_mass, test
-
-
-def binomial_se(p, n):
-    return float(np.sqrt(max(p * (1.0 - p), 10.0 / n) / n))
-
-
-# --- the tests -------------------------------------------------------------------------------------
 
 def test_quadrature_self_check():
     """The reference quadrature integrates 1 to 2 pi and cos(alpha) to pi at every theta."""

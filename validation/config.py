@@ -16,7 +16,8 @@ DEFAULT = {
     "stsa": {"res": 200, "spp": 2048},             # athene_flat, events = 2 (two halves of spp/2)
     "corrugated": {"field": 80.0, "res": 1536, "spp": 8, "band_mm": 3.0},
     "reflectance": {"n": 401},
-    # melt-plate resolutions keep pixel centres off the mesh's 0.2 mm vertex grid (belt and braces, row E7)
+    # melt-plate resolutions keep pixel centres off the mesh's 0.2 mm vertex grid, where beam rays
+    # could slip through a mesh that is not watertight (row E7; validation.tools.check_melt_resolution)
     "masking": {"field": 16.0, "res": 384, "spp": 64, "relief_scale": 6.0, "hist_bins": 161},
     "melt_plate": {
         "full_res": 500, "full_spp": 64,           # Fig. 6 and the height reconstruction, 80 mm

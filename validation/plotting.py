@@ -1,4 +1,8 @@
-"""Matplotlib (Agg) helpers: image panels in mm with colour bars, consistent colour maps, saving."""
+"""Matplotlib (Agg) helpers: image panels in mm with colour bars, saving.
+
+The colour maps are the package's palette (:mod:`elo_mitsuba.analysis.plots`), so that the
+validation figures and the CLI previews draw each quantity alike.
+"""
 
 from __future__ import annotations
 
@@ -7,16 +11,21 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import cmasher as cmr  # noqa: E402
+import cmasher  # noqa: E402,F401  (registers the cmr.* colour maps the palette names)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.colors import to_rgba  # noqa: E402
+
+from elo_mitsuba.analysis.plots import (  # noqa: E402,F401  (re-exported for the studies)
+    CMAP_DIVERGING,
+    CMAP_ERROR,
+    CMAP_HEIGHT,
+    CMAP_INTENSITY,
+    CMAP_SEQUENTIAL,
+    MASK_COLOUR,
+)
 
 DPI = 100
-CMAP_INTENSITY = cmr.rainforest      # detector images, N_d/N_0
-CMAP_DIVERGING = cmr.fusion_r        # M_x, gradients (symmetric about 0)
-CMAP_SEQ = cmr.ember                 # histograms, reflectance maps
-CMAP_ERROR = cmr.iceburn             # signed errors
-MASK_GREEN = (0.1, 0.85, 0.2, 1.0)
 
 plt.rcParams.update({
     "font.size": 8.5, "axes.titlesize": 9, "axes.labelsize": 8.5, "legend.fontsize": 7.5,
@@ -41,7 +50,7 @@ def image(fig, ax, img, field_mm, *, title="", label="", cmap=CMAP_INTENSITY, vm
                    vmin=vmin, vmax=vmax)
     if mask is not None and np.any(mask):
         overlay = np.zeros(data.shape + (4,))
-        overlay[np.asarray(mask, bool)] = MASK_GREEN
+        overlay[np.asarray(mask, bool)] = to_rgba(MASK_COLOUR)
         ax.imshow(overlay, extent=extent(data.shape, field_mm), origin="upper")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")

@@ -162,13 +162,13 @@ def _fig_hist(ctx, st, datasets):
 
     from elo_mitsuba.constants import TABLE1_LAYOUTS
 
-    from .plotting import CMAP_SEQ
+    from .plotting import CMAP_SEQUENTIAL, save
 
     fig, axs = plt.subplots(1, 2, figsize=(11.5, 4.8))
     for ax, d in zip(axs, datasets):
         h = np.where(d["hist"] > 0, d["hist"], np.nan)
         im = ax.imshow(h, extent=(d["pe"][0], d["pe"][-1], d["qe"][0], d["qe"][-1]), origin="upper",
-                       cmap=CMAP_SEQ, norm=LogNorm(vmin=1, vmax=np.nanmax(h)))
+                       cmap=CMAP_SEQUENTIAL, norm=LogNorm(vmin=1, vmax=np.nanmax(h)))
         for i, (z, (dh, dw)) in enumerate(TABLE1_LAYOUTS.items()):
             ax.axvline(-dh / dw, color=f"C{i}", ls=":", lw=1.6, label=f"ζ = {z}°: p = −d_h/d_w = {-dh / dw:.2f}")
         ax.set_xlim(d["pe"][0], d["pe"][-1])
@@ -181,12 +181,10 @@ def _fig_hist(ctx, st, datasets):
     fig.suptitle("Fig. 14a analogue: 2-D histogram of the surface normals n_S = [p, q, 1] with the right detector's "
                  "masking lines (Table 1)")
     fig.tight_layout()
-    from .plotting import save as _save  # noqa: F811
-
-    _save(fig, ctx, "fig14a_normal_histogram",
-          "Fig. 14a analogue: normals of the melt-plate height map (0.2 mm pixels, 100 mm) with the masking lines "
-          "p = −d_h/d_w of the four Table 1 layouts; left the shipped synthetic plate, right its relief scaled "
-          f"by {ctx.settings['masking']['relief_scale']:g}. Normals left of a line are masked for that layout.", st)
+    save(fig, ctx, "fig14a_normal_histogram",
+         "Fig. 14a analogue: normals of the melt-plate height map (0.2 mm pixels, 100 mm) with the masking lines "
+         "p = −d_h/d_w of the four Table 1 layouts; left the shipped synthetic plate, right its relief scaled "
+         f"by {ctx.settings['masking']['relief_scale']:g}. Normals left of a line are masked for that layout.", st)
 
 
 def _fig_images(ctx, st, d, name):

@@ -295,19 +295,19 @@ def _fig7_11(ctx, st, Z, prof):
 def _fig3(ctx, st, F, recs):
     import matplotlib.pyplot as plt
 
-    from .plotting import CMAP_ERROR, CMAP_INTENSITY, image, save
+    from .plotting import CMAP_ERROR, CMAP_HEIGHT, image, save
 
     z = F["z"] * 1e3
     fig, axs = plt.subplots(1, 4, figsize=(18, 4.2))
-    image(fig, axs[0], z, FULL_FIELD, title="(a) true height Z", label="Z (µm)", cmap=CMAP_INTENSITY)
+    image(fig, axs[0], z, FULL_FIELD, title="(a) true height Z", label="Z (µm)", cmap=CMAP_HEIGHT)
     zr, e = recs["Eq. 26"]
     image(fig, axs[1], zr * 1e3, FULL_FIELD, title=f"(b) from Eq. 26 (RMSE {1e3 * e:.1f} µm)", label="Z (µm)",
-          cmap=CMAP_INTENSITY, vmin=z.min(), vmax=z.max())
+          cmap=CMAP_HEIGHT, vmin=z.min(), vmax=z.max())
     image(fig, axs[2], (zr - F["z"]) * 1e3, FULL_FIELD, title="(c) error of (b)", label="ΔZ (µm)", cmap=CMAP_ERROR,
           symmetric=True)
     zr2, e2 = recs["M_x as gradient"]
     image(fig, axs[3], zr2 * 1e3, FULL_FIELD, title=f"(d) from M_x as gradient (RMSE {1e3 * e2:.1f} µm)",
-          label="Z (µm)", cmap=CMAP_INTENSITY, vmin=z.min(), vmax=z.max())
+          label="Z (µm)", cmap=CMAP_HEIGHT, vmin=z.min(), vmax=z.max())
     fig.suptitle("Fig. 3b analogue: height map of the melt plate reconstructed from modelled ELO images "
                  "(DCT least-squares normal integration)")
     fig.tight_layout()

@@ -84,14 +84,14 @@ def _figure(ctx, st, zeta, m):
     import matplotlib.pyplot as plt
     from matplotlib import rc_context
 
-    from .plotting import CMAP_SEQ, save
+    from .plotting import CMAP_SEQUENTIAL, save
 
     p, q = m["p"], m["q"]
     ext = (p.min(), p.max(), q.min(), q.max())
     vmax = max(m["g"].max(), m["gd"].max())
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.6))
     for ax, g, name in ((axs[0], m["g"], "full g_BSE (Eq. 13)"), (axs[1], m["gd"], "diffuse part only")):
-        im = ax.imshow(g, extent=ext, origin="upper", cmap=CMAP_SEQ, vmin=0, vmax=vmax, interpolation="bilinear")
+        im = ax.imshow(g, extent=ext, origin="upper", cmap=CMAP_SEQUENTIAL, vmin=0, vmax=vmax, interpolation="bilinear")
         ax.contour(p, q, g, levels=np.linspace(0, vmax, 12)[1:], colors="k", linewidths=0.5, alpha=0.7)
         side = p * m["d"][0] + q * m["d"][1] + 1.0
         with rc_context({"hatch.color": "w", "hatch.linewidth": 0.8}):

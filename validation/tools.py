@@ -1,11 +1,16 @@
 """Numerical helpers the studies need that elo_mitsuba.analysis does not provide.
 
 * :func:`half_asymmetry` — (top - bottom)/mean of an image with its Monte Carlo standard error;
-* :func:`disc_integral_flat` — Eq. 5 by quadrature over a disc detector (exact reference);
 * :func:`triangle_solid_angle_printed` — Van Oosterom-Strackee (Eq. A1) as printed;
+* :func:`triangle_solid_angle_quadrature` — the solid angle of a triangle by midpoint quadrature;
 * :func:`facet_gradient` — the gradient of the mesh the electrons actually hit (ray cast);
 * :func:`fit_gaussian_blur` — FWHM of the Gaussian that maps a sharp image onto a blurred one;
-* :func:`line_fit` — least-squares slope/intercept with the slope's standard error.
+* :func:`line_fit` — least-squares slope/intercept with the slope's standard error;
+* :func:`centres_on_vertex_grid`, :func:`check_melt_resolution` — keep pixel centres off the
+  melt-plate mesh's vertex grid (row E7).
+
+Eq. 5 by quadrature over a disc detector (the exact 1st-event reference) is
+:func:`elo_mitsuba.analysis.first_event.flat_plate_signal`.
 """
 
 from __future__ import annotations
@@ -30,49 +35,6 @@ def half_asymmetry(img_a, img_b, y):
     asym = (img[top].mean() - img[bot].mean()) / mean
     se = np.sqrt(diff[top].var() / 4 / top.sum() + diff[bot].var() / 4 / bot.sum()) / mean
     return float(asym), float(se)
-
-
-def _g_flat(material, theta, cos_a, cos_b):
-    """Eq. 13 for one incidence angle ``theta`` (rad) and arrays of cos(alpha), cos(beta)."""
-    from elo_mitsuba.physics import lobe_exponent, lobe_normalisation
-
-    t_deg = float(np.degrees(theta))
-    k = float(lobe_exponent(t_deg))
-    c = float(lobe_normalisation(t_deg))
-    g = material.eta0 / np.pi * np.maximum(cos_a, 0.0)
-    if k > 0:
-        lobe = np.where(cos_b > 0, np.maximum(cos_b, 0.0) ** k, 0.0)
-        g = g + (float(material.eta(theta)) - material.eta0) / c * (k + 1) / (2 * np.pi) * lobe
-    return np.where(cos_a > 0, g, 0.0)
-
-
-def disc_integral_flat(points, wd, centre, radius, material, n_r=32, n_phi=96):
-    """N_d/N_0 of the 1st event on a flat plate (normal +z): Eq. 5 by quadrature over a disc.
-
-    ``points`` (N, 2) beam targets on z = 0, the beam from the pivot (0, 0, wd); the disc of
-    ``radius`` at ``centre`` faces the origin. Gauss-Legendre in the radius, midpoint in the
-    azimuth (:func:`elo_mitsuba.analysis.geometry.disc_nodes`): int g_BSE cos(psi)/r^2 dA, with C(theta)
-    evaluated once per point.
-    """
-    from elo_mitsuba.analysis.geometry import disc_nodes
-
-    centre = np.asarray(centre, float)
-    dn = -centre / np.linalg.norm(centre)
-    q, wa = disc_nodes(centre, dn, radius, n_r, n_phi)
-    out = np.empty(len(points))
-    for i, (x, y) in enumerate(np.asarray(points, float)):
-        p = np.array([x, y, 0.0])
-        beam = p - np.array([0.0, 0.0, wd])
-        beam /= np.linalg.norm(beam)
-        theta = np.arccos(np.clip(-beam[2], -1, 1))
-        mirror = beam * np.array([1.0, 1.0, -1.0])
-        d = q - p
-        dist2 = np.sum(d * d, axis=-1)
-        dirs = d / np.sqrt(dist2)[..., None]
-        cos_psi = np.clip(-dirs @ dn, 0.0, None)
-        g = _g_flat(material, theta, dirs[..., 2], dirs @ mirror)
-        out[i] = np.sum(g * cos_psi / dist2 * wa)
-    return out
 
 
 def triangle_solid_angle_printed(v1, v2, v3):

@@ -13,13 +13,24 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import EloInputError
-from .geometry import field_xy
+from ..files import atomic_write, check_output
+from ..grid import field_xy
 
-#: Colour maps: diverging for signed quantities, sequential for heights and intensities.
-CMAP_DIVERGING = "cmr.iceburn"
-CMAP_HEIGHT = "cmr.rainforest"
+# The palette of every figure of the package and of validation/: one perceptually uniform CMasher
+# map per role (names as registered by ``import cmasher``), diverging maps for signed quantities,
+# drawn with a colour scale symmetric about 0 so that 0 sits at the map's centre.
+#: Detector images, N_d/N_0 (sequential, dark = few electrons).
 CMAP_INTENSITY = "cmr.arctic"
-MASK_COLOUR = "#2ca02c"
+#: Signed quantities: M_x, M_y, gradients (diverging, light centre at 0).
+CMAP_DIVERGING = "cmr.fusion_r"
+#: Height maps Z (sequential).
+CMAP_HEIGHT = "cmr.rainforest"
+#: Histograms and reflectance maps (sequential, black at 0).
+CMAP_SEQUENTIAL = "cmr.ember"
+#: Signed errors and differences (diverging, dark centre at 0: small errors fade out).
+CMAP_ERROR = "cmr.iceburn"
+#: Masked (untrusted) pixels, one flat colour (green as in Fig. 14b).
+MASK_COLOUR = "#1ad933"
 
 
 def _figure(ncols=1, width=5.2, height=4.4):
@@ -34,13 +45,8 @@ def _figure(ncols=1, width=5.2, height=4.4):
 
 
 def _save(fig, path, overwrite):
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise EloInputError(f"{path} exists; pass --overwrite to replace it")
-    if not path.parent.exists():
-        raise EloInputError(f"{path}: directory {path.parent} does not exist")
-    fig.savefig(path, dpi=120)
-    return path
+    path = check_output(path, (".png",), overwrite=overwrite, what="figure")
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120))
 
 
 def _extent(shape, field_mm):
@@ -121,7 +127,7 @@ def plot_reflectance_maps(p, q, g_full, g_diffuse, masked, d_pq, path, *, title=
     ext = _pq_extent(p, q)
     vmax = float(max(np.max(g_full), np.max(g_diffuse), 1e-12))
     for ax, g, name in ((axes[0], g_full, "full $g_{BSE}$ (Eq. 13)"), (axes[1], g_diffuse, "diffuse part only")):
-        im = ax.imshow(g, cmap=CMAP_INTENSITY, extent=ext, origin="upper", vmin=0, vmax=vmax,
+        im = ax.imshow(g, cmap=CMAP_SEQUENTIAL, extent=ext, origin="upper", vmin=0, vmax=vmax,
                        interpolation="bilinear")
         ax.contour(p, q, g, levels=8, colors="k", linewidths=0.5, alpha=0.6)
         if np.any(masked):
@@ -158,7 +164,7 @@ def plot_normal_histogram(hist, p_edges, q_edges, path, *, lines: Mapping | None
     h = np.asarray(hist, dtype=float)
     shown = np.where(h > 0, h, np.nan)
     vmax = max(np.nanmax(shown) if np.isfinite(shown).any() else 1.0, 1.0)
-    im = ax.imshow(shown, cmap=CMAP_HEIGHT, norm=LogNorm(vmin=1, vmax=vmax), origin="upper",
+    im = ax.imshow(shown, cmap=CMAP_SEQUENTIAL, norm=LogNorm(vmin=1, vmax=vmax), origin="upper",
                    extent=(p_edges[0], p_edges[-1], q_edges[0], q_edges[-1]), interpolation="nearest")
     styles = ["-", "--", ":", "-."]
     t = np.linspace(min(p_edges[0], q_edges[0]), max(p_edges[-1], q_edges[-1]), 2)
@@ -196,14 +202,6 @@ def plot_image_histograms(stats: Mapping[str, dict], path, *, unit="N_d/N_0", ti
     ax.set_title(title)
     ax.legend(fontsize=8)
     return _save(fig, path, overwrite)
-
-
-def check_png_path(path) -> Path:
-    """Validate a preview path (``.png``) before long computations."""
-    path = Path(path)
-    if path.suffix.lower() != ".png":
-        raise EloInputError(f"{path}: previews are PNG files; use a name ending in .png")
-    return path
 
 
 def preview_detectors(channels: Mapping[str, np.ndarray], field_mm, path, *, unit="N_d/N_0", title="",
