@@ -1,5 +1,7 @@
+"""``python -m benchmarks [--quick] [--out FILE] [--only SECTION ...] [--fresh]``: see benchmarks/__init__.py."""
+
 import sys
 
-from .run import main
+from .runner import main
 
 sys.exit(main())

@@ -4,14 +4,17 @@ Prints one JSON line (prefixed ``RESULT ``) with the timings, peak memory (``pea
 peak resident set of one timed render, reset before each; ``maxrss_mb``: of the whole process)
 and what the job measured. Job kinds:
 
-* ``render``: load a scene (shipped name or XML path, ``params`` as -D), set integrator options,
-  render once to compile/warm up (``first_s``), then time ``seeds`` renders of ``spp``
-  (``times``, seconds of :meth:`EloScene.render`, numpy conversion included); optionally count
-  the rays cast per sample and save the channels of the first timed render (``save``, .npz).
+* ``render``: load a scene (shipped name or XML path, ``params`` as -D), set ``events``, the
+  ``quality`` preset and then ``options`` (integrator options, validated), render once to
+  compile/warm up (``first_s``), then time ``seeds`` renders of ``spp`` (``times``, seconds of
+  :meth:`EloScene.render`, numpy conversion included); optionally count the rays cast per sample
+  and save the channels of the first timed render (``save``, .npz).
 * ``path``: Mitsuba's built-in ``path`` integrator on the same scene with ONE detector as area
   emitter (the others black absorbers), max_depth = events + 1: the alternative a user has.
 * ``raw``: Mitsuba's raw ray-cast throughput on the scene: beam rays, bounce rays from the
   first hits, shadow rays from first hits and from bounce hits to points on the detectors.
+* ``skeleton``: our integrator, a ray-only skeleton of it and the same rays in one bare kernel,
+  interleaved with the raw ray casts in one process (the paired ceiling).
 """
 
 from __future__ import annotations
@@ -22,6 +25,11 @@ import sys
 import time
 
 import numpy as np
+
+
+#: The options a ``render`` job reports (``settings``): what RESULTS.md shows of a configuration.
+SETTINGS = ("detector_sampling", "detector_samples", "quadrature_triangles", "bounce_fraction", "bounce_samples",
+            "bounce_filter", "bounce_min")
 
 
 def _maxrss_mb():
@@ -66,19 +74,17 @@ def job_render(job):
     if "events" in job:
         scene.set_events(job["events"])
     preset_spp = scene.set_quality(job["quality"]) if job.get("quality") else None
-    for key, value in job.get("options", {}).items():
-        if not hasattr(integ, key):
-            raise SystemExit(f"integrator has no option {key!r}")
-        setattr(integ, key, type(getattr(integ, key))(value) if getattr(integ, key) is not None else value)
+    scene.configure(**job.get("options", {}))  # validated: an unknown option or bad value is refused
     load_s = time.perf_counter() - t0
     spp = int(job["spp"] if job.get("spp") else preset_spp)
     out = {"load_s": load_s}
     counts = None
     if job.get("count_rays"):
-        integ.count_rays = True
+        options = integ.options
+        integ.configure(options.replace(count_rays=True))
         scene.render(spp=spp, seed=10_000)
         counts = dict(integ.ray_counts)
-        integ.count_rays = False
+        integ.configure(options)
     t = time.perf_counter()
     if job.get("warm", True):
         scene.render(spp=spp, seed=20_000)
@@ -95,11 +101,11 @@ def job_render(job):
         if i == 0 and job.get("save"):
             np.savez(job["save"], **result.channels)
         del result
+    options = integ.options.as_dict()
+    unblockable = integ.unblockable_detectors()
     out.update(times=times, peak_mb=max(peaks), maxrss_mb=_maxrss_mb(), ray_counts=counts, notes=list(integ.notes),
-               free_detectors=[bool(f) for f in integ._free], spp=spp,
-               settings={k: getattr(integ, k) for k in (
-                   "detector_sampling", "detector_samples", "quadrature_triangles", "bounce_fraction",
-                   "bounce_samples", "bounce_filter", "bounce_min")})
+               free_detectors=[name in unblockable for name, _ in integ.detectors], spp=spp,
+               settings={k: options[k] for k in SETTINGS})
     return out
 
 
@@ -152,7 +158,7 @@ def job_path(job):
     return out
 
 
-def _raw_tests(mi, dr, scene, spp):
+def _raw_casts(mi, dr, scene, spp):
     """The kinds of rays the integrator casts, prepared in memory and cast raw (no physics):
     {name: (function casting them once, number of rays)} and the bounce-hit fraction."""
     sc, sensor = scene.scene, scene.sensor
@@ -193,7 +199,7 @@ def _raw_tests(mi, dr, scene, spp):
     def prelim(r, active):  # the bare hit (distance and primitive), no surface interaction
         _sync(dr, sc.ray_intersect_preliminary(r, active=active).t)
 
-    tests = {
+    casts = {
         "beam rays (ray_intersect)": (lambda: full(ray, True), n),
         "bounce rays (ray_intersect)": (lambda: full(bounce, valid1), n1),
         "beam rays (preliminary)": (lambda: prelim(ray, True), n),
@@ -201,15 +207,15 @@ def _raw_tests(mi, dr, scene, spp):
         "shadow rays from 1st hits": (lambda: _sync(dr, *[sc.ray_test(r, valid1) for r in s1]), len(dets) * n1),
         "shadow rays from bounce hits": (lambda: _sync(dr, *[sc.ray_test(r, valid2) for r in s2]), len(dets) * n2),
     }
-    for fn, _ in tests.values():
+    for fn, _ in casts.values():
         fn()  # compile
-    return tests, n2 / max(n1, 1)
+    return casts, n2 / max(n1, 1)
 
 
-def _time_raw(tests):
+def _time_raw(casts):
     """Cast each kind of ray once; rays per second of each."""
     rates = {}
-    for key, (fn, count) in tests.items():
+    for key, (fn, count) in casts.items():
         t = time.perf_counter()
         fn()
         rates[key] = count / (time.perf_counter() - t)
@@ -224,10 +230,10 @@ def job_raw(job):
     import drjit as dr
 
     scene = em.load_scene(job["scene"], **job.get("params", {}))
-    tests, bounce_hits = _raw_tests(mi, dr, scene, int(job.get("spp", 1)))
-    per_rep = [_time_raw(tests) for _ in range(int(job.get("repeat", 5)))]  # interleaved
-    rates = {k: float(np.median([r[k] for r in per_rep])) for k in tests}
-    return {"rates": rates, "counts": {k: v[1] for k, v in tests.items()}, "maxrss_mb": _maxrss_mb(),
+    casts, bounce_hits = _raw_casts(mi, dr, scene, int(job.get("spp", 1)))
+    per_rep = [_time_raw(casts) for _ in range(int(job.get("repeat", 5)))]  # interleaved
+    rates = {k: float(np.median([r[k] for r in per_rep])) for k in casts}
+    return {"rates": rates, "counts": {k: v[1] for k, v in casts.items()}, "maxrss_mb": _maxrss_mb(),
             "bounce_hit_fraction": bounce_hits}
 
 
@@ -274,7 +280,8 @@ def job_skeleton(job):
     events = int(job.get("events", scene.integrator.events))
     ours = mi.load_dict({"type": "elo", "events": events})
     skel = mi.load_dict({"type": "elo_benchmark_skeleton", "events": events})
-    ours.occlusion_analysis = skel.occlusion_analysis = False
+    for integ in (ours, skel):
+        integ.configure(integ.options.replace(occlusion_analysis=False))
     spp = int(job["spp"])
     sc, sensor = scene.scene, scene.sensor
     ours.prepare_scene(sc, sensor)
@@ -311,13 +318,13 @@ def job_skeleton(job):
             "rays only": rays_only}
     # the raw ceiling in the same process, interleaved with the renders: each repetition gives
     # one (raw rates, our time) pair measured under the same machine load
-    raw_tests, _ = _raw_tests(mi, dr, scene, 4)
+    raw_casts, _ = _raw_casts(mi, dr, scene, 4)
     times = {key: [] for key in runs}
     raw_rates = []
     for fn in runs.values():
         _sync(dr, fn(0))
     for rep in range(int(job.get("repeat", 5))):
-        raw_rates.append(_time_raw(raw_tests))
+        raw_rates.append(_time_raw(raw_casts))
         for key, fn in runs.items():
             t = time.perf_counter()
             _sync(dr, fn(rep + 1))
