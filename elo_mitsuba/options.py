@@ -53,6 +53,9 @@ class EloOptions:
                                     "int", bounds=(1, None))
     bounce_detector_samples: int | None = _option(None, "points per detector at events >= 2 (default: "
                                                   "detector_samples)", "int", bounds=(1, None))
+    front_only: str = _option("", "detectors shielded on their back, collecting on the front face only "
+                              "(comma-separated ids, '*' = all; default: every detector collects on both faces)",
+                              "text")
     quadrature_triangles: int = _option(8, "triangles per detector in the quadrature of Appendix A", "int",
                                         bounds=(4, MAX_QUADRATURE_TRIANGLES))
     quadrature_visibility: str = _option("sampled", "occlusion in the quadrature: one sampled ray per detector, "
@@ -115,6 +118,10 @@ def _coerce(f: dataclasses.Field, value):
         if not isinstance(value, bool):
             raise EloInputError(f"elo: {name}={value!r}; must be true or false")
         return value
+    if kind == "text":
+        if not isinstance(value, str):
+            raise EloInputError(f"elo: {name}={value!r}; must be text")
+        return value.strip()
     if kind == "str":
         value = str(value)
         choices = f.metadata["choices"]

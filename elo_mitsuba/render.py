@@ -211,7 +211,13 @@ class EloScene:
     def configure(self, **changes) -> EloOptions:
         """Change integrator options for the following renders (validated; same kernel where only
         values change), e.g. ``scene.configure(units="voltage", detector_samples=4)``."""
-        self.integrator.configure(self.integrator.options.replace(**changes))
+        saved = self.integrator.options
+        self.integrator.configure(saved.replace(**changes))
+        try:
+            self.integrator.prepare_scene(self.scene, self.sensor)  # what needs the scene is checked now
+        except EloError:
+            self.integrator.configure(saved)
+            raise
         return self.integrator.options
 
     def set_events(self, events: int):

@@ -70,12 +70,30 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> N
         if node.tag == "default" and node.get("name"):
             declared.setdefault(node.get("name"), node.get("value"))
         elif node.tag == "include" and node.get("filename") and depth < 8:
-            name = node.get("filename")
+            pattern = node.get("filename")
             known = {**declared, **values}
-            name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), name)
+            name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), pattern)
             inc = (path.parent / name)
             if inc.is_file():
                 _collect_defaults(inc, values, declared, depth + 1)
+            else:
+                _refuse_value_without_file(path, pattern, values)
+
+
+def _refuse_value_without_file(path: Path, pattern: str, values: Mapping) -> None:
+    """A user's value that selects an included file (``layouts/$layout.xml``) which does not
+    exist: name the parameter and the values that do."""
+    params = re.findall(r"\$(\w+)", pattern)
+    given = [p for p in params if p in values]
+    if len(params) != 1 or not given:
+        return
+    glob = re.sub(r"\$\w+", "*", pattern)
+    stem_prefix, suffix = Path(glob).name.split("*", 1)
+    allowed = sorted(f.name[len(stem_prefix):len(f.name) - len(suffix)]
+                     for f in (path.parent / Path(glob).parent).glob(Path(glob).name))
+    if allowed:
+        raise EloInputError(f"{path}: parameter {given[0]}={values[given[0]]!r} is not available; allowed: "
+                            f"{', '.join(allowed)}")
 
 
 def layout_parameters(layout: str | int) -> dict[str, float]:

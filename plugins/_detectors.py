@@ -72,6 +72,22 @@ def _local_rectangle_triangles(n_tri):
     return np.array(tris)
 
 
+def parse_detector_list(text, names, option):
+    """Detector ids of a comma-separated option value (``"*"`` = all, ``""`` = none), checked
+    against the scene's ``names``."""
+    text = str(text).strip()
+    if not text:
+        return set()
+    if text == "*":
+        return set(names)
+    ids = {t.strip() for t in text.split(",") if t.strip()}
+    unknown = sorted(ids - set(names))
+    if unknown:
+        raise EloInputError(f"elo: {option}={text!r} names no detector {unknown[0]!r}; detectors: "
+                            f"{', '.join(names)} (or '*' for all)")
+    return ids
+
+
 def detector_triangles(shape, n_tri, name="detector"):
     """World-space triangles (T, 3, 3) covering a detector, counter-clockwise about its front
     normal (the side its one-sided emitter collects on)."""

@@ -36,9 +36,10 @@ TABLE_SIZE = 4097  # linear interpolation of W(theta): < 3e-6 relative even for 
 _INV_PI = 1.0 / np.pi
 
 
-def lobe_weight(table, theta_deg, size, offset=None, active=True):
-    """W(theta) by linear interpolation of ``table`` on the uniform 0..90 deg grid of ``size``
-    nodes, starting at index ``offset`` (a material's slot in a scene table)."""
+def table_lookup(table, theta_deg, size, offset=None, active=True):
+    """A function of the incidence angle (W(theta), eta(theta)) by linear interpolation of
+    ``table`` on the uniform 0..90 deg grid of ``size`` nodes, starting at index ``offset``
+    (a material's slot in a scene table)."""
     pos = theta_deg * ((size - 1) / 90.0)
     i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, size - 2))
     frac = pos - mi.Float(i0)
@@ -60,6 +61,7 @@ class EloBSE(mi.BSDF):
         self.material = None
         self.eta0 = mi.Float(0.0)
         self.lobe_table = mi.Float(np.zeros(TABLE_SIZE))
+        self.eta_table = mi.Float(np.zeros(TABLE_SIZE))
         self.set_material(material)
         flags_d = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
         flags_g = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
@@ -80,7 +82,10 @@ class EloBSE(mi.BSDF):
         # Assign into the existing (opaque) variables so re-renders reuse the compiled kernel.
         self.eta0 = dr.opaque(mi.Float, self.material.eta0)
         self.lobe_table = mi.Float(w.astype(np.float32))
-        dr.make_opaque(self.eta0, self.lobe_table, self.lobe_width)
+        # eta(theta) (Eqs. 10-12): the fraction that leaves; a detector plate with this BSDF
+        # collects the rest, 1 - eta (integrator elo)
+        self.eta_table = mi.Float(self.material.eta_deg(np.linspace(0.0, 90.0, TABLE_SIZE)).astype(np.float32))
+        dr.make_opaque(self.eta0, self.lobe_table, self.eta_table, self.lobe_width)
 
     def traverse(self, callback):
         callback.put("lobe_width", self.lobe_width, mi.ParamFlags.NonDifferentiable)
@@ -93,7 +98,7 @@ class EloBSE(mi.BSDF):
         """(k, W(theta)) for the local incident direction: exponent and tabulated lobe weight."""
         theta_deg = dr.acos(dr.clip(wi.z, 0.0, 1.0)) * (180.0 / dr.pi)
         k = theta_deg / self.lobe_width
-        return k, lobe_weight(self.lobe_table, theta_deg, TABLE_SIZE)
+        return k, table_lookup(self.lobe_table, theta_deg, TABLE_SIZE)
 
     def _terms(self, wi, wo):
         """(g_BSE, S, valid) for local directions; g = 0 where wi or wo is at/below the surface."""
@@ -162,6 +167,11 @@ class EloBSE(mi.BSDF):
 # quantities _lobe and _terms use (eta0, 1/lobe_width, the W(theta) table) and evaluates Eq. 13 in
 # world coordinates; the setup (angle of incidence, table lookup, mirror direction) is shared by
 # all directions of one point.
+def is_elo_bse(bsdf) -> bool:
+    """Whether ``bsdf`` is an ``elo_bse`` (has its tables)."""
+    return bsdf is not None and all(hasattr(bsdf, a) for a in ("eta0", "lobe_table", "eta_table", "lobe_width"))
+
+
 def scene_tables(scatterers):
     """g_BSE of every scattering surface from per-BSDF tables, without a virtual call: the
     BSDF id of a surface interaction indexes (eta0, 1/lobe_width, W(theta) table) of its
@@ -169,7 +179,7 @@ def scene_tables(scatterers):
     bsdfs = {}
     for shape in scatterers:
         bsdf = shape.bsdf()
-        if not all(hasattr(bsdf, a) for a in ("eta0", "lobe_table", "lobe_width")):
+        if not is_elo_bse(bsdf):
             return None
         bid = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
         bsdfs[bid] = bsdf
@@ -205,7 +215,7 @@ def world_setup(tables, si, wi_world, alive):
     cos_t = dr.dot(n, wi_world)
     theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
     k = theta_deg * inv_width
-    weight = lobe_weight(t["lobe"], theta_deg, size, slot * size, alive)
+    weight = table_lookup(t["lobe"], theta_deg, size, slot * size, alive)
     mirror = n * (2.0 * cos_t) - wi_world  # mirror direction of p_E = -wi about n
     return (eta0 * (1.0 / dr.pi), weight, k, n, mirror, alive & (cos_t > 0))
 
@@ -224,6 +234,14 @@ def _eval_directions(bsdf, ctx, si, wos, active):
     """g_BSE for several local directions in ONE dispatch; identical work (angle of incidence,
     table lookup) is shared by Dr.Jit's common-subexpression elimination."""
     return [bsdf.eval(ctx, si, wo, active)[0] for wo in wos]
+
+
+def collected_fraction(bsdf, cos_incidence):
+    """1 - eta(theta) of a detector plate carrying ``bsdf`` (an ``elo_bse``), for the cosine of
+    the angle between the arriving electrons and the plate normal (either face): the charge it
+    keeps; the backscattered rest travels on."""
+    theta_deg = dr.acos(dr.clip(cos_incidence, 0.0, 1.0)) * (180.0 / dr.pi)
+    return 1.0 - table_lookup(bsdf.eta_table, theta_deg, TABLE_SIZE)
 
 
 def eval_world(tables, si, bsdf, ctx, ray, alive, dirs_world):

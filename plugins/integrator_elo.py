@@ -13,6 +13,14 @@ that leave in that direction. A continuation ray that hits a detector ends there
 are absorbed, Eq. 6; they were counted by the direct estimate, so nothing is counted twice); one
 that leaves the scene is lost. No bounce ray is traced after the last counted event.
 
+Detectors collect on both faces (a metal plate collects charge on either side; the paper's
+detectors "integrate all incoming electrons"); ``front_only`` names detectors shielded on their
+back, which collect on the front face only and absorb on the back. A detector whose shape
+carries an ``elo_bse`` BSDF (e.g. copper plates, ``plates=copper`` in the shipped scenes)
+backscatters: it keeps 1 - eta(theta) of what arrives at angle theta to its normal, and the
+backscattered electrons travel on from it by its g_BSE (crosstalk onto other detectors, the
+chamber); without such a BSDF a detector keeps everything (the paper's model).
+
 Detector integral of the 1st event (``detector_sampling``):
 
 * ``independent`` (default): ``detector_samples`` uniform points on each detector (Mitsuba's
@@ -77,9 +85,9 @@ from elo_mitsuba.options import EloOptions, parameter_table
 from elo_mitsuba.physics.solid_angle import vos_denominator
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
-from ._detectors import find_detectors, is_planar, quadrature_geometry
-from ._occlusion import unblockable, unblockable_regions
-from .bsdf_elo_bse import eval_world, scene_tables
+from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
+from ._occlusion import shape_key, unblockable, unblockable_regions
+from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, scene_tables
 
 __doc__ += parameter_table() + "\n"
 
@@ -99,6 +107,9 @@ class EloIntegrator(mi.SamplingIntegrator):
         self.notes = []  # what the integrator decided to skip, and why
         self.ray_counts = None  # {"intersections": ..., "shadow_rays": ...} per sample (count_rays)
         self._quadrature_geometry = []  # per detector, see _detectors.quadrature_geometry
+        self._two_sided = []  # per detector: collects on both faces (False: front face only)
+        self._plates = []  # per detector: its elo_bse BSDF when its plate backscatters, else None
+        self._plate_keys = []  # [(detector index, opaque shape id)] of the backscattering detectors
         self._g_tables = None  # g_BSE tables of the scene's elo_bse BSDFs (None: dispatch)
         self._unblockable_regions = []  # per detector, see _occlusion.unblockable_regions
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
@@ -124,8 +135,16 @@ class EloIntegrator(mi.SamplingIntegrator):
                 "and give it an id (its channel name)"
             )
         self.detectors = detectors
+        names = [name for name, _ in detectors]
+        front_only = parse_detector_list(self.front_only, names, "front_only")
+        self._two_sided = [name not in front_only for name in names]
+        self._plates = [shape.bsdf() if is_elo_bse(shape.bsdf()) else None for _, shape in detectors]
+        plate_shapes = [shape for (_, shape), plate in zip(detectors, self._plates) if plate is not None]
+        self._plate_keys = [(d, dr.opaque(mi.UInt32, shape_key(shape)))
+                            for d, ((_, shape), plate) in enumerate(zip(detectors, self._plates)) if plate is not None]
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
-        self.bounce_possible = not (len(scatterers) <= 1 and all(is_planar(s) for s in scatterers))
+        surfaces = scatterers + plate_shapes  # where an electron can scatter
+        self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
         self.notes = []
         if self.events > 1 and not self.bounce_possible:
             self.notes.append(
@@ -134,7 +153,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._quadrature_geometry = []
         if self.detector_sampling == "quadrature":
             self._quadrature_geometry = quadrature_geometry(detectors, self.quadrature_triangles)
-        self._g_tables = scene_tables(scatterers)
+        self._g_tables = scene_tables(surfaces)
         self._unblockable_regions = [[] for _ in detectors]
         if self.occlusion_analysis:
             sensor = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
@@ -368,8 +387,17 @@ class EloIntegrator(mi.SamplingIntegrator):
             ray = si.spawn_ray(si.to_world(bs.wo))
             si = scene.ray_intersect(ray, alive)
             n_hit = n_hit + dr.select(alive, 1.0, 0.0)
-            alive &= si.is_valid() & ~si.shape.is_emitter()
-            bsdf = si.bsdf(ray)
+            if self._plate_keys:
+                # a backscattering detector plate is a surface too: its backscattered electrons
+                # travel on (crosstalk); a shielded back face absorbs
+                on_plate, back = self._plate_hit(si, ray)
+                alive &= si.is_valid() & (~si.shape.is_emitter() | on_plate)
+                bsdf = si.bsdf(ray)
+                si.sh_frame = mi.Frame3f(dr.select(back, -si.sh_frame.n, si.sh_frame.n))
+                si.wi = si.to_local(-ray.d)
+            else:
+                alive &= si.is_valid() & ~si.shape.is_emitter()
+                bsdf = si.bsdf(ray)
             counting = self.count_rays
 
             def direct_fn(si, ray, alive, sampler, bsdf=bsdf):
@@ -390,6 +418,19 @@ class EloIntegrator(mi.SamplingIntegrator):
             for d in range(n_det):
                 later[d].append(throughput * out[d])
         return later, n_hit
+
+    def _plate_hit(self, si, ray):
+        """(lanes on a backscattering detector plate that scatters them, lanes that hit it from
+        behind): a front-only detector's back face absorbs (it is shielded)."""
+        key = dr.reinterpret_array(mi.UInt32, si.shape)
+        on_plate, back = mi.Bool(False), mi.Bool(False)
+        behind = dr.dot(si.sh_frame.n, -ray.d) < 0
+        for d, k in self._plate_keys:
+            hit = key == k
+            ok = hit if self._two_sided[d] else hit & ~behind
+            on_plate |= ok
+            back |= ok & behind
+        return on_plate, back
 
     def _ray_test(self, scene, ray, active):
         if self.count_rays:
@@ -418,12 +459,26 @@ class EloIntegrator(mi.SamplingIntegrator):
                     r, c, nc = cells[i]
                     u = mi.Point2f((c + u.x) / nc, (r + u.y) / rows)
                     w = 1.0 / (rows * nc)
-                ds, em_weight = emitter.sample_direction(si, u, alive)
-                # em_weight = 1/pdf (unit radiance), 0 at the detector's back face
-                test = alive & (ds.pdf > 0)
-                visible = self._visible(scene, si, ds.p, test, d)
-                wos.append(ds.d)
-                weights.append(dr.select(visible, em_weight[0] * w, 0.0))
+                if self._two_sided[d]:
+                    # a point by area on the detector, either face: weight |cos| A / r^2 = 1/pdf
+                    ps = shape.sample_position(si.time, u, alive)
+                    to = ps.p - si.p
+                    dist2 = dr.squared_norm(to)
+                    wo = to * dr.rsqrt(dist2)
+                    cos_d = dr.abs(dr.dot(ps.n, wo))
+                    test = alive & (ps.pdf > 0) & (cos_d > 0) & (dist2 > 0)
+                    em_weight = dr.select(test, cos_d / (dist2 * ps.pdf), 0.0)
+                    target, normal = ps.p, ps.n
+                else:
+                    ds, em_spectrum = emitter.sample_direction(si, u, alive)
+                    # em_spectrum = 1/pdf (unit radiance), 0 at the detector's back face
+                    test = alive & (ds.pdf > 0)
+                    em_weight, wo, target, normal = em_spectrum[0], ds.d, ds.p, ds.n
+                if self._plates[d] is not None:
+                    em_weight = em_weight * collected_fraction(self._plates[d], dr.abs(dr.dot(normal, wo)))
+                visible = self._visible(scene, si, target, test, d)
+                wos.append(wo)
+                weights.append(dr.select(visible, em_weight * w, 0.0))
         g = eval_world(self._g_tables, si, bsdf, ctx, ray, alive, wos)
         out = []
         k = 0
@@ -440,7 +495,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         g_BSE at the centroid direction; occlusion by one sampled ray or one per triangle."""
         p = si.p
         omegas, dirs, per_det = [], [], []
-        for verts, tris in self._quadrature_geometry:
+        for d, (verts, tris) in enumerate(self._quadrature_geometry):
             v = [q - p for q in verts]
             lengths = [dr.norm(x) for x in v]
             dots = {}
@@ -456,8 +511,15 @@ class EloIntegrator(mi.SamplingIntegrator):
                 num = dr.dot(v[i], twice_area_normal)
                 den = vos_denominator(lengths[i], lengths[j], lengths[k], dot(i, j), dot(i, k), dot(j, k))
                 # counter-clockwise about the front normal: num < 0 seen from the front
-                omegas.append(dr.maximum(2.0 * dr.atan2(-num, den), 0.0))
-                dirs.append(dr.normalize(v[i] + v[j] + v[k]))
+                signed = 2.0 * dr.atan2(-num, den)
+                omega = dr.abs(signed) if self._two_sided[d] else dr.maximum(signed, 0.0)
+                centroid_dir = dr.normalize(v[i] + v[j] + v[k])
+                if self._plates[d] is not None:
+                    cos_inc = dr.abs(dr.dot(centroid_dir, twice_area_normal)) * dr.rsqrt(
+                        dr.squared_norm(twice_area_normal))
+                    omega = omega * collected_fraction(self._plates[d], cos_inc)
+                omegas.append(omega)
+                dirs.append(centroid_dir)
         g = eval_world(self._g_tables, si, bsdf, ctx, ray, alive, dirs)
         out = []
         base = 0

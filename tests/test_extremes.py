@@ -49,10 +49,12 @@ def test_detector_nearly_edge_on(options):
     towards = -c / np.linalg.norm(c)
     side = np.array([0.0, 1.0, 0.0])
     scene["right"] = disk(c, side + 1e-3 * towards)
-    ch = render(scene, **options)
-    # rows at y > 0 see the face at a few degrees, y < 0 its back (nothing)
+    ch = render(scene, front_only="right", **options)
+    # rows at y > 0 see the face at a few degrees, y < 0 its shielded back (nothing)
     assert np.all(ch["right"][-1] == 0) and ch["right"][0].min() > 0
     assert ch["right"].max() < 0.1 * ch["left"].min()
+    both = render(scene, **options)  # collecting on both faces, the y < 0 rows see the back
+    assert both["right"][-1].min() > 0 and both["right"].max() < 0.1 * both["left"].min()
 
 
 @pytest.mark.parametrize("options", STRATEGIES)
@@ -69,13 +71,15 @@ def test_detector_fully_masked_by_a_steep_flank(options):
 
 @pytest.mark.parametrize("options", STRATEGIES)
 def test_detector_that_sees_nothing(options):
-    """A detector under the plate, facing up into it, and one above everything facing up:
-    zeros, not NaN."""
+    """A detector under the plate, facing up into it, and one above everything facing up with
+    its back shielded: zeros, not NaN."""
     scene = flat_scene(mi, res=3, field=40.0, events=2, wall=True)
     scene["right"] = disk([0.0, 0.0, -50.0], [0, 0, 1])
     scene["left"] = disk([-127.0, 0.0, 450.0], [0.0, 0.0, 1.0])  # above everything, facing up
-    ch = render(scene, **options)
+    ch = render(scene, front_only="left", **options)
     assert np.all(ch["right"] == 0) and np.all(ch["left"] == 0) and ch["back"].min() > 0
+    both = render(scene, **options)  # the plate sees the left detector's back
+    assert np.all(both["right"] == 0) and both["left"].min() > 0
 
 
 @pytest.mark.parametrize("lobe_width", [1e6, 1e-3])

@@ -72,10 +72,12 @@ def test_lobe_matters_off_centre():
 
 
 def test_sum_of_detectors_equals_builtin_path_integrator():
-    """With the detectors as unit area emitters, Mitsuba's own `path` integrator at
-    max_depth = events + 1 estimates the sum over detectors of our channels."""
+    """With the detectors as unit area emitters (one-sided, as Mitsuba's are: our detectors with
+    their backs shielded), Mitsuba's own `path` integrator at max_depth = events + 1 estimates
+    the sum over detectors of our channels (two-sided detectors: tests/test_detector_faces.py)."""
     res, field, events = 4, 160.0, 2
-    ours = render_dict(flat_scene(mi, res=res, field=field, events=events, wall=True), spp=2048, seed=1)
+    ours = render_dict(flat_scene(mi, res=res, field=field, events=events, wall=True,
+                                  integrator={"type": "elo", "events": events, "front_only": "*"}), spp=2048, seed=1)
     total = sum(ours[n] for n in DETECTORS)
     path_dict = flat_scene(mi, res=res, field=field, wall=True,
                            integrator={"type": "path", "max_depth": events + 1, "rr_depth": 100})

@@ -185,12 +185,15 @@ def test_bounce_fraction_and_samples_are_unbiased():
     scene = flat_scene(mi, res=16, field=80.0, wall=True, events=2)
     opts = {"detector_sampling": "quadrature", "quadrature_triangles": 4}
     full, _ = render(scene, spp=256, seed=1, **opts)
-    part, _ = render(scene, spp=256, seed=2, bounce_fraction=0.25, **opts)
-    split, _ = render(scene, spp=64, seed=3, bounce_samples=4, **opts)
+    parts = [render(scene, spp=256, seed=2 + 10 * k, bounce_fraction=0.25, **opts)[0] for k in range(4)]
+    part = dict(parts[0], **{f"{n}.e2": np.mean([p[f"{n}.e2"] for p in parts], axis=0) for n in DETECTORS})
+    split, _ = render(scene, spp=256, seed=3, bounce_samples=4, **opts)
     for n in DETECTORS:
         ref = full[f"{n}.e2"].mean()
         assert ref > 0.01 * full[n].mean()
-        assert part[f"{n}.e2"].mean() == pytest.approx(ref, rel=0.06)  # ~2.5% noise (1 sigma)
+        # noise (1 sigma): full 1.0 %, part (4 x 256 spp) 1.4 %, split 0.8 % (the left
+        # detector's back face sees the wall from close by: the noisiest channel)
+        assert part[f"{n}.e2"].mean() == pytest.approx(ref, rel=0.06)
         assert split[f"{n}.e2"].mean() == pytest.approx(ref, rel=0.06)
         np.testing.assert_allclose(part[f"{n}.e1"], full[f"{n}.e1"], rtol=1e-6)  # untouched
 
@@ -216,8 +219,8 @@ def test_bounce_filter_reduces_noise_and_stops_at_edges():
                     "to_world": mi.ScalarTransform4f().translate([half, 0, half + 1e-3])
                     @ mi.ScalarTransform4f().rotate([0, 1, 0], -45.0) @ mi.ScalarTransform4f().scale(30.0)}
     ref, _ = render(ramp, spp=1024, seed=1, **opts)
-    guided, _ = render(ramp, spp=32, seed=2, bounce_filter=3.0, **opts)
-    blind, _ = render(ramp, spp=32, seed=2, bounce_filter=3.0, bounce_filter_angle=89.0, **opts)
+    guided, _ = render(ramp, spp=64, seed=2, bounce_filter=3.0, **opts)
+    blind, _ = render(ramp, spp=64, seed=2, bounce_filter=3.0, bounce_filter_angle=89.0, **opts)
     near = slice(18, 31)  # the edge is between columns 23 and 24
     left = ref["left.e2"].mean(axis=0)
     assert left[25:30].mean() > 2 * left[18:23].mean()  # the 2nd event jumps at the edge

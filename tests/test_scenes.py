@@ -249,26 +249,51 @@ def test_chamber_occludes_no_detector_from_the_field(mi, zeta):
 
 
 # --- the 2nd event in the chamber (Fig. 4) -------------------------------------------------------------------
-def _render(mi, name, **params):
+def _render(mi, name, options=None, **params):
     scene = load(mi, name, **params)
+    if options:
+        scene.integrator().configure(scene.integrator().options.replace(**options))
     img = np.array(mi.render(scene, seed=1))
     names = ["Y", *scene.integrator().aov_names()]
     return {n: img[..., k] for k, n in enumerate(names)}
 
 
 def test_second_event_in_chamber_breaks_the_y_symmetry_of_the_right_image(mi):
+    """On the discs' front faces the 2nd event comes more from the back wall (+y, row 0 side);
+    their back faces add what the ceiling and the sheet scatter down, several times more."""
     ch = _render(mi, "athene_flat", res=16, spp=1024)
+    front = _render(mi, "athene_flat", {"front_only": "*"}, res=16, spp=1024)
     assert "right.e2" in ch, f"expected per-event channels, got {sorted(ch)}"
-    e1, e2 = ch["right.e1"], ch["right.e2"]
+    e1, e2 = front["right.e1"], front["right.e2"]
     assert 0.003 < e2.mean() / e1.mean() < 0.2  # a few percent of the signal
     # first event: symmetric in y (rows); second: more from the back (+y, row 0 side)
     top, bottom = e1[:8].mean(), e1[8:].mean()
     assert abs(top / bottom - 1) < 0.005
     top, bottom = e2[:8].mean(), e2[8:].mean()
     assert top / bottom > 1.02, (top, bottom)
+    np.testing.assert_allclose(ch["right.e1"], e1, rtol=1e-6)  # the field sees only the front faces
+    assert ch["right.e2"].mean() > 2.0 * e2.mean()
 
 
 def test_flat_plate_without_chamber_has_no_second_event(mi):
     ch = _render(mi, "flat_plate", res=8, spp=16, events=2)
     assert ch["right.e1"].mean() > 1e-4
     assert np.all(ch["right.e2"] == 0)
+
+
+def test_plates_parameter_selects_backscattering_copper(mi):
+    import elo_mitsuba as em
+    from elo_mitsuba.physics import get_material
+
+    absorbing = em.load_scene("flat_plate", res=4).render(quality="default", events=2)
+    copper_scene = em.load_scene("flat_plate", res=4, plates="copper")
+    assert copper_scene.integrator.bounce_possible  # the plates are surfaces now
+    copper = copper_scene.render(quality="default", events=2)
+    ratio = copper.channels["right.e1"] / absorbing.channels["right.e1"]
+    kept = 1.0 - float(get_material("Cu").eta(0.0))  # the disc faces the field: normal incidence
+    np.testing.assert_allclose(ratio, kept, rtol=0.01)  # a few degrees off normal over the disc
+    assert np.all(absorbing.channels["right.e2"] == 0) and copper.channels["right.e2"].mean() > 0
+    with pytest.raises(em.EloInputError, match="plates='gold' is not available; allowed: absorbing, copper"):
+        em.load_scene("flat_plate", plates="gold")
+    with pytest.raises(em.EloInputError, match="layout='zeta30' is not available; allowed: zeta25, zeta50"):
+        em.load_scene("flat_plate", layout="zeta30")

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..physics import g_bse
+from ..physics import g_bse, get_material
 from .geometry import disc_nodes
 
 
 def disc_integral(point, beam_dir, normal, centre, disc_normal, radius, material, n_r=64, n_phi=256,
-                  lobe=True) -> float:
+                  lobe=True, collector=None) -> float:
     """N_d/N_0 of the 1st event at one surface point onto one disc (Eq. 5 by quadrature).
 
     Parameters
@@ -37,7 +37,11 @@ def disc_integral(point, beam_dir, normal, centre, disc_normal, radius, material
         Nodes in the radius and the azimuth.
     lobe : bool
         Include the specular lobe of Eq. 13 (False: Lambert part only).
+    collector : Material or str, optional
+        The plate's material if it backscatters: it keeps 1 - eta(theta_d) of what arrives at
+        angle theta_d to its normal (Eqs. 10-12); None: it keeps everything.
     """
+    material = get_material(material)
     disc_normal = np.asarray(disc_normal, float) / np.linalg.norm(disc_normal)
     q, area = disc_nodes(centre, disc_normal, radius, n_r, n_phi)
     d = q - np.asarray(point, float)
@@ -46,6 +50,8 @@ def disc_integral(point, beam_dir, normal, centre, disc_normal, radius, material
     cos_d = np.clip(-np.sum(dirs * disc_normal, axis=-1), 0.0, None)
     g = g_bse(np.broadcast_to(normal, dirs.shape), np.broadcast_to(beam_dir, dirs.shape), dirs,
               material, lobe=lobe)
+    if collector is not None:
+        g = g * (1.0 - get_material(collector).eta(np.arccos(np.clip(cos_d, 0.0, 1.0))))
     return float(np.sum(g * cos_d / dist2 * area))
 
 
