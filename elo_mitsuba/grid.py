@@ -7,9 +7,11 @@ covering ``field = (field_x, field_y)`` mm is centred at
 
     x = -field_x/2 + (i + 1/2) field_x / W,    y = +field_y/2 - (j + 1/2) field_y / H   [mm],
 
-so the field is centred on the z-axis. The scanned beam (sensor ``elo_beam``) aims film pixel
-(i, j) at exactly this point (:func:`film_to_plane`); :func:`pixel_axes` gives the same points for
-numpy images. Both are this one map, written once for Dr.Jit film coordinates and once for numpy
+so the field is centred on the z-axis. A scalar field is the width: field_y = field H / W (square
+pixels), for the beam and for the images alike. The scanned beam (sensor ``elo_beam``) aims film
+pixel (i, j) at this point (:func:`film_to_plane`) plus an offset below 1 % of a pixel and 3 um
+that keeps beam rays off mesh edges (recorded in every header as ``beam_aim_offset_mm``);
+:func:`pixel_axes` gives the same points for numpy images. Both are this one map, written once for Dr.Jit film coordinates and once for numpy
 index grids; ``tests/test_grid.py`` holds them to each other.
 """
 
@@ -23,11 +25,13 @@ from .errors import EloInputError
 ORIENTATION = "row 0 = +y edge, columns towards +x (plate seen from above, +y up)"
 
 
-def field_xy(field_mm) -> tuple[float, float]:
-    """Return ``(field_x, field_y)`` in mm from a scalar (square field) or a pair; validated > 0."""
+def field_xy(field_mm, shape=None) -> tuple[float, float]:
+    """Return ``(field_x, field_y)`` in mm from a pair, or from a scalar width: with the image
+    ``shape`` (H, W) the field is then ``(field, field H / W)`` (square pixels, as the beam
+    scans), without it square. Validated > 0."""
     arr = np.atleast_1d(np.asarray(field_mm, dtype=float)).ravel()
     if arr.size == 1:
-        arr = np.repeat(arr, 2)
+        arr = np.array([arr[0], arr[0] if shape is None else arr[0] * shape_hw(shape)[0] / shape_hw(shape)[1]])
     if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
         raise EloInputError(f"field_mm={field_mm!r}: give one or two finite lengths > 0 in mm")
     return float(arr[0]), float(arr[1])
@@ -44,7 +48,7 @@ def shape_hw(shape) -> tuple[int, int]:
 def pixel_size(shape, field_mm) -> tuple[float, float]:
     """Pixel pitch ``(dx, dy)`` in mm of an image of ``shape`` (H, W) covering ``field_mm``."""
     h, w = shape_hw(shape)
-    fx, fy = field_xy(field_mm)
+    fx, fy = field_xy(field_mm, shape)
     return fx / w, fy / h
 
 
@@ -56,7 +60,7 @@ def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
     shape : tuple of int
         Image shape (H, W) (extra trailing dimensions are ignored).
     field_mm : float or (float, float)
-        Scan field width (x) and height (y) in mm; a scalar means a square field.
+        Scan field width (x) and height (y) in mm; a scalar is the width (square pixels).
 
     Returns
     -------
@@ -66,7 +70,7 @@ def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
         y of each row, *decreasing* with the row index (row 0 is the +y edge), centred on 0.
     """
     h, w = shape_hw(shape)
-    fx, fy = field_xy(field_mm)
+    fx, fy = field_xy(field_mm, shape)
     xs = -fx / 2 + (np.arange(w) + 0.5) * (fx / w)
     ys = fy / 2 - (np.arange(h) + 0.5) * (fy / h)
     return xs, ys

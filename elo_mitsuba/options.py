@@ -206,6 +206,16 @@ QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 MAX_BOUNCE_SAMPLES = 8
 
 
+def filter_window_levels(half_width_mm: float, pixel_mm: float) -> int | None:
+    """The tile level k of the bounce filter: windows of 3 x 2^k pixels (3 x 3 tiles of 2^k)
+    for a half-width of ``half_width_mm``; None where the half-width is below one pixel (no
+    filtering). The one rule for the filter (plugins/_bounce_filter.py) and the presets' budget."""
+    radius = half_width_mm / pixel_mm  # half-width in pixels
+    if not radius >= 1.0:
+        return None
+    return max(0, int(round(math.log2((2.0 * radius + 1.0) / 3.0))))
+
+
 def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm: float,
                     traced_events: int) -> tuple[EloOptions, int]:
     """The options and spp of a preset for a scene.
@@ -232,8 +242,9 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
     preset = QUALITY_PRESETS[quality]
     spp = int(preset["spp_blur"] if fwhm_mm > 0 else preset["spp"])
-    radius = round(preset["bounce_filter"] / pixel_mm)
-    per_pixel = preset["bounce_budget"] / (2 * radius + 1) ** 2  # continuation paths per pixel
+    level = filter_window_levels(preset["bounce_filter"], pixel_mm)
+    window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y
+    per_pixel = preset["bounce_budget"] / window**2  # continuation paths per pixel
     if traced_events > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
         spp = math.ceil(per_pixel / MAX_BOUNCE_SAMPLES)
     per_sample = per_pixel / spp

@@ -38,6 +38,10 @@ NEGLIGIBLE_EVENT_SHARE = 1e-3
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
 SAMPLES_PER_PASS = 1 << 24
+#: Most samples per pixel in one pass: Mitsuba's film sums a pixel's samples in float32, whose
+#: rounding grows with their number (2.6e5 identical samples drift by 5e-4); passes are summed
+#: in float64, so more samples never make a result worse.
+MAX_SPP_PER_PASS = 1024
 
 
 # ---- results -----------------------------------------------------------------------------------------
@@ -171,6 +175,7 @@ class EloScene:
             "work_distance_mm": s.wd,
             "projection": s.projection,
             "beam_fwhm_mm": s.fwhm,
+            "beam_aim_offset_mm": list(s.aim_offset_mm),
             "events": self.integrator.events,
             "detector_samples": self.integrator.detector_samples,
             "quality": getattr(self, "quality", "scene"),
@@ -292,14 +297,14 @@ class EloScene:
         if int(seed) < 0:
             raise EloInputError(f"seed={seed}; must be >= 0")
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
-        per_pass = max(1, min(spp, SAMPLES_PER_PASS // max(pixels, 1)))
+        per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
         passes = math.ceil(spp / per_pass)
         if progress is None:
             progress = passes > 1 and sys.stderr.isatty()
         names = self.integrator.channel_names()
         # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
-        # float32 channel-major array (and summed in float32 over passes: relative rounding 1e-7
-        # per pass), so that peak memory stays near the film's own (<= 1 GB at 1500^2)
+        # float32 channel-major array, so that peak memory stays near the film's own (<= 1 GB at
+        # 1500^2); several passes are summed in float64
         channels = None
         done = 0
         t0 = time.perf_counter()
@@ -312,15 +317,17 @@ class EloScene:
                 channels = {name: planes[i + 1] for i, name in enumerate(names)}
             else:
                 if channels is None:
-                    channels = {name: np.zeros(planes.shape[1:], np.float32) for name in names}
+                    channels = {name: np.zeros(planes.shape[1:], np.float64) for name in names}
                 for i, name in enumerate(names):
-                    channels[name] += planes[i + 1] * np.float32(n / spp)
+                    channels[name] += planes[i + 1] * (n / spp)
             del planes
             done += n
             if progress:
                 _progress(done, spp, time.perf_counter() - t0)
         if progress:
             print(file=sys.stderr)
+        if passes > 1:
+            channels = {name: img.astype(np.float32) for name, img in channels.items()}
         for name, img in channels.items():
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")

@@ -12,6 +12,8 @@ import math
 import mitsuba as mi
 import numpy as np
 
+from elo_mitsuba.options import filter_window_levels
+
 #: Hidden film channels: the 1st-event surface normal that guides the filter.
 GUIDE_CHANNELS = ("_elo_nx", "_elo_ny", "_elo_nz")
 
@@ -47,10 +49,9 @@ def filter_bounces(image, col, bounce_names, field_mm, half_width_mm, angle_deg,
     h, w = int(image.shape[0]), int(image.shape[1])
     if not field_mm:
         return
-    radius = half_width_mm / (field_mm / w)  # window half-width in pixels
-    if radius < 1.0:
+    top = filter_window_levels(half_width_mm, field_mm / w)
+    if top is None:
         return
-    top = max(0, int(round(math.log2((2.0 * radius + 1.0) / 3.0))))
     bounce_cols = [col[name] for name in bounce_names]
     n_later = len(bounce_cols)
     size = 1 << top

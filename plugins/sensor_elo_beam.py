@@ -70,7 +70,8 @@ class EloBeam(mi.Sensor):
             )
         self.field_y = self.field * self.resolution[1] / self.resolution[0]
         pitch = (self.field / self.resolution[0], self.field_y / self.resolution[1])
-        self._nudge = tuple(min(f * p, cap) for f, p, cap in zip(_AIM_NUDGE, pitch, _AIM_NUDGE_MAX_MM))
+        #: (dx, dy) mm: the beam aims at every pixel centre plus this (recorded in output headers)
+        self.aim_offset_mm = tuple(min(f * p, cap) for f, p, cap in zip(_AIM_NUDGE, pitch, _AIM_NUDGE_MAX_MM))
         self.sigma = mi.Float(self.fwhm * _FWHM_TO_SIGMA)
         self._wd = mi.Float(self.wd)
         self._field = mi.Vector2f(self.field, self.field_y)
@@ -93,8 +94,8 @@ class EloBeam(mi.Sensor):
         pixel = dr.floor(scaled)
         centre = (pixel + 0.5) / res  # on the scan grid (up to _AIM_NUDGE)
         x, y = film_to_plane(centre.x, centre.y, self._field.x, self._field.y)
-        x = x + self._nudge[0]
-        y = y + self._nudge[1]
+        x = x + self.aim_offset_mm[0]
+        y = y + self.aim_offset_mm[1]
         if self.fwhm > 0:
             jitter = dr.clip(scaled - pixel, 1e-7, 1.0 - 1e-7)  # uniform in the pixel
             offset = mi.warp.square_to_std_normal(jitter) * self.sigma

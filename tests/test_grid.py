@@ -39,6 +39,55 @@ def test_beam_aims_at_the_pixel_axes(mi):
     j, i = np.mgrid[0:h, 0:w]
     u, v = (i.ravel() + 0.5) / w, (j.ravel() + 0.5) / h
     x, y = sensor.beam_target(mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))))
-    xs, ys = pixel_axes((h, w), (field, field * h / w))
-    np.testing.assert_allclose(np.array(x).reshape(h, w), np.broadcast_to(xs, (h, w)), atol=3e-3)
-    np.testing.assert_allclose(np.array(y).reshape(h, w), np.broadcast_to(ys[:, None], (h, w)), atol=2e-3)
+    xs, ys = pixel_axes((h, w), field)  # a scalar field: the width, as the sensor reads it
+    dx, dy = sensor.aim_offset_mm  # recorded in every header as beam_aim_offset_mm
+    assert 0 < dx < 3e-3 and 0 < dy < 3e-3
+    np.testing.assert_allclose(np.array(x).reshape(h, w), np.broadcast_to(xs + dx, (h, w)), atol=1e-5)
+    np.testing.assert_allclose(np.array(y).reshape(h, w), np.broadcast_to(ys[:, None] + dy, (h, w)), atol=1e-5)
+
+
+def test_header_records_the_true_scan_positions(mi):
+    import elo_mitsuba as em
+
+    scene = em.load_scene("flat_plate", res=5, field=40.0)
+    meta = scene.render(quality="default").metadata
+    assert meta["beam_aim_offset_mm"] == list(scene.sensor.aim_offset_mm)
+
+
+def test_a_scalar_field_is_the_width_of_a_non_square_image():
+    """As the beam scans (field_y = field H/W, square pixels), so do the images."""
+    xs, ys = pixel_axes((20, 40), 80.0)  # 20 rows, 40 columns, 80 mm wide
+    assert pixel_size((20, 40), 80.0) == (2.0, 2.0)
+    np.testing.assert_allclose([xs[0], xs[-1], ys[0], ys[-1]], [-39.0, 39.0, 19.0, -19.0])
+    assert field_xy(80.0) == (80.0, 80.0) and field_xy(80.0, (20, 40)) == (80.0, 40.0)
+
+
+def test_eq26_on_a_non_square_image_with_a_scalar_field():
+    """Eq. 26 recovers a tilt exactly from the Lambert point-detector images (independent model)
+    only where it places every row at the y the scan had: field 80 mm wide, 20 x 40 pixels."""
+    from elo_mitsuba.analysis import point_detector_images, surface_gradient
+
+    shape, d_h, d_w = (20, 40), 272.0, 127.0
+    dzdx, dzdy = np.full(shape, 0.1), np.full(shape, -0.2)
+    truth = (80.0, 40.0)  # the scan: 80 mm wide, square pixels
+    images = point_detector_images(dzdx, dzdy, truth, d_h, d_w, model="lambert")
+    flats = point_detector_images(0 * dzdx, 0 * dzdy, truth, d_h, d_w, model="lambert")
+    g = surface_gradient(images, flats, 80.0, d_h, d_w)  # the field as a scalar width
+    np.testing.assert_allclose(g.dzdx, dzdx, atol=1e-9)
+    np.testing.assert_allclose(g.dzdy, dzdy, atol=1e-9)
+
+
+def test_beam_profile_is_the_gaussian_of_its_fwhm(mi):
+    """fwhm = 0.27 mm: the aim points of one pixel's samples scatter with sigma = FWHM/2.3548."""
+    sensor = mi.load_dict({"type": "elo_beam", "field": 20.0, "fwhm": 0.27,
+                           "film": {"type": "hdrfilm", "width": 480, "height": 480, "rfilter": {"type": "box"},
+                                    "pixel_format": "luminance"}})
+    rng = np.random.default_rng(1)
+    u, v = ((240 + rng.random(200_000)) / 480 for _ in range(2))
+    x, y = sensor.beam_target(mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))))
+    sigma = 0.27 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    xs, ys = pixel_axes((480, 480), 20.0)
+    for aim, centre, offset in ((np.array(x), xs[240], sensor.aim_offset_mm[0]),
+                                (np.array(y), ys[240], sensor.aim_offset_mm[1])):
+        assert aim.std() == pytest.approx(sigma, rel=0.01)  # 200k samples: 0.16 % standard error
+        assert aim.mean() == pytest.approx(centre + offset, abs=4 * sigma / np.sqrt(aim.size))

@@ -8,7 +8,7 @@ from forward_scenes import flat_scene
 
 import elo_mitsuba as em
 from elo_mitsuba.constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
-from elo_mitsuba.options import QUALITY_PRESETS, EloOptions, quality_options
+from elo_mitsuba.options import QUALITY_PRESETS, EloOptions, filter_window_levels, quality_options
 
 BAD = [
     ("events", 0, "events=0; must be >= 1"), ("events", 2.5, "whole number"), ("events", True, "number"),
@@ -76,8 +76,9 @@ def test_quality_options_spread_the_bounce_budget():
         for pixel_mm in (0.0533, 0.3125, 1.6):
             o, spp = quality_options(name, base, pixel_mm=pixel_mm, fwhm_mm=0.0, traced_events=2)
             assert o.units == "voltage" and o.events == 2 and o.detector_sampling == "quadrature"
-            radius = round(preset["bounce_filter"] / pixel_mm)
-            paths = o.bounce_fraction * o.bounce_samples * spp * (2 * radius + 1) ** 2
+            level = filter_window_levels(preset["bounce_filter"], pixel_mm)
+            window = 1 if level is None else 3 * 2**level  # the filter's window (3 x 3 tiles of 2^k px)
+            paths = o.bounce_fraction * o.bounce_samples * spp * window**2
             assert paths == pytest.approx(preset["bounce_budget"], rel=1e-9)  # the budget, exactly spent
             assert 1 <= o.bounce_samples <= 8
         _, spp_blur = quality_options(name, base, pixel_mm=0.05, fwhm_mm=0.27, traced_events=1)
@@ -90,3 +91,10 @@ def test_flat_scene_options_via_dict(mi):
     scene = mi.load_dict(flat_scene(mi, res=2, integrator={"type": "elo", "detector_sampling": "stratified",
                                                             "detector_samples": 4}))
     assert scene.integrator().options.bounce_detector_samples == 4
+
+
+def test_filter_windows_at_the_benchmarked_resolutions():
+    """1 mm half-width: 12 px windows at 512^2, 6 px at 250^2 over 80 mm, 48 px at 1500^2 (the budget
+    used to assume (2r+1)^2 = 13^2, 5^2 and 39^2 pixels)."""
+    assert filter_window_levels(1.0, 80.0 / 512) == 2 and filter_window_levels(1.0, 80.0 / 1500) == 4
+    assert filter_window_levels(1.0, 80.0 / 250) == 1 and filter_window_levels(1.0, 1.5) is None

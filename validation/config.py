@@ -21,7 +21,7 @@ DEFAULT = {
     "masking": {"field": 16.0, "res": 384, "spp": 64, "relief_scale": 6.0, "hist_bins": 161},
     "melt_plate": {
         "full_res": 500, "full_spp": 64,           # Fig. 6 and the height reconstruction, 80 mm
-        "zoom_field": 20.0, "zoom_res": 480, "zoom_spp": 64, "beam_spp": 256,  # Figs. 7, 11
+        "zoom_field": 20.0, "zoom_res": 480, "beam_spp": 256,  # Figs. 7, 11
         "material_res": 250, "material_spp": 16,   # M_x with another material
     },
     "convergence": {
@@ -41,7 +41,7 @@ QUICK = {
     "masking": {"field": 16.0, "res": 50, "spp": 4, "relief_scale": 6.0, "hist_bins": 81},
     "melt_plate": {
         "full_res": 96, "full_spp": 4,
-        "zoom_field": 20.0, "zoom_res": 96, "zoom_spp": 8, "beam_spp": 8,
+        "zoom_field": 20.0, "zoom_res": 96, "beam_spp": 8,
         "material_res": 48, "material_spp": 4,
     },
     "convergence": {

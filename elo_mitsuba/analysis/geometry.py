@@ -121,14 +121,15 @@ def zeta_deg(d_h, d_w) -> float:
 
 
 def geometry_from_metadata(meta: Mapping, source: str = "metadata", *, d_h=None, d_w=None,
-                           field_mm=None) -> dict:
+                           field_mm=None, shape=None) -> dict:
     """Scan geometry from an EXR metadata dict written by the forward model.
 
     ``d_h`` is the z of each detector centre and ``d_w`` the distance of the centre from the
     z-axis. The four detectors must agree (relative tolerance :data:`GEOMETRY_RTOL`) and lie along
     +x, -x, +y, -y, otherwise Eq. 17 (and therefore Eq. 26) does not describe the set-up and an
     :class:`EloInputError` says so. Explicit ``d_h``, ``d_w`` or ``field_mm`` override the header
-    (then the detector block may be missing).
+    (then the detector block may be missing). A scalar field is the width of an image of
+    ``shape`` (H, W) (else of the header's resolution): field_y = field H / W.
 
     Returns
     -------
@@ -140,9 +141,11 @@ def geometry_from_metadata(meta: Mapping, source: str = "metadata", *, d_h=None,
         if "field_mm" not in meta:
             raise EloInputError(f"{source}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
         field_mm = meta["field_mm"]
-    fx, fy = field_xy(field_mm)
     res = meta.get("resolution")
     resolution = None if res is None else (int(res[0]), int(res[1]))
+    if shape is None and resolution is not None:
+        shape = (resolution[1], resolution[0])
+    fx, fy = field_xy(field_mm, shape)  # a scalar field is the width (square pixels)
     if d_h is None or d_w is None:
         dets = meta.get("detectors")
         if not isinstance(dets, Mapping) or not all(n in dets for n in DETECTOR_NAMES):

@@ -140,7 +140,7 @@ def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, sts
     h, w = result.dzdx.shape
     meta = {
         "quantity": "surface gradient (Renner et al. 2023, Eq. 26)",
-        "field_mm": list(field_xy(field_mm)),
+        "field_mm": list(field_xy(field_mm, (h, w))),
         "resolution": [w, h],
         "d_h_mm": d_h,
         "d_w_mm": d_w,
@@ -180,7 +180,8 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     if field is None:
         raise EloInputError(f"{path}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
     mask = channels["mask"] > 0.5 if "mask" in channels and use_mask else None
-    return {"dzdx": channels["dzdx"], "dzdy": channels["dzdy"], "mask": mask, "field_mm": field_xy(field),
+    return {"dzdx": channels["dzdx"], "dzdy": channels["dzdy"], "mask": mask,
+            "field_mm": field_xy(field, channels["dzdx"].shape),
             "metadata": meta}
 
 

@@ -50,7 +50,7 @@ def _save(fig, path, overwrite):
 
 
 def _extent(shape, field_mm):
-    fx, fy = field_xy(field_mm)
+    fx, fy = field_xy(field_mm, shape)
     return (-fx / 2, fx / 2, -fy / 2, fy / 2)
 
 

@@ -131,17 +131,18 @@ def run(args) -> int:
     source = args.object or args.flat or "command line"
     if not header and (args.field is None or args.dh is None or args.dw is None):
         raise EloInputError("single-file inputs carry no geometry: pass --field, --dh and --dw (mm)")
-    geo = geometry_from_metadata(header, str(source), d_h=args.dh, d_w=args.dw, field_mm=args.field)
+    shape = next(iter(images.values())).shape
+    geo = geometry_from_metadata(header, str(source), d_h=args.dh, d_w=args.dw, field_mm=args.field, shape=shape)
     if meta and flat_meta:
         # The flat must describe the same scan, or the division mixes two geometries.
-        fgeo = geometry_from_metadata(flat_meta, str(args.flat), d_h=args.dh, d_w=args.dw, field_mm=args.field)
+        fgeo = geometry_from_metadata(flat_meta, str(args.flat), d_h=args.dh, d_w=args.dw, field_mm=args.field,
+                                      shape=shape)
         for key in ("field_mm", "d_h", "d_w", "resolution"):
             if (geo[key] is None) != (fgeo[key] is None) or (geo[key] is not None and not _same(geo[key], fgeo[key])):
                 raise EloInputError(
                     f"{args.flat}: flat-plate {key} {fgeo[key]} differs from the object's {geo[key]}; "
                     "record both with one geometry"
                 )
-    shape = next(iter(images.values())).shape
     if geo["resolution"] is not None and tuple(geo["resolution"]) != (shape[1], shape[0]):
         raise EloInputError(
             f"{source}: header resolution {list(geo['resolution'])} (W, H) does not match the image "
