@@ -51,7 +51,7 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
     header = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
-        METADATA_ATTRIBUTE: json.dumps(meta, default=_json_default),
+        METADATA_ATTRIBUTE: _metadata_json(path, meta),
     }
     for key in _PLAIN_ATTRIBUTES:
         if key in meta and isinstance(meta[key], (int, float, str)) and not isinstance(meta[key], bool):
@@ -86,6 +86,15 @@ def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
         except (TypeError, ValueError):
             raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} is not valid JSON") from None
     return channels, meta
+
+
+def _metadata_json(path, meta) -> str:
+    """The header as strict JSON: NaN or Inf in the geometry is a defect to refuse, not to store."""
+    try:
+        return json.dumps(meta, default=_json_default, allow_nan=False)
+    except ValueError:
+        raise EloInputError(f"{path}: the metadata holds NaN or Inf (geometry: "
+                            f"{ {k: meta[k] for k in ('detectors',) if k in meta} }); refusing to write it") from None
 
 
 def _json_default(obj):

@@ -42,6 +42,8 @@ SAMPLES_PER_PASS = 1 << 24
 #: rounding grows with their number (2.6e5 identical samples drift by 5e-4); passes are summed
 #: in float64, so more samples never make a result worse.
 MAX_SPP_PER_PASS = 1024
+#: Largest seed: Mitsuba's samplers take 32-bit seeds.
+MAX_SEED = (1 << 32) - 1
 
 
 # ---- results -----------------------------------------------------------------------------------------
@@ -255,9 +257,18 @@ class EloScene:
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} / radius {r}; need 3 finite mm values and r > 0")
         up = [0, 0, 1] if abs(c[0]) + abs(c[1]) > 1e-9 else [0, 1, 0]
         xf = mi.ScalarTransform4f().look_at(origin=c.tolist(), target=[0, 0, 0], up=up) @ mi.ScalarTransform4f().scale(r)
+        if not np.any(np.abs(c) > 1e-9):
+            raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
+                                "from above it")
+        previous = np.array(self.mi_params[key].matrix, dtype=np.float64).reshape(4, 4)  # a copy
         self.mi_params[key] = mi.Transform4f(xf)
         self.mi_params.update()
-        self._check_detectors()
+        try:
+            self._check_detectors()
+        except EloError:  # a refused move is not kept
+            self.mi_params[key] = mi.Transform4f(mi.ScalarTransform4f(previous))
+            self.mi_params.update()
+            raise
 
     def set_quality(self, quality: str) -> int:
         """Apply a quality preset (:data:`~elo_mitsuba.options.QUALITY_PRESETS`) to the integrator for this scene's
@@ -286,16 +297,15 @@ class EloScene:
         kernel (with a progress line on stderr when ``progress`` or a terminal).
         """
         mi = self.mi
+        seed = _whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
+        if spp is not None:
+            spp = _whole_number("spp", spp, 1, None)
         if events is not None:
             self.set_events(events)
         preset_spp = self.set_quality(quality) if quality is not None else None
         if spp is None:
             spp = preset_spp if preset_spp is not None else self.sensor.sampler().sample_count()
         spp = int(spp)
-        if spp < 1:
-            raise EloInputError(f"spp={spp}; must be >= 1")
-        if int(seed) < 0:
-            raise EloInputError(f"seed={seed}; must be >= 0")
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
         passes = math.ceil(spp / per_pass)
@@ -310,7 +320,7 @@ class EloScene:
         t0 = time.perf_counter()
         for p in range(passes):
             n = min(per_pass, spp - done)
-            img = mi.render(self.scene, spp=n, seed=int(seed) * 65537 + p)
+            img = mi.render(self.scene, spp=n, seed=(seed * 65537 + p) % (1 << 32))
             planes = _channel_planes(img)  # (C, H, W) float32: one gather, one copy
             del img
             if passes == 1:
@@ -332,6 +342,19 @@ class EloScene:
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
         return RenderResult(channels, self.metadata(spp, seed))
+
+
+def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
+    """``value`` as an int in [lo, hi], or one line naming ``name``, the value and the range."""
+    try:
+        number = float(value)
+        ok = math.isfinite(number) and number == int(number) and not isinstance(value, bool)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or int(number) < lo or (hi is not None and int(number) > hi):
+        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise EloInputError(f"{name}={value!r}; must be a whole number {bound}")
+    return int(number)
 
 
 def _channel_planes(img, group: int = 4) -> np.ndarray:

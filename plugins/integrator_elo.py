@@ -143,6 +143,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._plate_keys = [(d, dr.opaque(mi.UInt32, shape_key(shape)))
                             for d, ((_, shape), plate) in enumerate(zip(detectors, self._plates)) if plate is not None]
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
+        for shape in scatterers:
+            _check_scatterer(shape)
         surfaces = scatterers + plate_shapes  # where an electron can scatter
         self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
         self.notes = []
@@ -557,6 +559,23 @@ class EloIntegrator(mi.SamplingIntegrator):
         names = ", ".join(n for n, _ in self.detectors) or "(resolved at render time)"
         return (f"EloIntegrator[events={self.events}, detector_sampling={self.detector_sampling}, "
                 f"detector_samples={self.detector_samples}, units={self.units}, detectors={names}]")
+
+
+def _check_scatterer(shape):
+    """A surface electrons meet must carry ``elo_bse`` (g_BSE), or absorb them (a BSDF of zero
+    reflectance): any other BSDF would scatter by a law that is not the electrons'."""
+    bsdf = shape.bsdf()
+    if bsdf is None or is_elo_bse(bsdf):
+        return
+    values = [np.abs(np.array(v, dtype=float)).max() for k, v in mi.traverse(bsdf).items()
+              if "reflectance" in k or "specular" in k]
+    if values and max(values) == 0.0:
+        return  # an absorber: electrons that arrive end there
+    kind = str(bsdf).split("[")[0].strip() or "another BSDF"
+    raise EloInputError(
+        f"surface {shape.id() or '(no id)'!r} has a {kind} BSDF, which does not describe electron "
+        "backscatter; give it <bsdf type=\"elo_bse\"> (with its material), or make it an absorber: "
+        "<bsdf type=\"diffuse\"><float name=\"reflectance\" value=\"0\"/></bsdf>")
 
 
 def _option_property(name):

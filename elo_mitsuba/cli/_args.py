@@ -40,3 +40,11 @@ def define(text: str) -> tuple[str, str]:
         raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE (e.g. -D dh=250)")
     name, value = text.split("=", 1)
     return name.strip(), value.strip()
+
+
+def seed(text: str) -> int:
+    """A sampler seed: 0 .. 2^32 - 1."""
+    value = non_negative_int(text)
+    if value > (1 << 32) - 1:
+        raise argparse.ArgumentTypeError(f"{value} is above 4294967295 (seeds are 32-bit)")
+    return value

@@ -7,8 +7,9 @@ import sys
 import time
 from pathlib import Path
 
+from ..errors import EloInputError
 from ..files import check_output
-from ._args import define, non_negative_int, positive_int
+from ._args import define, positive_int, seed
 
 HELP = "render the detector images of an XML scene to a multichannel EXR"
 
@@ -57,15 +58,17 @@ def add_parser(subparsers):
     )
     p.add_argument("scene", metavar="SCENE", help="XML scene file, or a shipped scene name (flat_plate, athene_flat, corrugated_sheet, melt_plate)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.exr", help="EXR file to write")
-    p.add_argument("--spp", type=positive_int, help="beam samples per pixel (default: the scene's sampler)")
+    p.add_argument("--spp", type=positive_int, help="beam samples per pixel (default: the quality preset's, 1 without a beam profile and "
+                   "4 / 16 / 256 with one; with --quality scene the scene file's sampler)")
     p.add_argument("--events", type=positive_int, help="scattering events counted: 1 = first event only, 2 adds one bounce off walls or the object, ... (default: the scene's)")
     p.add_argument("--resolution", type=positive_int, metavar="N", help="N x N scan points (sets the scene parameter 'res')")
-    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed, 0 .. 4294967295 (default 0)")
     p.add_argument("--variant", help="Mitsuba variant: llvm_ad_mono (CPU, default) or cuda_ad_mono (NVIDIA GPU); also $ELO_MITSUBA_VARIANT")
     p.add_argument("-D", dest="defines", action="append", type=define, default=[], metavar="NAME=VALUE", help="set a scene parameter, e.g. -D dh=250 -D dw=140 -D wd=450 -D field=80 -D fwhm=0.27")
     p.add_argument("--layout", metavar="zetaNN", help="detector layout of Table 1: zeta25, zeta50, zeta60, zeta75 (sets dh and dw)")
     p.add_argument("--units", choices=("fraction", "voltage"), help="N_d/N_0 (default) or detector voltage U_d = N_d/N_0 * I_b * T (Eq. 9)")
-    p.add_argument("--detector-samples", type=positive_int, help="points sampled on each detector per event (default 1)")
+    p.add_argument("--detector-samples", type=positive_int, help="points sampled on each detector per event (default 1); the presets integrate the 1st event by "
+                   "the triangle quadrature, so there it sets events >= 2 only")
     p.add_argument("--quality", choices=("draft", "default", "reference", "scene"), default="default",
                    help="speed/accuracy preset (default: default); 'scene' keeps the scene file's sampling settings")
     p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
@@ -81,6 +84,9 @@ def run(args) -> int:
     out = check_output(args.output, (".exr",), overwrite=args.overwrite)
     preview = check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview") if args.preview else None
     params = dict(args.defines)
+    if "spp" in params and args.quality != "scene":
+        raise EloInputError(f"-D spp={params['spp']} sets the scene file's sampler, which --quality {args.quality} "
+                            "replaces; give --spp instead (or --quality scene)")
     if args.resolution is not None:
         params["res"] = args.resolution
     t0 = time.perf_counter()
@@ -89,6 +95,13 @@ def run(args) -> int:
         scene.configure(units=args.units)
     if args.detector_samples:  # explicit wins over the preset (which does not set it)
         scene.configure(detector_samples=args.detector_samples, bounce_detector_samples=args.detector_samples)
+        if args.quality != "scene":
+            events = args.events if args.events is not None else scene.integrator.events
+            if events < 2 or not scene.integrator.bounce_possible:
+                raise EloInputError(
+                    f"--detector-samples {args.detector_samples} would change nothing: --quality {args.quality} "
+                    "integrates the 1st event by the triangle quadrature, and this render has no events >= 2; "
+                    "use --quality scene (sampled detectors) or --events 2 in a scene that scatters twice")
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False)
     result.write_exr(out, overwrite=args.overwrite)
