@@ -38,7 +38,7 @@ def run(b):
     ours = [(label, r) for label, r in b.target_results.items() if r["err"] and r["err"][1][0] <= 0.01]
     best = min(ours, key=lambda x: median(x[1]["times"])) if ours else None
     text = [f"athene_flat, Mitsuba's `path` integrator (max_depth 3, no Russian roulette before depth 1000, "
-            f"MIS), one render per detector with only that detector emitting, {res}x{res}; error of the total "
+            f"MIS), one render per detector with only that detector emitting (on both faces: two back-to-back emitter discs), {res}x{res}; error of the total "
             "channel (events 1 + 2) against the same reference as 'targets' (at this resolution). "
             "Time = sum of the four renders; scaled to 1500² by pixel count.", "",
             table(["spp", f"time {res}² (s, 4 renders)", "time scaled to 1500² (s)", "total RMS (worst detector)",

@@ -115,7 +115,8 @@ def _detector_transforms(mi, scene):
 
 
 def job_path(job):
-    """Mitsuba's ``path`` integrator, one detector as the only emitter."""
+    """Mitsuba's ``path`` integrator, one detector (both faces: two back-to-back emitter discs) as
+    the only emitter."""
     import elo_mitsuba as em
 
     mi = em.ensure_variant()
@@ -133,10 +134,18 @@ def job_path(job):
         key = shape.id() or f"shape_{len(d)}"
         d[key] = shape
     for name, xf in xforms.items():
-        det = {"type": "disk", "to_world": mi.ScalarTransform4f(np.array(xf.matrix).reshape(4, 4)),
-               "bsdf": {"type": "diffuse", "reflectance": 0.0}}
+        to_world = mi.ScalarTransform4f(np.array(xf.matrix).reshape(4, 4))
+        det = {"type": "disk", "to_world": to_world, "bsdf": {"type": "diffuse", "reflectance": 0.0}}
         if name == target:
             det["emitter"] = {"type": "area"}
+            # our detectors collect on both faces, Mitsuba's emitters on one: a second disc just
+            # behind, turned over, collects what arrives at the back
+            normal = np.array(to_world @ mi.ScalarNormal3f(0, 0, 1), float)
+            normal /= np.linalg.norm(normal)
+            d[f"det_{name}_back"] = {
+                "type": "disk", "emitter": {"type": "area"}, "bsdf": {"type": "diffuse", "reflectance": 0.0},
+                "to_world": mi.ScalarTransform4f().translate((-1e-3 * normal).tolist()) @ to_world
+                @ mi.ScalarTransform4f().rotate([1, 0, 0], 180.0)}
         d[f"det_{name}"] = det
     path_scene = mi.load_dict(d)
     spp = int(job["spp"])
