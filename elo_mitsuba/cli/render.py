@@ -34,10 +34,12 @@ An explicit --spp or --detector-samples wins over the preset. Measured on athene
 events 1 + 2, 2 CPU cores (render time; per-pixel RMS error against a converged reference):
 
   preset      time     1st event   events 1+2   note
-  draft       1.4 s    0.024 %     0.61 %       events >= 2 averaged over ~1 mm windows
-  default     1.6 s    0.024 %     0.20 %       the same with 4x the paths; edges topped up
-  reference   130 s    0.007 %     0.25 %       no window average: unbiased on any scene
-  (brute force, independent sampling at 7 spp: 7.7 s for 0.97 % on the 1st event)
+  draft       1.0 s    0.024 %     1.7 %        events >= 2 averaged over ~1 mm windows
+  default     1.3 s    0.024 %     1.1 %        the same with 4x the paths; edges topped up
+  reference   51 s     0.007 %     1.1 %        no window average: unbiased on any scene
+  (brute force, independent sampling at 7 spp: 4.2 s for 0.97 % on the 1st event)
+
+On relief inside a chamber (flanks) the window average of draft/default is biased: use reference.
 
 With a beam profile (fwhm > 0) the presets take more spp (4 / 16 / 256) to average over it.
 """
