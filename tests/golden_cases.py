@@ -97,8 +97,10 @@ def _collect(folder: Path, before: set[str]) -> dict[str, np.ndarray]:
             out[path.name] = np.load(path)
         else:
             data = path.read_bytes()
-            if path.suffix == ".xml":  # the generated scene names the install path: drop it
-                data = data.replace(str(folder).encode(), b"<d>")
+            if path.suffix == ".xml":  # the generated scene names the output and install paths
+                from elo_mitsuba.scene_files import scenes_dir
+
+                data = data.replace(str(folder).encode(), b"<d>").replace(scenes_dir().as_posix().encode(), b"<s>")
             out[path.name] = np.frombuffer(hashlib.sha256(data).digest(), np.uint8)
     return out
 
