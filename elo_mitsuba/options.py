@@ -246,7 +246,9 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y
     per_pixel = preset["bounce_budget"] / window**2  # continuation paths per pixel
     if traced_events > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
-        spp = math.ceil(per_pixel / MAX_BOUNCE_SAMPLES)
+        # a power of two: a pixel's samples then never straddle two of Dr.Jit's thread blocks,
+        # whose atomic adds into one pixel would come in varying order (last-bit differences)
+        spp = 1 << math.ceil(math.log2(per_pixel / MAX_BOUNCE_SAMPLES))
     per_sample = per_pixel / spp
     bounce_samples = max(1, math.ceil(per_sample))
     options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
