@@ -42,6 +42,9 @@ SAMPLES_PER_PASS = 1 << 24
 #: rounding grows with their number (2.6e5 identical samples drift by 5e-4); passes are summed
 #: in float64, so more samples never make a result worse.
 MAX_SPP_PER_PASS = 1024
+#: Options whose validity depends on the scene (detector ids, detector shapes for the quadrature):
+#: EloScene.configure checks them at once; the others are checked by EloOptions alone.
+_NEEDS_THE_SCENE = {"front_only", "detector_sampling", "quadrature_triangles"}
 #: Largest seed: Mitsuba's samplers take 32-bit seeds.
 MAX_SEED = (1 << 32) - 1
 
@@ -220,11 +223,12 @@ class EloScene:
         values change), e.g. ``scene.configure(units="voltage", detector_samples=4)``."""
         saved = self.integrator.options
         self.integrator.configure(saved.replace(**changes))
-        try:
-            self.integrator.prepare_scene(self.scene, self.sensor)  # what needs the scene is checked now
-        except EloError:
-            self.integrator.configure(saved)
-            raise
+        if _NEEDS_THE_SCENE.intersection(changes):  # checked against the scene now, not at render
+            try:
+                self.integrator.prepare_scene(self.scene, self.sensor)
+            except EloError:
+                self.integrator.configure(saved)
+                raise
         return self.integrator.options
 
     def set_events(self, events: int):
