@@ -32,6 +32,8 @@ MASK_BITS = {
     "sum_small": 4,          # R^C + L^C or B^C + F^C below min_sum (Eq. 15 undefined)
     "denominator_small": 8,  # d_w + x M_x + y M_y <= min_denominator * d_w (Eq. 26 blows up)
     "geometric": 16,         # recovered n_S . d <= margin for some detector (Sec. 4.3 masking)
+    "model_residual": 32,    # model method: the 1st-event model cannot explain the four values
+    "not_solved": 64,        # model method: no finite, bounded solution (singular or > 80 deg)
 }
 
 #: A corrected image below this (flat plate: 1) means no direct electrons reach that detector.

@@ -1,0 +1,296 @@
+"""Surface gradient by inverting the 1st-event model per pixel (beyond Eq. 26).
+
+Eq. 26 is exact for point detectors and Lambert's law; with the full g_BSE of Eq. 13 its specular
+lobe (which follows the beam tilt across the field) biases the slopes by tens of per cent. Here each
+pixel's facet normal n_S = [p, q, 1]/|.| (p = -dZ/dx, q = -dZ/dy, Eq. 16) is the one whose modelled
+STSA-corrected images best match the four measured ones:
+
+    minimise over (p, q, s):   sum_k ( C_k - s m_k(p, q) )^2,     m_k = S_k(n_S) / S_k(flat),
+
+with S_k the 1st event of :class:`~.detector_model.FacetModel` (full g_BSE, exact C(theta), the
+discs of the header or a calibration, the pixel's own beam direction and landing point) and s a
+common scale (material contrast, beam-current drift). s is eliminated in closed form
+(s = sum C m / sum m^2, variable projection); (p, q) follow Levenberg-Marquardt from the Eq. 26
+start, with a forward-difference Jacobian, vectorised over all pixels in one Dr.Jit kernel per
+iteration.
+
+What it assumes: every pixel sees one flat facet (no shadowing by neighbours), a single-ray beam
+(no blur), and only the 1st event (later events, e.g. a chamber's, enter the measured images but
+not the model; a modelled 2nd event of the flat plate can be subtracted, ``flat_second_event``).
+What breaks these shows in the per-pixel residual: pixels whose residual exceeds
+:data:`RESIDUAL_SIGMAS` times the image's noise level are flagged ``model_residual``.
+
+Uncertainty: with 4 values and 3 unknowns one degree of freedom is left per pixel; the noise level
+sigma of the corrected images is taken from the median residual over the image (or given), and the
+covariance of (p, q) is sigma^2 (J^T J)^-1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from ..constants import DETECTOR_NAMES
+from ..errors import EloInputError
+from .detector_model import DEFAULT_NODES, FacetModel, to_vector
+from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
+from .stsa import MIN_SUM
+
+#: Levenberg-Marquardt iterations (each: one kernel of three model evaluations).
+ITERATIONS = 10
+#: Forward-difference step in p and q.
+FD_STEP = 1e-3
+#: Largest change of p or q in one step.
+MAX_STEP = 0.5
+#: A pixel whose residual exceeds this many noise levels is flagged ``model_residual``.
+RESIDUAL_SIGMAS = 6.0
+#: ... and never below this absolute residual (corrected units), so noise-free images do not flag
+#: pixels for the renderer's own 1e-4 noise.
+MIN_RESIDUAL = 2e-3
+#: Slopes beyond this are outside the model's range (a facet steeper than 80 deg).
+MAX_SLOPE = 5.7
+#: median of chi^2 with one degree of freedom
+_CHI2_1_MEDIAN = 0.454936
+
+
+@dataclass
+class ModelGradientResult(GradientResult):
+    """:class:`GradientResult` plus what the model fit adds (arrays (H, W)).
+
+    Attributes
+    ----------
+    residual : ndarray
+        RMS misfit of the four corrected images, sqrt(sum_k r_k^2 / 4) (corrected units).
+    dzdx_sigma, dzdy_sigma : ndarray
+        One-sigma uncertainty of dZ/dx, dZ/dy from the noise level and the Jacobian.
+    scale : ndarray
+        The common scale s (1 for the flat plate's material and beam current).
+    noise : float
+        Noise level of the corrected images used for the uncertainty (estimated or given).
+    iterations : int
+        Levenberg-Marquardt iterations run.
+    """
+
+    residual: np.ndarray = None
+    dzdx_sigma: np.ndarray = None
+    dzdy_sigma: np.ndarray = None
+    scale: np.ndarray = None
+    noise: float = float("nan")
+    iterations: int = 0
+
+
+def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step):
+    """Levenberg-Marquardt on (p, q) for all pixels; returns numpy p, q, s, cost, J^T J terms."""
+    mi, dr = model.mi, model.dr
+    Float = mi.Float
+
+    def residuals(p, q, differences=True):
+        """Residuals, cost and scale at (p, q) and, with ``differences``, at (p + h, q), (p, q + h):
+        one loop over the nodes."""
+        normals = [dr.normalize(mi.Vector3f(p, q, 1.0))]
+        if differences:
+            normals += [dr.normalize(mi.Vector3f(p + fd_step, q, 1.0)), dr.normalize(mi.Vector3f(p, q + fd_step, 1.0))]
+        out = []
+        for sig in model.signals(points, beam, normals):
+            m = [s / f for s, f in zip(sig, flat_model)]
+            smm = sum_(mk * mk for mk in m)
+            s = dr.select(smm > 0, sum_(c * mk for c, mk in zip(measured, m)) / smm, 0.0)
+            r = [c - s * mk for c, mk in zip(measured, m)]
+            out.append((r, sum_(rk * rk for rk in r), s))
+        return out
+
+    def jacobian(r0, rp, rq):
+        jp = [(a - b) * (1.0 / fd_step) for a, b in zip(rp, r0)]
+        jq = [(a - b) * (1.0 / fd_step) for a, b in zip(rq, r0)]
+        return (sum_(x * x for x in jp), sum_(x * x for x in jq), sum_(x * y for x, y in zip(jp, jq)),
+                sum_(x * y for x, y in zip(jp, r0)), sum_(x * y for x, y in zip(jq, r0)))
+
+    def cond(it, *state):
+        return it < iterations
+
+    def body(it, p, q, bp, bq, lam, best_cost, sb):
+        (r0, cost, s), (rp, _, _), (rq, _, _) = residuals(p, q)
+        # keep the step if it lowered the cost, else go back to the best point and damp more
+        better = cost < best_cost
+        a11, a22, a12, g1, g2 = jacobian(r0, rp, rq)
+        d11 = a11 * (1.0 + lam) + 1e-12
+        d22 = a22 * (1.0 + lam) + 1e-12
+        det = d11 * d22 - a12 * a12
+        dp = -(d22 * g1 - a12 * g2) / det
+        dq = -(d11 * g2 - a12 * g1) / det
+        step = dr.maximum(dr.abs(dp), dr.abs(dq))
+        shrink = dr.select(step > MAX_STEP, MAX_STEP / step, 1.0)
+        # a rejected step is retried from the best point, a tenth as long, with 10x the damping
+        new_p = dr.select(better, p + dp * shrink, bp + (p - bp) * 0.1)
+        new_q = dr.select(better, q + dq * shrink, bq + (q - bq) * 0.1)
+        lam = dr.select(better, lam * 0.3, lam * 10.0)
+        bp, bq = dr.select(better, p, bp), dr.select(better, q, bq)
+        sb = dr.select(better, s, sb)
+        best_cost = dr.select(better, cost, best_cost)
+        return (it + 1, dr.clip(new_p, -MAX_SLOPE, MAX_SLOPE), dr.clip(new_q, -MAX_SLOPE, MAX_SLOPE),
+                bp, bq, lam, best_cost, sb)
+
+    n_px = dr.width(p0)
+    state = (mi.UInt32(0), Float(p0), Float(q0), Float(p0), Float(q0), dr.full(Float, 1e-3, n_px),
+             dr.full(Float, np.inf, n_px), dr.zeros(Float, n_px))
+    # one symbolic loop: a single kernel for all iterations, cached by Dr.Jit between runs
+    _, p, q, bp, bq, lam, best_cost, sb = dr.while_loop(state, cond, body, label="elo_model_gradient")
+    ((_, cost, _),) = residuals(p, q, differences=False)
+    # final: the best of the last trial and the stored best, with the Jacobian at that point
+    use_new = cost < best_cost
+    p, q = dr.select(use_new, p, bp), dr.select(use_new, q, bq)
+    dr.eval(p, q)
+    (r0, cost, s), (rp, _, _), (rq, _, _) = residuals(p, q)
+    jp = [(a - b) * (1.0 / fd_step) for a, b in zip(rp, r0)]
+    jq = [(a - b) * (1.0 / fd_step) for a, b in zip(rq, r0)]
+    out = [p, q, s, cost, sum_(x * x for x in jp), sum_(x * x for x in jq), sum_(x * y for x, y in zip(jp, jq))]
+    dr.eval(*out)
+    return [np.asarray(v, dtype=np.float64) for v in out]
+
+
+def sum_(terms):
+    terms = list(terms)
+    acc = terms[0]
+    for t in terms[1:]:
+        acc = acc + t
+    return acc
+
+
+def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=None,
+                   flat_second_event: Mapping | None = None, noise: float | None = None,
+                   iterations: int = ITERATIONS, nodes=DEFAULT_NODES,
+                   min_corrected: float = MIN_CORRECTED, min_sum: float = MIN_SUM,
+                   geometric_margin: float = 0.0, start: GradientResult | None = None) -> ModelGradientResult:
+    """Four detector images -> STSA correction -> per-pixel model fit -> gradient + mask.
+
+    Parameters
+    ----------
+    images : mapping of str to ndarray (H, W)
+        R, L, B, F of the object (keys ``right``, ``left``, ``back``, ``front``).
+    flats : mapping or None
+        Flat-plate images of the same detectors, beam and field; None if ``images`` are already
+        STSA-corrected.
+    geometry : ScanGeometry
+        Field, beam, detectors (discs) and material (:mod:`.scan_geometry`).
+    heights : ndarray (H, W), optional
+        Surface heights (mm) for the landing points, e.g. integrated from a first pass
+        (:func:`model_gradient_refined`); None: z = 0.
+    flat_second_event : mapping of str to ndarray, optional
+        Share of events >= 2 in each flat-plate image (e.g. ``e2 / (e1 + e2)`` of a render of the
+        flat plate in the chamber). The flat's 1st event is then flat (1 - share) and the object's
+        is taken as object - flat share (the chamber's 2nd event varies slowly over the field and
+        little with the local slope).
+    noise : float, optional
+        Noise level (standard deviation) of the corrected images, for the uncertainty and the
+        residual flag; None: estimated from the residuals.
+    iterations : int
+        Levenberg-Marquardt iterations.
+    nodes : (int, int)
+        Disc rule of the model.
+    min_corrected, min_sum, geometric_margin : float
+        Mask thresholds as in :func:`~.gradient.surface_gradient`.
+    start : GradientResult, optional
+        The starting gradient (default: Eq. 26 of the same images).
+
+    Returns
+    -------
+    ModelGradientResult
+    """
+    if int(iterations) < 1:
+        raise EloInputError(f"iterations={iterations!r}: need at least 1")
+    if noise is not None and not (np.isfinite(noise) and noise > 0):
+        raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
+    d_h, d_w = geometry.symmetric_layout()
+    images = dict(images)
+    if flat_second_event is not None:
+        if flats is None:
+            raise EloInputError("flat_second_event needs the flat-plate images")
+        share = {n: np.clip(np.asarray(flat_second_event[n], float), 0.0, 0.99) for n in DETECTOR_NAMES}
+        flats = {n: np.asarray(flats[n], float) * (1.0 - share[n]) for n in DETECTOR_NAMES}
+        images = {n: np.asarray(images[n], float) - np.asarray(flats[n]) * share[n] / (1.0 - share[n])
+                  for n in DETECTOR_NAMES}
+    eq26 = surface_gradient(images, flats, geometry.field_mm, d_h, d_w, min_corrected=min_corrected,
+                            min_sum=min_sum, geometric_margin=geometric_margin)
+    shape = eq26.dzdx.shape
+    if tuple(shape) != tuple(geometry.shape):
+        raise EloInputError(f"images are {shape[1]}x{shape[0]} px, the scan geometry {geometry.shape[1]}x"
+                            f"{geometry.shape[0]}; they must describe one scan")
+    start = eq26 if start is None else start
+
+    model = FacetModel(geometry.detectors, geometry.material, nodes=nodes)
+    mi, dr = model.mi, model.dr
+    points, dirs = geometry.beam(heights)
+    beam = to_vector(mi, dirs)
+    pts = mi.Point3f(to_vector(mi, points))
+    flat_pts, flat_dirs = geometry.beam(None)
+    flat_model = model.signals(mi.Point3f(to_vector(mi, flat_pts)), to_vector(mi, flat_dirs),
+                               [mi.Vector3f(0.0, 0.0, 1.0)])[0]
+    dr.eval(flat_model)
+    measured = [mi.Float(np.asarray(eq26.corrected[n], np.float32).ravel()) for n in model.names]
+    p0 = np.where(start.mask, 0.0, -start.dzdx).astype(np.float32).ravel()
+    q0 = np.where(start.mask, 0.0, -start.dzdy).astype(np.float32).ravel()
+    p, q, s, cost, a11, a22, a12 = _fit(model, pts, beam, measured, flat_model, mi.Float(p0), mi.Float(q0),
+                                        int(iterations), FD_STEP)
+    det = a11 * a22 - a12 * a12
+
+    residual = np.sqrt(np.maximum(cost, 0.0) / 4.0).reshape(shape)
+    usable = ~(eq26.reasons & (MASK_BITS["invalid_input"] | MASK_BITS["detector_dark"] | MASK_BITS["sum_small"])
+               ).astype(bool)
+    if noise is None:
+        # residual^2 * 4 = sum r^2 ~ sigma^2 chi^2_1 (4 values, 3 unknowns)
+        sel = (residual * 2.0)[usable]
+        noise = float(np.sqrt(np.median(sel ** 2) / _CHI2_1_MEDIAN)) if sel.size else float("nan")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var_p = np.where(det > 0, a22 / det, np.inf) * noise ** 2
+        var_q = np.where(det > 0, a11 / det, np.inf) * noise ** 2
+    sigma_p = np.sqrt(var_p).reshape(shape)
+    sigma_q = np.sqrt(var_q).reshape(shape)
+    dzdx = -p.reshape(shape)
+    dzdy = -q.reshape(shape)
+    limit = max(RESIDUAL_SIGMAS * (noise if np.isfinite(noise) else 0.0), MIN_RESIDUAL)
+    bad_fit = ~np.isfinite(residual) | (residual * 2.0 > limit)
+    unsolved = ~np.isfinite(sigma_p) | ~np.isfinite(sigma_q) | (np.abs(p.reshape(shape)) >= MAX_SLOPE) \
+        | (np.abs(q.reshape(shape)) >= MAX_SLOPE) | ~np.isfinite(dzdx) | ~np.isfinite(dzdy)
+
+    geo_mask = np.zeros(shape, dtype=bool)
+    pts = points.reshape(shape + (3,))
+    n = np.stack([p.reshape(shape), q.reshape(shape), np.ones(shape)], axis=-1)
+    for disc in geometry.detectors.values():
+        to_det = np.asarray(disc.center) - pts
+        cos = np.sum(n * to_det, axis=-1) / (np.linalg.norm(n, axis=-1) * np.linalg.norm(to_det, axis=-1))
+        geo_mask |= cos <= geometric_margin
+    keep = MASK_BITS["invalid_input"] | MASK_BITS["detector_dark"] | MASK_BITS["sum_small"]
+    reasons = ((eq26.reasons & keep) + MASK_BITS["geometric"] * geo_mask
+               + MASK_BITS["model_residual"] * (bad_fit & usable)
+               + MASK_BITS["not_solved"] * (unsolved & usable)).astype(np.uint8)
+    mask = reasons != 0
+    z = np.zeros(shape)
+
+    def clean(a):
+        return np.where(mask | ~np.isfinite(a), 0.0, a)
+
+    return ModelGradientResult(
+        dzdx=clean(dzdx), dzdy=clean(dzdy), mx=eq26.mx, my=eq26.my, sum_x=eq26.sum_x, sum_y=eq26.sum_y,
+        mask=mask, reasons=reasons, corrected=eq26.corrected,
+        residual=np.where(np.isfinite(residual), residual, 0.0), dzdx_sigma=clean(sigma_p), dzdy_sigma=clean(sigma_q),
+        scale=np.where(mask, z, s.reshape(shape)), noise=float(noise), iterations=int(iterations))
+
+
+def model_gradient_refined(images, flats, geometry, *, passes: int = 2, integrate=None, **kw) -> ModelGradientResult:
+    """:func:`model_gradient`, then again with the landing points on the integrated heights.
+
+    Pass 2 moves each landing point onto the surface reconstructed from pass 1 (normal
+    integration, :func:`~.integrate.integrate_gradient`, its mean set to 0): it matters for
+    relief of several mm, where the beam lands off its z = 0 aim point and the detectors are seen
+    from a different height.
+    """
+    from .integrate import integrate_gradient
+
+    res = model_gradient(images, flats, geometry, **kw)
+    for _ in range(int(passes) - 1):
+        height = integrate_gradient(res.dzdx, res.dzdy, geometry.field_mm, mask=res.mask)
+        height = height - np.mean(height[~res.mask]) if (~res.mask).any() else height
+        res = model_gradient(images, flats, geometry, heights=height, start=res, **kw)
+    return res

@@ -1,0 +1,206 @@
+"""The scan set-up that the model-based analysis inverts: beam, scan grid, disc detectors, material.
+
+:class:`ScanGeometry` holds what an EXR header of the forward model records (field, resolution,
+work distance, projection, aim offset, the detectors' centres, normals and radii, the plate's
+material) or what a user gives for recorded machine images (``--field --dh --dw [--radius]``),
+optionally corrected by a detector calibration (:mod:`elo_mitsuba.analysis.calibration`).
+
+Pixel (i, j) is scan point (i, j) of :mod:`elo_mitsuba.grid`. The beam leaves the pivot
+(0, 0, wd) towards that point of the build plane z = 0 (``perspective``) or runs parallel to -z
+(``orthographic``), as the sensor ``elo_beam`` does; on a surface of height h the electron lands
+where that ray crosses z = h (:meth:`ScanGeometry.beam`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Mapping
+
+import numpy as np
+
+from ..constants import (
+    DEFAULT_MATERIAL,
+    DETECTOR_DIAMETER_MM,
+    DETECTOR_DIRECTIONS,
+    DETECTOR_NAMES,
+    WORK_DISTANCE_MM,
+)
+from ..errors import EloInputError
+from ..grid import field_xy, pixel_coordinates
+
+PROJECTIONS = ("perspective", "orthographic")
+
+
+@dataclass(frozen=True)
+class Disc:
+    """A disc detector: centre (mm), unit front normal (towards the scan field), radius (mm)."""
+
+    center: tuple
+    normal: tuple
+    radius: float
+
+    def __post_init__(self):
+        c = np.asarray(self.center, dtype=float).reshape(-1)
+        n = np.asarray(self.normal, dtype=float).reshape(-1)
+        if c.shape != (3,) or n.shape != (3,) or not (np.all(np.isfinite(c)) and np.all(np.isfinite(n))):
+            raise EloInputError(f"detector centre {self.center!r} / normal {self.normal!r}: need 3 finite values each")
+        length = float(np.linalg.norm(n))
+        if not length > 0:
+            raise EloInputError(f"detector normal {self.normal!r}: must not be zero")
+        r = float(self.radius)
+        if not (np.isfinite(r) and r > 0):
+            raise EloInputError(f"detector radius {self.radius!r} mm: must be finite and > 0")
+        object.__setattr__(self, "center", tuple(float(v) for v in c))
+        object.__setattr__(self, "normal", tuple(float(v) for v in n / length))
+        object.__setattr__(self, "radius", r)
+
+    def as_dict(self) -> dict:
+        return {"center": list(self.center), "normal": list(self.normal), "radius": self.radius}
+
+
+@dataclass(frozen=True)
+class ScanGeometry:
+    """Everything the 1st-event model needs about one scan.
+
+    Attributes
+    ----------
+    field_mm : (float, float)
+        Scan field (x, y) in mm.
+    shape : (int, int)
+        Image shape (H, W).
+    detectors : dict of str to Disc
+        By channel name.
+    work_distance_mm : float
+        Height of the beam pivot above z = 0.
+    projection : str
+        ``perspective`` or ``orthographic``.
+    aim_offset_mm : (float, float)
+        Constant offset of every aim point (the sensor's sub-pixel nudge).
+    material : str
+        The surface material (preset name or composition).
+    """
+
+    field_mm: tuple
+    shape: tuple
+    detectors: Mapping = field(default_factory=dict)
+    work_distance_mm: float = WORK_DISTANCE_MM
+    projection: str = "perspective"
+    aim_offset_mm: tuple = (0.0, 0.0)
+    material: str = DEFAULT_MATERIAL
+
+    def __post_init__(self):
+        if self.projection not in PROJECTIONS:
+            raise EloInputError(f"projection {self.projection!r}: choose {' or '.join(PROJECTIONS)}")
+        wd = float(self.work_distance_mm)
+        if not (np.isfinite(wd) and wd > 0):
+            raise EloInputError(f"work distance {self.work_distance_mm!r} mm: must be finite and > 0")
+        h, w = (int(v) for v in self.shape)
+        object.__setattr__(self, "shape", (h, w))
+        object.__setattr__(self, "field_mm", field_xy(self.field_mm, (h, w)))
+        object.__setattr__(self, "work_distance_mm", wd)
+        object.__setattr__(self, "detectors", dict(self.detectors))
+        from ..physics import get_material
+
+        get_material(self.material)  # an unknown material fails here, with its one line
+
+    # -- construction --
+    @classmethod
+    def nominal(cls, shape, field_mm, d_h, d_w, *, radius=DETECTOR_DIAMETER_MM / 2, **kw) -> "ScanGeometry":
+        """The symmetric layout of Eq. 17: four discs at (+-d_w, 0, d_h), (0, +-d_w, d_h), facing the
+        origin, of radius ``radius`` (mm; ATHENE's 50 mm discs by default)."""
+        dets = {}
+        for name in DETECTOR_NAMES:
+            ex, ey = DETECTOR_DIRECTIONS[name]
+            c = np.array([d_w * ex, d_w * ey, d_h], dtype=float)
+            dets[name] = Disc(c, -c, radius)
+        return cls(field_mm=field_mm, shape=shape, detectors=dets, **kw)
+
+    @classmethod
+    def from_metadata(cls, meta: Mapping, shape, source: str = "header", *, field_mm=None,
+                      material: str | None = None) -> "ScanGeometry":
+        """The geometry an EXR header of ``elo-mitsuba render`` records (detectors as discs of the
+        header's centre, normal and equivalent radius)."""
+        meta = dict(meta or {})
+        dets = meta.get("detectors")
+        if not isinstance(dets, Mapping) or not all(n in dets for n in DETECTOR_NAMES):
+            raise EloInputError(f"{source}: header lacks the detectors {', '.join(DETECTOR_NAMES)}; "
+                                "pass --dh and --dw (mm) and, if not 25, --radius")
+        discs = {}
+        for name in DETECTOR_NAMES:
+            d = dets[name]
+            try:
+                discs[name] = Disc(d["center"], d["normal"], d["radius"])
+            except (KeyError, TypeError) as exc:
+                raise EloInputError(f"{source}: detector {name!r} lacks {exc} (need center, normal, radius)") from None
+        if field_mm is None:
+            if "field_mm" not in meta:
+                raise EloInputError(f"{source}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
+            field_mm = meta["field_mm"]
+        return cls(field_mm=field_mm, shape=shape, detectors=discs,
+                   work_distance_mm=float(meta.get("work_distance_mm", WORK_DISTANCE_MM)),
+                   projection=str(meta.get("projection", "perspective")),
+                   aim_offset_mm=tuple(meta.get("beam_aim_offset_mm", (0.0, 0.0))),
+                   material=material or material_from_metadata(meta))
+
+    def with_detectors(self, detectors: Mapping) -> "ScanGeometry":
+        """A copy whose detectors are replaced (e.g. by a calibration's)."""
+        return replace(self, detectors={**self.detectors, **dict(detectors)})
+
+    def resized(self, shape) -> "ScanGeometry":
+        """The same scan sampled on another grid (same field)."""
+        return replace(self, shape=tuple(shape))
+
+    # -- the beam --
+    def aim_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Aim points (x, y) on z = 0 of every pixel (mm), each (H, W)."""
+        x, y = pixel_coordinates(self.shape, self.field_mm)
+        return x + self.aim_offset_mm[0], y + self.aim_offset_mm[1]
+
+    def beam(self, heights=None) -> tuple[np.ndarray, np.ndarray]:
+        """Landing points and unit directions of travel of the beam, each (H, W, 3).
+
+        ``heights`` (mm, (H, W) or scalar): the surface height under each pixel; the electron lands
+        where its ray crosses z = h. None: z = 0.
+        """
+        x, y = self.aim_points()
+        h = np.zeros(self.shape) if heights is None else np.broadcast_to(np.asarray(heights, float), self.shape)
+        wd = self.work_distance_mm
+        if self.projection == "perspective":
+            t = 1.0 - h / wd
+            points = np.stack([t * x, t * y, h], axis=-1)
+            dirs = np.stack([x, y, np.full(self.shape, -wd)], axis=-1)
+            dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        else:
+            points = np.stack([x, y, h], axis=-1)
+            dirs = np.broadcast_to(np.array([0.0, 0.0, -1.0]), points.shape).copy()
+        return points, dirs
+
+    def symmetric_layout(self) -> tuple[float, float]:
+        """Mean d_h (centre z) and d_w (centre distance from the z-axis) of the four detectors,
+        the Eq. 17 geometry closest to this one (Eq. 26's start needs it)."""
+        c = np.array([self.detectors[n].center for n in DETECTOR_NAMES])
+        return float(np.mean(c[:, 2])), float(np.mean(np.hypot(c[:, 0], c[:, 1])))
+
+    def as_dict(self) -> dict:
+        return {"field_mm": list(self.field_mm), "resolution": [self.shape[1], self.shape[0]],
+                "work_distance_mm": self.work_distance_mm, "projection": self.projection,
+                "beam_aim_offset_mm": list(self.aim_offset_mm), "material": self.material,
+                "detectors": {k: d.as_dict() for k, d in self.detectors.items()}}
+
+
+def material_from_metadata(meta: Mapping) -> str:
+    """The surface material a header records: the one material of the non-detector shapes.
+
+    ``materials`` maps shape ids to ``"name (El:frac,...)"``; detector plates are left out. Several
+    different surface materials (or none recorded) give the default material, since one facet
+    model cannot mix them.
+    """
+    mats = dict(meta.get("materials") or {})
+    dets = set((meta.get("detectors") or {}).keys())
+    found = {v for k, v in mats.items() if k not in dets}
+    if len(found) != 1:
+        return DEFAULT_MATERIAL
+    text = next(iter(found))
+    if "(" in text and text.endswith(")"):
+        return text[text.index("(") + 1:-1]
+    return text

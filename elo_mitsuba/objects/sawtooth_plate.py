@@ -1,0 +1,154 @@
+"""A test plate of sawtooth patches: known slopes 0.2-1.0, three orientations, over the whole field.
+
+Nine 16 mm patches on a 28 mm grid (centres at x, y in {-28, 0, +28} mm, reaching +-36 mm of the
+80 mm field) on a plane plate z = 0. Each patch is a zigzag (triangle wave) of planar facets with
+slope ``|grad Z| = s``: ridges along y (slope in x), along x (slope in y), or along the diagonal
+x = y (slope along (1, -1)/sqrt 2). Slopes and orientations form a Latin square, so every slope
+is seen at the centre, at an edge and at a corner of the field and in each orientation:
+
+    row y = +28:  0.6 x     1.0 y     0.2 diag
+    row y =   0:  0.2 y     0.6 diag  1.0 x
+    row y = -28:  1.0 diag  0.2 x     0.6 y
+
+Facets are 2 mm wide across the ridges (2.12 mm for the diagonal patches, whose ridges fall on the
+mesh's cell diagonals), so the heights reach 2 mm. The patches start and end in a valley along
+their slope direction; their other two edges are cliffs, as on a cut test specimen. Unlike the
+shipped scenes' objects (one 45-degree corrugation, millimetre-level melt squares) it covers the
+range of slopes and positions a gradient method must handle.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..grid import pixel_coordinates
+
+#: Patch centres along x and y (mm), patch half-width (mm).
+PATCH_CENTRES_MM = (-28.0, 0.0, 28.0)
+PATCH_HALF_MM = 8.0
+#: Facet width across the ridges (mm): axis patches, diagonal patches (ridge spacing 3 mm in x - y).
+FACET_MM = 2.0
+FACET_DIAG_MM = 3.0 / math.sqrt(2.0)
+#: (slope, orientation) by (row from +y, column from -x).
+PATCHES = (
+    ((0.6, "x"), (1.0, "y"), (0.2, "diag")),
+    ((0.2, "y"), (0.6, "diag"), (1.0, "x")),
+    ((1.0, "diag"), (0.2, "x"), (0.6, "y")),
+)
+#: Mesh pitch (mm): ridges and patch edges fall on grid lines.
+MESH_PITCH_MM = 0.125
+#: Half-width of the meshed plate (mm): the 80 mm field plus 4 mm.
+PLATE_HALF_MM = 44.0
+
+
+def _patch_table():
+    rows = []
+    for r, cy in enumerate(PATCH_CENTRES_MM[::-1]):
+        for c, cx in enumerate(PATCH_CENTRES_MM):
+            slope, orient = PATCHES[r][c]
+            rows.append((cx, cy, slope, orient))
+    return rows
+
+
+def patches() -> list[dict]:
+    """The nine patches: centre (mm), slope, orientation and the unit slope direction."""
+    out = []
+    for cx, cy, slope, orient in _patch_table():
+        direction = {"x": (1.0, 0.0), "y": (0.0, 1.0), "diag": (1 / math.sqrt(2), -1 / math.sqrt(2))}[orient]
+        out.append({"center": (cx, cy), "slope": slope, "orientation": orient, "direction": direction,
+                    "facet_mm": FACET_DIAG_MM if orient == "diag" else FACET_MM})
+    return out
+
+
+def _tri(t):
+    """Triangle wave: 0 at even t, 1 at odd t, slope +-1."""
+    return np.abs(t - 2.0 * np.floor((t + 1.0) / 2.0))
+
+
+def _local(x, y, patch):
+    """Coordinate along the slope direction (mm), and whether (x, y) lies on the patch."""
+    cx, cy = patch["center"]
+    inside = (np.abs(x - cx) <= PATCH_HALF_MM) & (np.abs(y - cy) <= PATCH_HALF_MM)
+    ux, uy = patch["direction"]
+    return (x - cx) * ux + (y - cy) * uy, inside
+
+
+def sawtooth_height(x, y) -> np.ndarray:
+    """Height Z(x, y) in mm (0 off the patches)."""
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    z = np.zeros(x.shape)
+    for patch in patches():
+        u, inside = _local(x, y, patch)
+        w = patch["facet_mm"]
+        z = np.where(inside, patch["slope"] * w * _tri(u / w), z)
+    return z
+
+
+def sawtooth_gradient(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Exact (dZ/dx, dZ/dy) inside the facets (0 off the patches; one side's value on a ridge)."""
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    gx = np.zeros(x.shape)
+    gy = np.zeros(x.shape)
+    for patch in patches():
+        u, inside = _local(x, y, patch)
+        w = patch["facet_mm"]
+        t = u / w
+        sign = np.where(np.mod(np.floor(t), 2) == 0, 1.0, -1.0)  # rising on [0, 1), falling on [1, 2)
+        ux, uy = patch["direction"]
+        gx = np.where(inside, patch["slope"] * sign * ux, gx)
+        gy = np.where(inside, patch["slope"] * sign * uy, gy)
+    return gx, gy
+
+
+def facet_interiors(x, y, margin_mm: float) -> np.ndarray:
+    """Index of the patch (0..8) whose facet interior holds (x, y), farther than ``margin_mm``
+    from any ridge, valley or patch edge; -1 elsewhere."""
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    out = np.full(x.shape, -1, dtype=int)
+    for i, patch in enumerate(patches()):
+        cx, cy = patch["center"]
+        u, _ = _local(x, y, patch)
+        w = patch["facet_mm"]
+        frac = np.mod(u / w, 1.0) * w
+        inner = (np.abs(x - cx) <= PATCH_HALF_MM - margin_mm) & (np.abs(y - cy) <= PATCH_HALF_MM - margin_mm)
+        inner &= (frac >= margin_mm) & (frac <= w - margin_mm)
+        out = np.where(inner, i, out)
+    return out
+
+
+def sawtooth_heightmap(pitch_mm: float = MESH_PITCH_MM, half_mm: float = PLATE_HALF_MM) -> np.ndarray:
+    """The height map on a square grid of ``pitch_mm`` covering +-``half_mm`` (package orientation)."""
+    n = int(round(2 * half_mm / pitch_mm)) + 1
+    x, y = pixel_coordinates((n, n), n * pitch_mm)
+    return sawtooth_height(x, y)
+
+
+def sawtooth_mesh(pitch_mm: float = MESH_PITCH_MM):
+    """The plate as a :class:`trimesh.Trimesh` (flat areas meshed coarsely)."""
+    from ..mesh import heightmap_to_mesh
+
+    return heightmap_to_mesh(sawtooth_heightmap(pitch_mm), pitch_mm, tolerance_mm=1e-9)
+
+
+def patch_errors(dzdx, dzdy, field_mm, *, margin_mm: float, mask=None) -> list[dict]:
+    """Per patch: median relative error |g_est - g| / |g| over its facet interiors, and count.
+
+    ``dzdx``, ``dzdy`` are a gradient image of the plate (package orientation, scan field
+    ``field_mm``); masked pixels are left out (and counted).
+    """
+    dzdx = np.asarray(dzdx, float)
+    x, y = pixel_coordinates(dzdx.shape, field_mm)
+    gx, gy = sawtooth_gradient(x, y)
+    idx = facet_interiors(x, y, margin_mm)
+    err = np.hypot(dzdx - gx, np.asarray(dzdy, float) - gy) / np.maximum(np.hypot(gx, gy), 1e-12)
+    keep = np.ones(dzdx.shape, bool) if mask is None else ~np.asarray(mask, bool)
+    rows = []
+    for i, patch in enumerate(patches()):
+        sel = idx == i
+        good = sel & keep
+        rows.append({**{k: patch[k] for k in ("center", "slope", "orientation")},
+                     "median_error": float(np.median(err[good])) if good.any() else float("nan"),
+                     "pixels": int(good.sum()), "masked": int((sel & ~keep).sum())})
+    return rows
