@@ -246,8 +246,10 @@ class EloScene:
         ids = ", ".join(sorted(s.id() for s in self.scene.shapes() if s.id()))
         raise EloInputError(f"no shape with id {shape_id!r} (shapes: {ids})")
 
-    def set_detector(self, name: str, center=None, radius: float | None = None) -> None:
-        """Move a disk detector to ``center`` (mm), facing the origin; optionally resize it."""
+    def set_detector(self, name: str, center=None, radius: float | None = None, normal=None) -> None:
+        """Move a disk detector to ``center`` (mm), facing the origin or along ``normal`` (its front
+        normal, towards the field; any length); optionally resize it. Unchanged arguments keep
+        their current values, except that a new centre without ``normal`` faces the origin."""
         mi = self.mi
         key = f"{name}.to_world"
         if name not in self.detector_names:
@@ -255,15 +257,28 @@ class EloScene:
         if key not in self.mi_params:
             raise EloInputError(f"detector {name!r} is not a disk; move it by editing the scene")
         geo = self.detector_geometry()[name]
-        c = np.asarray(center if center is not None else geo["center"], dtype=float)
-        r = float(radius if radius is not None else geo["radius"])
-        if c.shape != (3,) or not np.all(np.isfinite(c)) or not (r > 0 and math.isfinite(r)):
-            raise EloInputError(f"detector {name!r}: centre {c.tolist()} / radius {r}; need 3 finite mm values and r > 0")
-        up = [0, 0, 1] if abs(c[0]) + abs(c[1]) > 1e-9 else [0, 1, 0]
-        xf = mi.ScalarTransform4f().look_at(origin=c.tolist(), target=[0, 0, 0], up=up) @ mi.ScalarTransform4f().scale(r)
+        c = _vector3(name, "centre", center if center is not None else geo["center"])
+        try:
+            r = float(radius if radius is not None else geo["radius"])
+        except (TypeError, ValueError):
+            raise EloInputError(f"detector {name!r}: radius {radius!r}; need a number of mm > 0") from None
+        if not (r > 0 and math.isfinite(r)):
+            raise EloInputError(f"detector {name!r}: radius {r}; need a finite number of mm > 0")
         if not np.any(np.abs(c) > 1e-9):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
                                 "from above it")
+        if normal is not None:
+            n = _vector3(name, "normal", normal)
+        elif center is None:
+            n = np.asarray(geo["normal"], dtype=float)
+        else:
+            n = -c
+        if not np.linalg.norm(n) > 0:
+            raise EloInputError(f"detector {name!r}: normal {n.tolist()} is zero")
+        n = n / np.linalg.norm(n)
+        up = [0, 0, 1] if abs(n[2]) < 0.999 else [0, 1, 0]
+        xf = (mi.ScalarTransform4f().look_at(origin=c.tolist(), target=(c + n).tolist(), up=up)
+              @ mi.ScalarTransform4f().scale(r))
         previous = np.array(self.mi_params[key].matrix, dtype=np.float64).reshape(4, 4)  # a copy
         self.mi_params[key] = mi.Transform4f(xf)
         self.mi_params.update()
@@ -346,6 +361,17 @@ class EloScene:
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
         return RenderResult(channels, self.metadata(spp, seed))
+
+
+def _vector3(name: str, what: str, value) -> np.ndarray:
+    """Three finite millimetre values, or one line naming the detector and the value."""
+    try:
+        v = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        v = np.array([np.nan])
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise EloInputError(f"detector {name!r}: {what} {value!r}; need 3 finite numbers (x, y, z)")
+    return v
 
 
 def _whole_number(name: str, value, lo: int, hi: int | None) -> int:

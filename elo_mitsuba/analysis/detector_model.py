@@ -61,6 +61,14 @@ def disc_nodes_world(disc, nodes=DEFAULT_NODES) -> tuple[np.ndarray, np.ndarray]
     return pts, w * r * r
 
 
+@lru_cache(maxsize=16)
+def _lobe_table(material: str, lobe_width_deg: float, size: int) -> np.ndarray:
+    """W(theta) of the ``elo_bse`` plugin's table, by material (computing C(theta) costs 50 ms)."""
+    desc = material[material.index("(") + 1:-1] if "(" in material else material
+    _, table = lobe_weight_table(get_material(desc), lobe_width_deg, n=size)
+    return table.astype(np.float32)
+
+
 class FacetModel:
     """1st-event signals of all detectors, in Dr.Jit, for any landing points, beams and normals.
 
@@ -106,8 +114,7 @@ class FacetModel:
         self._pos = [mi.Float(np.concatenate(pos)[:, c].astype(np.float32)) for c in range(3)]
         self._nrm = [mi.Float(np.concatenate(nrm)[:, c].astype(np.float32)) for c in range(3)]
         self._w = mi.Float(np.concatenate(wts).astype(np.float32))
-        _, table = lobe_weight_table(self.material, self.lobe_width_deg, n=TABLE_SIZE)
-        self._table = mi.Float(table.astype(np.float32))
+        self._table = mi.Float(_lobe_table(self.material.describe(), self.lobe_width_deg, TABLE_SIZE))
         self._table_size = TABLE_SIZE
         self._diffuse = dr.opaque(mi.Float, self.material.eta0 / np.pi)
         self._inv_width = dr.opaque(mi.Float, 1.0 / self.lobe_width_deg)

@@ -30,6 +30,14 @@ HEIGHT_SUFFIXES = (".exr", ".npy", ".tif", ".tiff")
 #: Channels of the gradient EXR, in the order written: the Eq. 26 gradient, the normalised
 #: differences of Eq. 15, the sums of opposite detectors, the mask (1 = untrusted) and its reasons.
 GRADIENT_CHANNELS = ("dzdx", "dzdy", "Mx", "My", "sum_rl", "sum_bf", "mask", "mask_reason")
+#: Added by the model method: RMS misfit of the four corrected images, the one-sigma uncertainty
+#: of dZ/dx and dZ/dy, and the common scale of the fit.
+MODEL_CHANNELS = ("residual", "dzdx_sigma", "dzdy_sigma", "scale")
+#: What the header's "quantity" says per method.
+METHOD_QUANTITY = {
+    "eq26": "surface gradient (Renner et al. 2023, Eq. 26)",
+    "model": "surface gradient (per-pixel fit of the 1st-event model: full g_BSE of Eq. 13, disc detectors)",
+}
 
 
 def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
@@ -126,20 +134,26 @@ def load_detector_set(exr_path=None, files: Mapping | None = None, what: str = "
 
 def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, stsa_corrected: bool,
                    event: int | None = None, sources=None, header: Mapping | None = None,
-                   overwrite: bool = False) -> Path:
+                   overwrite: bool = False, method: str = "eq26", model_geometry=None,
+                   calibration=None) -> Path:
     """Write a :class:`~elo_mitsuba.analysis.GradientResult` as the gradient EXR.
 
-    The header records the geometry (``field_mm``, ``resolution``, ``d_h_mm``, ``d_w_mm``), the
-    mask thresholds, whether the images were STSA-corrected, the event, the input files, and
-    from the forward model's ``header`` (if any) material, events, spp, work distance,
-    projection and detectors.
+    The header records the method, the geometry (``field_mm``, ``resolution``, ``d_h_mm``,
+    ``d_w_mm``; for the model method the whole scan geometry it inverted), the mask thresholds,
+    whether the images were STSA-corrected, the event, the input files, and from the forward
+    model's ``header`` (if any) material, events, spp, work distance, projection and detectors.
+    A :class:`~elo_mitsuba.analysis.model_gradient.ModelGradientResult` adds
+    :data:`MODEL_CHANNELS` and the noise level.
     """
     from .gradient import MASK_BITS
 
     path = check_output(path, (".exr",), overwrite=overwrite)
     h, w = result.dzdx.shape
+    if method not in METHOD_QUANTITY:
+        raise EloInputError(f"gradient method {method!r}: choose {' or '.join(METHOD_QUANTITY)}")
     meta = {
-        "quantity": "surface gradient (Renner et al. 2023, Eq. 26)",
+        "quantity": METHOD_QUANTITY[method],
+        "method": method,
         "field_mm": list(field_xy(field_mm, (h, w))),
         "resolution": [w, h],
         "d_h_mm": d_h,
@@ -158,6 +172,17 @@ def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, sts
     channels = {"dzdx": result.dzdx, "dzdy": result.dzdy, "Mx": result.mx, "My": result.my,
                 "sum_rl": result.sum_x, "sum_bf": result.sum_y,
                 "mask": result.mask.astype(np.float32), "mask_reason": result.reasons.astype(np.float32)}
+    if getattr(result, "residual", None) is not None:
+        channels.update({"residual": result.residual, "dzdx_sigma": result.dzdx_sigma,
+                         "dzdy_sigma": result.dzdy_sigma, "scale": result.scale})
+        meta["noise"] = result.noise if np.isfinite(result.noise) else None
+        meta["iterations"] = result.iterations
+        meta["model_assumes"] = ("each pixel sees one flat facet (no shadowing by neighbours), a single-ray beam, "
+                                 "the 1st event only")
+    if model_geometry is not None:
+        meta["model_geometry"] = model_geometry.as_dict()
+    if calibration is not None:
+        meta["calibration"] = str(calibration)
     return write_exr(path, channels, meta, overwrite=overwrite)
 
 

@@ -1,0 +1,278 @@
+"""Detector calibration from flat-plate images: where each detector really is, and its gain.
+
+A flat plate (n_S = [0, 0, 1]) scanned over the field gives each detector an image whose shape
+depends on where the detector sits and how it is tilted (distance, angles and the lobe of g_BSE
+change across the field), and whose level is the amplifier gain times N_d/N_0. Each detector's
+image depends on that detector alone, so each is fitted on its own: by least squares
+(Levenberg-Marquardt, :func:`scipy.optimize.least_squares`) of
+
+    image(x, y)  =  gain * S(x, y; centre, normal)  [+ offset]
+
+against the 1st-event model :class:`~.detector_model.FacetModel` on a coarse grid of the image
+(block means; the flat's image is smooth). Parameters: the centre (3, mm), the normal as two tilt
+angles from the nominal one (deg), the gain, and optionally an offset. The radius is held at its
+nominal value: it scales the signal like the gain (S ~ area), so the two cannot be separated.
+
+The result, :class:`Calibration`, is written as ``CALIB.json`` (per detector: ``center``,
+``normal``, ``radius``, ``gain``, ``offset``, one-sigma uncertainties, the parameter correlations
+and which parameters the data cannot separate) and turns nominal geometry into calibrated
+geometry (:meth:`Calibration.apply`). Gains cancel in the STSA correction when the flat and the
+object are recorded with one amplifier setting; the geometry is what the model-based gradient
+needs.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import EloInputError
+from ..files import atomic_write, check_output
+from .detector_model import FacetModel, to_vector
+from .scan_geometry import Disc, ScanGeometry
+
+#: Coarse grid the fit runs on (block means of the flat image).
+FIT_GRID = 48
+#: Disc rule of the calibration's model (more nodes than the gradient's: the fit is small).
+CALIBRATION_NODES = (2, 6)
+#: |correlation| above this: the pair is reported as not separable by the data.
+DEGENERATE_CORRELATION = 0.99
+PARAMETERS = ("cx", "cy", "cz", "tilt_a", "tilt_b", "gain", "offset")
+#: Finite-difference steps of the geometry parameters (mm, mm, mm, deg, deg).
+GEOMETRY_STEPS = (0.2, 0.2, 0.2, 0.1, 0.1)
+FORMAT = "elo-mitsuba calibration 1"
+
+
+@dataclass
+class DetectorFit:
+    """One detector's calibration: the fitted disc, gain, offset and what the fit knows of them."""
+
+    disc: Disc
+    gain: float
+    offset: float
+    sigma: dict
+    correlation: dict
+    degenerate: list
+    rms_residual: float
+
+    def as_dict(self) -> dict:
+        return {**self.disc.as_dict(), "gain": self.gain, "offset": self.offset, "sigma": self.sigma,
+                "correlation": self.correlation, "not_separable": self.degenerate,
+                "rms_residual_relative": self.rms_residual}
+
+
+@dataclass
+class Calibration:
+    """Calibrated detectors of one machine (:func:`calibrate`, :func:`read_calibration`)."""
+
+    detectors: dict
+    source: dict
+
+    def discs(self) -> dict:
+        return {k: v.disc for k, v in self.detectors.items()}
+
+    def apply(self, geometry: ScanGeometry) -> ScanGeometry:
+        """``geometry`` with its detectors replaced by the calibrated ones."""
+        missing = [k for k in geometry.detectors if k not in self.detectors]
+        if missing:
+            raise EloInputError(f"calibration has no detector {', '.join(missing)} "
+                                f"(it has {', '.join(self.detectors)})")
+        return geometry.with_detectors(self.discs())
+
+    def as_dict(self) -> dict:
+        return {"format": FORMAT, "units": "mm; gain in image units per N_d/N_0",
+                "detectors": {k: v.as_dict() for k, v in self.detectors.items()}, "source": self.source}
+
+
+def _tilt_basis(normal):
+    n = np.asarray(normal, float)
+    a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.99 else [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    return a, np.cross(n, a)
+
+
+def _disc_from(x, nominal: Disc) -> Disc:
+    """The disc moved by x[:3] (mm) from the nominal centre and tilted by x[3], x[4] (deg) about
+    two axes perpendicular to the nominal normal."""
+    a, b = _tilt_basis(nominal.normal)
+    ta, tb = np.radians(x[3]), np.radians(x[4])
+    n = np.asarray(nominal.normal) + np.tan(ta) * a + np.tan(tb) * b
+    return Disc(np.asarray(nominal.center) + np.asarray(x[:3]), n, nominal.radius)
+
+
+def block_mean(image, grid: int) -> tuple[np.ndarray, tuple]:
+    """Means of ``grid`` x ``grid`` blocks of an image (trailing rows/columns that do not fill a
+    block are dropped) and the (H, W) the blocks cover."""
+    image = np.asarray(image, float)
+    h, w = image.shape
+    gy, gx = min(grid, h), min(grid, w)
+    by, bx = h // gy, w // gx
+    cut = image[: gy * by, : gx * bx]
+    return cut.reshape(gy, by, gx, bx).mean(axis=(1, 3)), (gy * by, gx * bx)
+
+
+def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False, grid: int = FIT_GRID,
+              fit_center: bool = True, fit_tilt: bool = True) -> Calibration:
+    """Fit every detector's centre, tilt and gain (and offset) to its flat-plate image.
+
+    Parameters
+    ----------
+    flats : mapping of str to ndarray (H, W)
+        Flat-plate images by detector name (any unit: volts, N_d/N_0, counts).
+    nominal : ScanGeometry
+        The drawing's geometry: the start of the fit, the radii, the beam and the material.
+    fit_offset : bool
+        Also fit a constant offset per detector (an amplifier's dark level).
+    grid : int
+        The fit runs on ``grid`` x ``grid`` block means of each image.
+    fit_center, fit_tilt : bool
+        Hold the centre / the normal at the nominal value when False.
+
+    Returns
+    -------
+    Calibration
+    """
+    from scipy.optimize import least_squares
+
+    names = [n for n in nominal.detectors if n in flats]
+    if not names:
+        raise EloInputError(f"flat-plate images for {', '.join(nominal.detectors)} are needed; got {', '.join(flats)}")
+    first = np.asarray(flats[names[0]], float)
+    if first.ndim != 2 or first.shape != tuple(nominal.shape):
+        raise EloInputError(f"flat-plate images are {first.shape}, the geometry {nominal.shape}: one scan needed")
+    coarse_shape = None
+    data = {}
+    for n in names:
+        img = np.asarray(flats[n], float)
+        if img.shape != first.shape:
+            raise EloInputError(f"flat-plate image {n!r} is {img.shape}, {names[0]!r} {first.shape}")
+        if not np.all(np.isfinite(img)):
+            raise EloInputError(f"flat-plate image {n!r} holds NaN or Inf; cannot calibrate")
+        data[n], covered = block_mean(img, grid)
+        coarse_shape = data[n].shape
+        if not np.median(data[n]) > 0:
+            raise EloInputError(f"flat-plate image {n!r} is not positive (median {np.median(data[n]):g}); "
+                                "is the detector connected?")
+    # the blocks' centres: the coarse grid over the covered part of the field
+    fx, fy = nominal.field_mm
+    h, w = nominal.shape
+    covered_field = (fx * covered[1] / w, fy * covered[0] / h)
+    shift = (-(fx - covered_field[0]) / 2, (fy - covered_field[1]) / 2)
+    coarse = ScanGeometry(field_mm=covered_field, shape=coarse_shape, detectors=nominal.detectors,
+                          work_distance_mm=nominal.work_distance_mm, projection=nominal.projection,
+                          aim_offset_mm=(nominal.aim_offset_mm[0] + shift[0], nominal.aim_offset_mm[1] + shift[1]),
+                          material=nominal.material)
+    pts, dirs = coarse.beam(None)
+    free = [fit_center] * 3 + [fit_tilt] * 2 + [True, fit_offset]
+    fits = {}
+    for name in names:
+        nominal_disc = nominal.detectors[name]
+        y = data[name].ravel()
+        level = float(np.median(y))
+
+        def models(xs, nominal_disc=nominal_disc):
+            """Flat-plate signals of the disc moved/tilted by each x[:5], in one kernel."""
+            discs = {str(i): _disc_from(x, nominal_disc) for i, x in enumerate(xs)}
+            fm = FacetModel(discs, nominal.material, nodes=CALIBRATION_NODES)
+            mi = fm.mi
+            sig = fm.signals(mi.Point3f(to_vector(mi, pts)), to_vector(mi, dirs), [mi.Vector3f(0.0, 0.0, 1.0)])[0]
+            fm.dr.eval(sig)
+            return [np.asarray(v, dtype=np.float64) for v in sig]
+
+        # x = centre offset from nominal (mm, 3), tilt (deg, 2), gain, offset
+        (s0,) = models([np.zeros(5)])
+        x0 = np.r_[np.zeros(5), level / float(np.median(s0)), 0.0]
+        idx = np.nonzero(free)[0]
+
+        def full(xf):
+            x = x0.copy()
+            x[idx] = xf
+            return x
+
+        def resid(xf):
+            x = full(xf)
+            (m,) = models([x[:5]])
+            return (x[5] * m + x[6] - y) / level
+
+        def jac(xf):
+            # central differences of the geometry, absolute steps well above float32 round-off
+            # (the model is float32: a 1e-3 mm step would change the signal by ~1e-6)
+            x = full(xf)
+            probes = [x[:5]]
+            for i in range(5):
+                for sign in (1.0, -1.0):
+                    xp = x[:5].copy()
+                    xp[i] += sign * GEOMETRY_STEPS[i]
+                    probes.append(xp)
+            sig = models(probes)
+            cols = []
+            for i in idx:
+                if i < 5:
+                    cols.append(x[5] * (sig[1 + 2 * i] - sig[2 + 2 * i]) / (2 * GEOMETRY_STEPS[i]) / level)
+                elif i == 5:
+                    cols.append(sig[0] / level)
+                else:
+                    cols.append(np.full(sig[0].shape, 1.0 / level))
+            return np.stack(cols, axis=1)
+
+        sol = least_squares(resid, x0[idx], jac=jac, method="trf", x_scale="jac", xtol=1e-8, ftol=1e-10,
+                            max_nfev=30)
+        x = full(sol.x)
+        r = sol.fun
+        dof = max(len(r) - len(idx), 1)
+        s2 = float(np.sum(r * r) / dof)
+        J = sol.jac
+        try:
+            cov = np.linalg.inv(J.T @ J) * s2
+            sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+            corr = cov / np.outer(sig, sig)
+        except np.linalg.LinAlgError:
+            sig = np.full(len(idx), np.inf)
+            corr = np.full((len(idx), len(idx)), np.nan)
+        names_free = [PARAMETERS[i] for i in idx]
+        sigma = {k: float(v) for k, v in zip(names_free, sig)}
+        correlation = {f"{names_free[i]}~{names_free[j]}": round(float(corr[i, j]), 4)
+                       for i in range(len(idx)) for j in range(i + 1, len(idx))}
+        degenerate = [k for k, v in correlation.items() if not abs(v) < DEGENERATE_CORRELATION]
+        fits[name] = DetectorFit(disc=_disc_from(x, nominal_disc), gain=float(x[5]), offset=float(x[6]),
+                                 sigma=sigma, correlation=correlation, degenerate=degenerate,
+                                 rms_residual=float(np.sqrt(np.mean(r * r))))
+    return Calibration(detectors=fits, source={"nominal": nominal.as_dict(), "grid": list(coarse_shape),
+                                               "fit_offset": bool(fit_offset)})
+
+
+def write_calibration(path, calibration: Calibration, *, overwrite: bool = False) -> Path:
+    """Write ``CALIB.json``."""
+    path = check_output(path, (".json",), overwrite=overwrite, what="calibration")
+    text = json.dumps(calibration.as_dict(), indent=2, allow_nan=False)
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text + "\n"))
+
+
+def read_calibration(path) -> Calibration:
+    """Read a ``CALIB.json`` of :func:`write_calibration` (or one written by hand with, per
+    detector, ``center``, ``normal``, ``radius`` and optionally ``gain``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise EloInputError(f"{path}: no such calibration file")
+    try:
+        doc = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise EloInputError(f"{path}: not a JSON calibration ({str(exc).splitlines()[0]})") from None
+    dets = doc.get("detectors") if isinstance(doc, dict) else None
+    if not isinstance(dets, dict) or not dets:
+        raise EloInputError(f"{path}: no 'detectors' object (per detector: center, normal, radius, gain)")
+    fits = {}
+    for name, d in dets.items():
+        try:
+            disc = Disc(d["center"], d["normal"], d["radius"])
+        except (KeyError, TypeError) as exc:
+            raise EloInputError(f"{path}: detector {name!r} lacks {exc} (need center, normal, radius)") from None
+        fits[name] = DetectorFit(disc=disc, gain=float(d.get("gain", 1.0)), offset=float(d.get("offset", 0.0)),
+                                 sigma=dict(d.get("sigma", {})), correlation=dict(d.get("correlation", {})),
+                                 degenerate=list(d.get("not_separable", [])),
+                                 rms_residual=float(d.get("rms_residual_relative", float("nan"))))
+    return Calibration(detectors=fits, source=dict(doc.get("source", {})))
