@@ -20,6 +20,7 @@ COMMANDS = (
     "render",
     "mesh",
     "gradient",
+    "calibrate",
     "reconstruct",
     "reflectance_map",
 )
@@ -36,6 +37,7 @@ examples:
   elo-mitsuba render flat_plate -o flat.exr                 # a shipped scene, by name
   elo-mitsuba render scenes_xml/athene_flat.xml -o a.exr --events 2 --spp 64 -D dh=250
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad.exr
+  elo-mitsuba calibrate flat.exr --dh 272 --dw 127 -o CALIB.json
   elo-mitsuba reconstruct grad.exr -o height.npy
 
 Run 'elo-mitsuba COMMAND --help' for each command's options.

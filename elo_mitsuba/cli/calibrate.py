@@ -1,0 +1,114 @@
+"""``elo-mitsuba calibrate``: flat-plate images -> each detector's real centre, tilt and gain."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ..constants import DETECTOR_NAMES
+from ..errors import EloInputError
+from .gradient import field_arg, positive_float
+
+DESCRIPTION = """\
+Fit where each detector really is, from the four images of a plane plate (any unit: volts,
+N_d/N_0): per detector its centre (x, y, z mm), the tilt of its normal (two angles, deg) and its
+amplifier gain (image units per N_d/N_0), optionally a constant offset, by least squares against
+the 1st-event model (full g_BSE of Eq. 13, disc detectors, the beam of each scan point). Each
+detector's image depends on that detector alone, so each is fitted on its own, on 48 x 48 block
+means of its image.
+
+The start is the drawing: --dh/--dw (and --radius, --wd) or, without them, the detectors of the
+EXR header. The radius is held: it scales the signal like the gain. The output CALIB.json holds,
+per detector, center, normal, radius, gain, offset, one-sigma uncertainties, the parameter
+correlations and the pairs the data cannot separate (|correlation| > 0.99): those are known only
+in combination, which is what the images (and the model gradient) depend on.
+Precision: with 0.5 % noise per pixel, about 0.2 mm in the centre from a 1024 x 1024 flat,
+about 3 mm from 128 x 128 (the noise of the block means sets it).
+
+Use the result with 'elo-mitsuba gradient --calibration CALIB.json'.
+"""
+
+EPILOG = """\
+examples:
+  elo-mitsuba calibrate flat.exr --dh 272 --dw 127 -o CALIB.json
+  elo-mitsuba calibrate --right R0.tif --left L0.tif --back B0.tif --front F0.tif \\
+      --field 80 --dh 272 --dw 127 --radius 25 -o CALIB.json
+"""
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "calibrate", help="flat-plate images -> detector centres, tilts and gains (CALIB.json)",
+        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("flat", nargs="?", metavar="FLAT.exr", help="flat-plate EXR with channels right, left, back, front")
+    p.add_argument("-o", "--output", required=True, metavar="CALIB.json", help="calibration file to write")
+    src = p.add_argument_group("single-channel inputs (recorded machine images)")
+    for n in DETECTOR_NAMES:
+        src.add_argument(f"--{n}", metavar="FILE", help=f"{n} detector image of the flat plate (EXR/TIFF/NPY)")
+    geo = p.add_argument_group("nominal geometry (the drawing: the start of the fit)")
+    geo.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm, e.g. 80")
+    geo.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
+    geo.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
+    geo.add_argument("--radius", type=positive_float, metavar="MM", help="detector disc radius (default 25)")
+    geo.add_argument("--wd", type=positive_float, metavar="MM", help="work distance (default: header, else 400)")
+    geo.add_argument("--projection", choices=("perspective", "orthographic"), help="beam projection")
+    geo.add_argument("--material", metavar="NAME", help="plate material (default: header, else Ti-6Al-4V)")
+    fit = p.add_argument_group("fit")
+    fit.add_argument("--fit-offset", action="store_true", help="also fit a constant offset per detector")
+    fit.add_argument("--no-tilt", action="store_true", help="hold each normal at its nominal direction")
+    fit.add_argument("--event", type=int, metavar="K", help="use the per-event channels right.eK ... of the EXR")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing CALIB.json")
+    p.set_defaults(run=run)
+    return p
+
+
+def run(args) -> int:
+    from ..analysis.calibration import calibrate, write_calibration
+    from ..analysis.io import load_detector_set
+    from ..analysis.scan_geometry import ScanGeometry
+    from ..constants import DETECTOR_DIAMETER_MM, WORK_DISTANCE_MM
+    from ..files import check_output
+    from ..grid import field_xy
+
+    out = check_output(args.output, (".json",), overwrite=args.overwrite, what="calibration")
+    flats, header = load_detector_set(args.flat, {n: getattr(args, n) for n in DETECTOR_NAMES}, "flat-plate images",
+                                      args.event)
+    if flats is None:
+        raise EloInputError("no flat-plate images: give FLAT.exr or --right/--left/--back/--front")
+    shape = next(iter(flats.values())).shape
+    source = args.flat or "command line"
+    if (args.dh is None) != (args.dw is None):
+        raise EloInputError("give both --dh and --dw (the nominal layout), or neither (the header's detectors)")
+    if args.dh is not None or not header.get("detectors"):
+        if args.dh is None:
+            raise EloInputError(f"{source}: no detector geometry in the input; pass --dh and --dw (mm)")
+        field = args.field if args.field is not None else header.get("field_mm")
+        if field is None:
+            raise EloInputError(f"{source}: no scan field in the input; pass --field FX[,FY] (mm)")
+        kw = {"work_distance_mm": args.wd or header.get("work_distance_mm", WORK_DISTANCE_MM),
+              "projection": args.projection or header.get("projection", "perspective")}
+        if args.material:
+            kw["material"] = args.material
+        nominal = ScanGeometry.nominal(shape, field_xy(field, shape), args.dh, args.dw,
+                                       radius=args.radius or DETECTOR_DIAMETER_MM / 2, **kw)
+    else:
+        for flag in ("radius", "wd", "projection"):
+            if getattr(args, flag) is not None:
+                raise EloInputError(f"--{flag} applies with --dh/--dw (the nominal layout); {source} records it")
+        nominal = ScanGeometry.from_metadata(header, shape, str(source), field_mm=args.field, material=args.material)
+    cal = calibrate(flats, nominal, fit_offset=args.fit_offset, fit_tilt=not args.no_tilt)
+    cal.source["input"] = str(source)
+    write_calibration(out, cal, overwrite=args.overwrite)
+    for name, fit in cal.detectors.items():
+        nom = np.asarray(nominal.detectors[name].center)
+        c = np.asarray(fit.disc.center)
+        sig = [fit.sigma.get(k, 0.0) for k in ("cx", "cy", "cz")]
+        tilt = np.degrees(np.arccos(np.clip(np.dot(fit.disc.normal, nominal.detectors[name].normal), -1, 1)))
+        note = f"; not separable: {', '.join(fit.degenerate)}" if fit.degenerate else ""
+        print(f"  {name:6s} centre [{c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}] mm (+-{max(sig):.2f}; moved "
+              f"{np.linalg.norm(c - nom):.2f} mm), tilt {tilt:.2f} deg, gain {fit.gain:.5g}, "
+              f"rms misfit {100 * fit.rms_residual:.3f} %{note}")
+    print(f"wrote {out}")
+    return 0
