@@ -41,6 +41,8 @@ def table_lookup(table, theta_deg, size, offset=None, active=True):
     ``table`` on the uniform 0..90 deg grid of ``size`` nodes, starting at index ``offset``
     (a material's slot in a scene table)."""
     pos = theta_deg * ((size - 1) / 90.0)
+    # NaN (a degenerate normal) would cast to an arbitrary index and read outside the table
+    pos = dr.select(dr.isfinite(pos), pos, 0.0)
     i0 = mi.UInt32(dr.clip(dr.floor(pos), 0, size - 2))
     frac = pos - mi.Float(i0)
     index = i0 if offset is None else offset + i0

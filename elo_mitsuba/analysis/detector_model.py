@@ -124,6 +124,8 @@ class FacetModel:
 
         dr = self.dr
         cos_t = -dr.dot(n, beam_dirs)
+        # a non-finite normal must not reach the table's gather index (out of bounds); its g is 0
+        cos_t = dr.select(dr.isfinite(cos_t), cos_t, 0.0)
         theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
         weight = table_lookup(self._table, theta_deg, self._table_size)
         mirror = n * (2.0 * cos_t) + beam_dirs

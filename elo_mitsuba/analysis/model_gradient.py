@@ -127,6 +127,8 @@ def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step)
         # a rejected step is retried from the best point, a tenth as long, with 10x the damping
         new_p = dr.select(better, p + dp * shrink, bp + (p - bp) * 0.1)
         new_q = dr.select(better, q + dq * shrink, bq + (q - bq) * 0.1)
+        stuck = ~(dr.isfinite(new_p) & dr.isfinite(new_q))  # a singular step: stay at the best point
+        new_p, new_q = dr.select(stuck, bp, new_p), dr.select(stuck, bq, new_q)
         lam = dr.select(better, lam * 0.3, lam * 10.0)
         bp, bq = dr.select(better, p, bp), dr.select(better, q, bq)
         sb = dr.select(better, s, sb)
