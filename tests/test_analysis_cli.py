@@ -67,7 +67,7 @@ def scene(tmp_path_factory):
 def test_round_trip_matches_library(scene, tmp_path):
     d, gx, gy = scene
     grad, height = tmp_path / "grad.exr", tmp_path / "h.exr"
-    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(grad),
+    assert main(["gradient", "--method", "eq26", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(grad),
                  "--preview", str(tmp_path / "g.png")]) == 0
     assert main(["reconstruct", str(grad), "-o", str(height), "--preview", str(tmp_path / "h.png")]) == 0
     ch, m = read_exr(grad)
@@ -106,9 +106,9 @@ def test_recorded_single_files_and_formats(scene, tmp_path):
         tifffile.imwrite(tmp_path / f"flat_{n}.tif", (-1e5 * flat[n]).astype(np.float32))
         args += [f"--{n}", str(tmp_path / f"{n}.npy"), f"--flat-{n}", str(tmp_path / f"flat_{n}.tif")]
     out = tmp_path / "grad.exr"
-    assert main(["gradient", *args, "--field", "24,20", "--dh", str(DH), "--dw", str(DW), "-o", str(out)]) == 0
+    assert main(["gradient", "--method", "eq26", *args, "--field", "24,20", "--dh", str(DH), "--dw", str(DW), "-o", str(out)]) == 0
     ref = tmp_path / "ref.exr"
-    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(ref)]) == 0
+    assert main(["gradient", "--method", "eq26", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(ref)]) == 0
     a, _ = read_exr(out)
     b, _ = read_exr(ref)
     assert np.allclose(a["dzdx"], b["dzdx"], atol=1e-5) and np.array_equal(a["mask"], b["mask"])
@@ -121,45 +121,45 @@ def test_recorded_single_files_and_formats(scene, tmp_path):
 
 def test_event_channels(scene, tmp_path):
     d, _, _ = scene
-    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "--event", "1",
+    assert main(["gradient", "--method", "eq26", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "--event", "1",
                  "-o", str(tmp_path / "g1.exr")]) == 0
 
 
 def test_user_errors_exit_2(scene, tmp_path, capsys):
     d, _, _ = scene
     out = tmp_path / "g.exr"
-    base = ["gradient", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(out)]
+    base = ["gradient", "--method", "eq26", "--flat", str(d / "flat.exr"), str(d / "obj.exr"), "-o", str(out)]
     assert main(base) == 0
     assert main(base) == 2 and "exists" in capsys.readouterr().err           # no silent overwrite
     assert main(base + ["--overwrite"]) == 0
     # detectors that disagree in height
     obj, _ = read_exr(d / "obj.exr")
     write_exr(tmp_path / "bad.exr", obj, meta(detectors=detector_block(jitter={"back": 5.0})))
-    assert main(["gradient", "--flat", str(d / "flat.exr"), str(tmp_path / "bad.exr"),
+    assert main(["gradient", "--method", "eq26", "--flat", str(d / "flat.exr"), str(tmp_path / "bad.exr"),
                  "-o", str(tmp_path / "x.exr")]) == 2
     err = capsys.readouterr().err
     assert "differ in height" in err and err.count("\n") == 1
     # ... unless overridden
-    assert main(["gradient", "--flat", str(d / "flat.exr"), str(tmp_path / "bad.exr"), "--dh", str(DH),
+    assert main(["gradient", "--method", "eq26", "--flat", str(d / "flat.exr"), str(tmp_path / "bad.exr"), "--dh", str(DH),
                  "-o", str(tmp_path / "x.exr")]) == 0
     capsys.readouterr()
     # a flat recorded with another field
     flat, _ = read_exr(d / "flat.exr")
     write_exr(tmp_path / "flat80.exr", flat, meta(field_mm=[80.0, 80.0]))
-    assert main(["gradient", "--flat", str(tmp_path / "flat80.exr"), str(d / "obj.exr"),
+    assert main(["gradient", "--method", "eq26", "--flat", str(tmp_path / "flat80.exr"), str(d / "obj.exr"),
                  "-o", str(tmp_path / "w.exr")]) == 2
     assert "field_mm" in capsys.readouterr().err
     # header resolution that does not match the pixels
     write_exr(tmp_path / "res.exr", obj, meta(resolution=[SHAPE[0], SHAPE[1]]))
-    assert main(["gradient", "--no-flat", str(tmp_path / "res.exr"), "-o", str(tmp_path / "v.exr")]) == 2
+    assert main(["gradient", "--method", "eq26", "--no-flat", str(tmp_path / "res.exr"), "-o", str(tmp_path / "v.exr")]) == 2
     assert "resolution" in capsys.readouterr().err
     # single files without geometry
     np.save(tmp_path / "r.npy", obj["right"])
     args = sum(([f"--{n}", str(tmp_path / "r.npy")] for n in DETECTOR_NAMES), [])
-    assert main(["gradient", *args, "--no-flat", "-o", str(tmp_path / "y.exr")]) == 2
+    assert main(["gradient", "--method", "eq26", *args, "--no-flat", "-o", str(tmp_path / "y.exr")]) == 2
     assert "--field" in capsys.readouterr().err
     # missing flat
-    assert main(["gradient", str(d / "obj.exr"), "-o", str(tmp_path / "z.exr")]) == 2
+    assert main(["gradient", "--method", "eq26", str(d / "obj.exr"), "-o", str(tmp_path / "z.exr")]) == 2
     assert "flat" in capsys.readouterr().err
     assert main(["reconstruct", str(d / "obj.exr"), "-o", str(tmp_path / "h.npy")]) == 2
     assert "dzdx" in capsys.readouterr().err

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elo_mitsuba.analysis import MASK_BITS, integrate_gradient, surface_gradient
+from elo_mitsuba.analysis import MASK_BITS, surface_gradient
 from elo_mitsuba.analysis.detector_model import model_images
 from elo_mitsuba.analysis.first_event import disc_integral
 from elo_mitsuba.analysis.model_gradient import model_gradient

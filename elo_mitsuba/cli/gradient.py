@@ -135,6 +135,8 @@ def _model_geometry(args, header, shape, geo, source):
 
     explicit = args.dh is not None or args.dw is not None or not (header or {}).get("detectors")
     if explicit:
+        if (args.dh is None) != (args.dw is None) and (header or {}).get("detectors"):
+            raise EloInputError("give both --dh and --dw (a nominal layout), or neither (the header's detectors)")
         kw = {"work_distance_mm": args.wd or (header or {}).get("work_distance_mm", WORK_DISTANCE_MM),
               "projection": args.projection or (header or {}).get("projection", "perspective")}
         if args.material:
@@ -200,16 +202,36 @@ def run(args) -> int:
     if not header and (args.field is None or args.dh is None or args.dw is None):
         raise EloInputError("single-file inputs carry no geometry: pass --field, --dh and --dw (mm)")
     shape = next(iter(images.values())).shape
-    geo = geometry_from_metadata(header, str(source), d_h=args.dh, d_w=args.dw, field_mm=args.field, shape=shape)
+    header_discs = args.method == "model" and args.dh is None and args.dw is None and bool((header or {}).get("detectors"))
+    if header_discs:
+        # the model takes the header's discs as they are: no symmetric layout needed
+        from ..analysis.scan_geometry import ScanGeometry
+
+        disc_geo = ScanGeometry.from_metadata(header, shape, str(source), field_mm=args.field, material=args.material)
+        res_hdr = header.get("resolution")
+        d_h, d_w = disc_geo.symmetric_layout()
+        geo = {"field_mm": disc_geo.field_mm, "d_h": d_h, "d_w": d_w,
+               "resolution": None if res_hdr is None else (int(res_hdr[0]), int(res_hdr[1]))}
+    else:
+        geo = geometry_from_metadata(header, str(source), d_h=args.dh, d_w=args.dw, field_mm=args.field, shape=shape)
     if meta and flat_meta:
         # The flat must describe the same scan, or the division mixes two geometries.
-        fgeo = geometry_from_metadata(flat_meta, str(args.flat), d_h=args.dh, d_w=args.dw, field_mm=args.field,
-                                      shape=shape)
-        for key in ("field_mm", "d_h", "d_w", "resolution"):
-            if (geo[key] is None) != (fgeo[key] is None) or (geo[key] is not None and not _same(geo[key], fgeo[key])):
+        if header_discs:
+            fdisc = ScanGeometry.from_metadata(flat_meta, shape, str(args.flat), field_mm=args.field)
+            fgeo = {"field_mm": fdisc.field_mm, "resolution": flat_meta.get("resolution"),
+                    **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in fdisc.detectors.items()}}
+            geo_cmp = {"field_mm": geo["field_mm"], "resolution": geo["resolution"],
+                       **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in disc_geo.detectors.items()}}
+        else:
+            fgeo = geometry_from_metadata(flat_meta, str(args.flat), d_h=args.dh, d_w=args.dw, field_mm=args.field,
+                                          shape=shape)
+            geo_cmp = geo
+        for key in fgeo:
+            a, b = geo_cmp.get(key), fgeo[key]
+            if (a is None) != (b is None) or (a is not None and not _same(a, b)):
                 raise EloInputError(
-                    f"{args.flat}: flat-plate {key} {fgeo[key]} differs from the object's {geo[key]}; "
-                    "record both with one geometry"
+                    f"{args.flat}: flat-plate {key} {np.round(np.asarray(b, float), 4).tolist()} differs from the "
+                    f"object's {np.round(np.asarray(a, float), 4).tolist()}; record both with one geometry"
                 )
     if geo["resolution"] is not None and tuple(geo["resolution"]) != (shape[1], shape[0]):
         raise EloInputError(
