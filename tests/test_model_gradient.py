@@ -143,7 +143,7 @@ def test_sawtooth_plate_model_beats_eq26(sawtooth_renders):
     e_rows = saw.patch_errors(eq26.dzdx, eq26.dzdy, geo.field_mm, margin_mm=margin, mask=eq26.mask)
     for m, e in zip(m_rows, e_rows):
         assert m["pixels"] > 20 and m["masked"] <= 0.05 * (m["pixels"] + m["masked"]), m
-        assert m["median_error"] <= 0.01, m
+        assert m["median_error"] <= 0.01 and m["facet_error"] <= 0.01, m
     assert max(e["median_error"] for e in e_rows) > 0.2
     # the height error the gradient causes (at 0.5 mm pixels the integration's own error on the
     # sampled zigzag, 0.03-0.2 mm, would hide it; validation states both at 1500 x 1500)

@@ -19,6 +19,8 @@ Studies (one module each, run in this order):
 ``melt_plate``            Figs. 6, 7, 11 (+ Fig. 3b): M_x, Eq. 26, beam blur, height reconstruction
 ``convergence``           Sec. 2.1.1 / App. A: error against a converged reference vs spp, events,
                           detector samples; the settings for 1 % and 0.1 %
+``topography``            beyond the paper: model-based gradient vs Eq. 26 on the sawtooth plate,
+                          noise, blur, 2nd event, detector calibration
 ========================  =======================================================================
 
 The package lives only in a source checkout (it is not installed with elo_mitsuba). Importing it
@@ -30,7 +32,7 @@ from __future__ import annotations
 from .report import VERDICTS, Row, StudyResult  # noqa: F401
 
 #: Study names in the order they run (module validation.study_<name>).
-STUDIES = ("checks", "stsa", "corrugated", "reflectance", "masking", "melt_plate", "convergence")
+STUDIES = ("checks", "stsa", "corrugated", "reflectance", "masking", "melt_plate", "convergence", "topography")
 
 
 def run(quick: bool = False, output_dir=None, only=None, log=print, json_path=None, figures=True):

@@ -31,6 +31,7 @@ DEFAULT = {
         # detector-sampling strategies (when the integrator offers them)
         "strategy_spp": 64, "strategy_samples": 4, "quadrature_triangles": (4, 8, 16, 64, 256),
     },
+    "topography": {"res": 512, "cal_res": 1024},   # sawtooth plate; the calibration's flat
 }
 
 QUICK = {
@@ -50,6 +51,7 @@ QUICK = {
         "quad_res": 8,
         "strategy_spp": 8, "strategy_samples": 4, "quadrature_triangles": (4, 8, 16),
     },
+    "topography": {"res": 160, "cal_res": 256},
 }
 
 

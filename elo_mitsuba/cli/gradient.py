@@ -266,7 +266,8 @@ def run(args) -> int:
           f"d_h={geo['d_h']:g} mm, d_w={geo['d_w']:g} mm, method {args.method}, {100 * res.mask.mean():.2f} % masked"
           + extra)
     if args.preview:
-        preview_gradient(res.dzdx, res.dzdy, geo["field_mm"], Path(args.preview), mask=res.mask,
+        title = "Surface gradient (model fit)" if args.method == "model" else "Surface gradient (Eq. 26)"
+        preview_gradient(res.dzdx, res.dzdy, geo["field_mm"], Path(args.preview), mask=res.mask, title=title,
                          overwrite=args.overwrite)
         print(f"wrote {args.preview}")
     return 0

@@ -110,6 +110,23 @@ def sawtooth_gradient(x, y) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
+def landing_points(x, y, wd_mm: float | None, iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Where the beam aimed at (x, y) on z = 0 from the pivot (0, 0, ``wd_mm``) meets the plate
+    (None: an orthographic beam lands at (x, y)). On a 2 mm high facet at x = 26 mm the landing
+    point is 0.13 mm closer to the axis than the aim point: next to a ridge that is the other
+    facet. Fixed-point iteration x_l = x (1 - Z(x_l, y_l) / wd), a contraction (|grad Z| <= 1,
+    |x| / wd < 0.1)."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    if wd_mm is None:
+        return x, y
+    xl, yl = x, y
+    for _ in range(iterations):
+        t = 1.0 - sawtooth_height(xl, yl) / float(wd_mm)
+        xl, yl = x * t, y * t
+    return xl, yl
+
+
 def facet_interiors(x, y, margin_mm: float) -> np.ndarray:
     """Index of the patch (0..8) whose facet interior holds (x, y), farther than ``margin_mm``
     from any ridge, valley or patch edge; -1 elsewhere."""
@@ -140,36 +157,51 @@ def sawtooth_mesh(pitch_mm: float = MESH_PITCH_MM):
     return heightmap_to_mesh(sawtooth_heightmap(pitch_mm), pitch_mm, tolerance_mm=1e-9)
 
 
-def patch_errors(dzdx, dzdy, field_mm, *, margin_mm: float, mask=None) -> list[dict]:
-    """Per patch: median relative error |g_est - g| / |g| over its facet interiors, and count.
+def patch_errors(dzdx, dzdy, field_mm, *, margin_mm: float, mask=None, wd_mm: float | None = 400.0) -> list[dict]:
+    """Per patch, over its facet interiors (pixels whose beam lands there, :func:`landing_points`):
+
+    * ``median_error``: the median over pixels of |g_est - g| / |g| (includes per-pixel noise);
+    * ``facet_error``: the error of the patch's facet slopes, |median g_est - g| / |g| for the
+      rising and the falling facets, the larger of the two (the bias; noise averages out);
+    * ``pixels`` used and ``masked`` (left out).
 
     ``dzdx``, ``dzdy`` are a gradient image of the plate (package orientation, scan field
-    ``field_mm``); masked pixels are left out (and counted).
+    ``field_mm``); ``wd_mm`` the beam's pivot height (None: orthographic).
     """
     dzdx = np.asarray(dzdx, float)
-    x, y = pixel_coordinates(dzdx.shape, field_mm)
+    dzdy = np.asarray(dzdy, float)
+    x, y = landing_points(*pixel_coordinates(dzdx.shape, field_mm), wd_mm)
     gx, gy = sawtooth_gradient(x, y)
     idx = facet_interiors(x, y, margin_mm)
-    err = np.hypot(dzdx - gx, np.asarray(dzdy, float) - gy) / np.maximum(np.hypot(gx, gy), 1e-12)
+    err = np.hypot(dzdx - gx, dzdy - gy) / np.maximum(np.hypot(gx, gy), 1e-12)
     keep = np.ones(dzdx.shape, bool) if mask is None else ~np.asarray(mask, bool)
     rows = []
     for i, patch in enumerate(patches()):
         sel = idx == i
         good = sel & keep
+        facet = []
+        for sign in (1.0, -1.0):
+            rising = (gx * patch["direction"][0] + gy * patch["direction"][1]) > 0
+            f = good & (rising == (sign > 0))
+            if f.any():
+                tx, ty = np.median(gx[f]), np.median(gy[f])
+                facet.append(np.hypot(np.median(dzdx[f]) - tx, np.median(dzdy[f]) - ty) / np.hypot(tx, ty))
         rows.append({**{k: patch[k] for k in ("center", "slope", "orientation")},
                      "median_error": float(np.median(err[good])) if good.any() else float("nan"),
+                     "facet_error": float(max(facet)) if facet else float("nan"),
                      "pixels": int(good.sum()), "masked": int((sel & ~keep).sum())})
     return rows
 
 
-def patch_height_errors(dzdx, dzdy, field_mm, *, margin_mm: float, reference: str = "truth") -> list[float]:
+def patch_height_errors(dzdx, dzdy, field_mm, *, margin_mm: float, reference: str = "truth",
+                        wd_mm: float | None = 400.0) -> list[float]:
     """Per patch: RMSE (mm) of the height integrated from ``dzdx``, ``dzdy`` over the patch alone
     (inset by ``margin_mm``, so no cliff is crossed), both with their mean removed, against
 
     * ``reference="truth"``: the true relief at the pixel centres (includes the integration's own
       error on a sampled zigzag, ~ slope x pixel / 2 at the ridges), or
-    * ``reference="integrated"``: the same integration of the true gradient at the pixel centres
-      (only what the gradient's error does to the height).
+    * ``reference="integrated"``: the same integration of the true gradient where each pixel's
+      beam lands (:func:`landing_points`; only what the gradient's error does to the height).
 
     Integration: :func:`elo_mitsuba.analysis.integrate_gradient` (DCT).
     """
@@ -179,7 +211,7 @@ def patch_height_errors(dzdx, dzdy, field_mm, *, margin_mm: float, reference: st
         raise ValueError(f"reference {reference!r}: 'truth' or 'integrated'")
     dzdx = np.asarray(dzdx, float)
     x, y = pixel_coordinates(dzdx.shape, field_mm)
-    gx, gy = sawtooth_gradient(x, y)
+    gx, gy = sawtooth_gradient(*landing_points(x, y, wd_mm))
     out = []
     for patch in patches():
         cx, cy = patch["center"]
@@ -189,7 +221,7 @@ def patch_height_errors(dzdx, dzdy, field_mm, *, margin_mm: float, reference: st
         sub_field = (len(cols) * field_mm[0] / dzdx.shape[1], len(rows) * field_mm[1] / dzdx.shape[0])
         h, _ = integrate_gradient(dzdx[sl], np.asarray(dzdy, float)[sl], sub_field, method="dct")
         if reference == "truth":
-            ref = sawtooth_height(x[sl], y[sl])
+            ref = sawtooth_height(*landing_points(x[sl], y[sl], wd_mm))
         else:
             ref, _ = integrate_gradient(gx[sl], gy[sl], sub_field, method="dct")
         d = (h - h.mean()) - (ref - ref.mean())
