@@ -16,6 +16,7 @@ DEFAULT = {
     "scaling": {"resolutions": (256, 512, 1024, 1500, 2048, 3000), "spp_res": 1500,
                 "spp_list": (1, 2, 4, 8, 16, 32), "mesh_grids": (72, 160, 320, 710, 1000), "mesh_res": 512,
                 "flat_grid": 1000},
+    "analysis": {"res": 1500, "rounds": 2},
 }
 
 QUICK = {
@@ -27,6 +28,7 @@ QUICK = {
     "path": {"res": 128, "spp_list": (16, 64)},
     "scaling": {"resolutions": (256, 512, 1024), "spp_res": 512, "spp_list": (1, 4, 16), "mesh_grids": (72, 225),
                 "mesh_res": 256, "flat_grid": 225},
+    "analysis": {"res": 256, "rounds": 1},
 }
 
 

@@ -110,6 +110,9 @@ def add_parser(subparsers):
                      help="Levenberg-Marquardt iterations of the model fit (default 10)")
     mod.add_argument("--noise", type=positive_float, default=None, metavar="SIGMA",
                      help="noise (std) of the corrected images for the uncertainty; default: estimated")
+    mod.add_argument("--second-event", metavar="SIM_FLAT.exr",
+                     help="a render of the flat plate in the chamber with --events >= 2: its share of later "
+                          "events is taken out of the flat and the object images (the model is 1st-event only)")
     mod.add_argument("--height-passes", type=int, default=1, metavar="N",
                      help="2: refit with the landing points on the integrated heights (relief of several mm)")
     p.add_argument("--event", type=int, metavar="K",
@@ -156,6 +159,23 @@ def _model_geometry(args, header, shape, geo, source):
     return model
 
 
+def _second_event_share(path, shape):
+    """Share of events >= 2 per detector and pixel, from a forward render with per-event channels."""
+    from ..analysis.io import read_detector_exr
+
+    total, meta = read_detector_exr(path)
+    first, _ = read_detector_exr(path, 1)
+    if int(meta.get("events", 1)) < 2:
+        raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; --second-event needs --events >= 2")
+    if next(iter(total.values())).shape != tuple(shape):
+        raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
+    out = {}
+    for n in DETECTOR_NAMES:
+        t = np.asarray(total[n], float)
+        out[n] = np.where(t > 0, 1.0 - np.asarray(first[n], float) / np.where(t > 0, t, 1.0), 0.0)
+    return out
+
+
 def _same(a, b, rtol=1e-6):
     return np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=rtol, atol=0)
 
@@ -174,7 +194,7 @@ def run(args) -> int:
     if args.height_passes not in (1, 2, 3):
         raise EloInputError(f"--height-passes {args.height_passes}: choose 1, 2 or 3")
     if args.method == "eq26":
-        for flag in ("calibration", "iterations", "noise", "radius", "wd", "projection", "material"):
+        for flag in ("calibration", "iterations", "noise", "radius", "wd", "projection", "material", "second_event"):
             if getattr(args, flag) is not None:
                 raise EloInputError(f"--{flag.replace('_', '-')} applies to --method model only")
         if args.height_passes != 1:
@@ -246,7 +266,11 @@ def run(args) -> int:
         model = _model_geometry(args, header, shape, geo, str(source))
         from ..analysis.model_gradient import model_gradient_refined
 
+        share = _second_event_share(args.second_event, shape) if args.second_event else None
+        if share is not None and flats is None:
+            raise EloInputError("--second-event corrects the flat-plate images; give --flat")
         res = model_gradient_refined(images, flats, model, passes=args.height_passes, noise=args.noise,
+                                     flat_second_event=share,
                                      iterations=ITERATIONS if args.iterations is None else args.iterations,
                                      min_corrected=kw["min_corrected"], min_sum=kw["min_sum"])
         kw.pop("min_denominator")
