@@ -42,6 +42,8 @@ from .stsa import MIN_SUM
 ITERATIONS = 10
 #: Forward-difference step in p and q.
 FD_STEP = 1e-3
+#: A pixel stops when its accepted step in p and q is below this (float32 resolution of a slope ~1).
+CONVERGED_STEP = 2e-6
 #: Largest change of p or q in one step.
 MAX_STEP = 0.5
 #: A pixel whose residual exceeds this many noise levels is flagged ``model_residual``.
@@ -109,10 +111,10 @@ def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step)
         return (sum_(x * x for x in jp), sum_(x * x for x in jq), sum_(x * y for x, y in zip(jp, jq)),
                 sum_(x * y for x, y in zip(jp, r0)), sum_(x * y for x, y in zip(jq, r0)))
 
-    def cond(it, *state):
-        return it < iterations
+    def cond(it, done, *state):
+        return (it < iterations) & ~done
 
-    def body(it, p, q, bp, bq, lam, best_cost, sb):
+    def body(it, done, p, q, bp, bq, lam, best_cost, sb):
         (r0, cost, s), (rp, _, _), (rq, _, _) = residuals(p, q)
         # keep the step if it lowered the cost, else go back to the best point and damp more
         better = cost < best_cost
@@ -133,14 +135,16 @@ def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step)
         bp, bq = dr.select(better, p, bp), dr.select(better, q, bq)
         sb = dr.select(better, s, sb)
         best_cost = dr.select(better, cost, best_cost)
-        return (it + 1, dr.clip(new_p, -MAX_SLOPE, MAX_SLOPE), dr.clip(new_q, -MAX_SLOPE, MAX_SLOPE),
+        # a pixel whose accepted step is below float32 resolution stops iterating (its lanes idle)
+        done = better & (step * shrink < CONVERGED_STEP)
+        return (it + 1, done, dr.clip(new_p, -MAX_SLOPE, MAX_SLOPE), dr.clip(new_q, -MAX_SLOPE, MAX_SLOPE),
                 bp, bq, lam, best_cost, sb)
 
     n_px = dr.width(p0)
-    state = (mi.UInt32(0), Float(p0), Float(q0), Float(p0), Float(q0), dr.full(Float, 1e-3, n_px),
+    state = (dr.zeros(mi.UInt32, n_px), dr.full(mi.Bool, False, n_px), Float(p0), Float(q0), Float(p0), Float(q0), dr.full(Float, 1e-3, n_px),
              dr.full(Float, np.inf, n_px), dr.zeros(Float, n_px))
     # one symbolic loop: a single kernel for all iterations, cached by Dr.Jit between runs
-    _, p, q, bp, bq, lam, best_cost, sb = dr.while_loop(state, cond, body, label="elo_model_gradient")
+    _, _, p, q, bp, bq, lam, best_cost, sb = dr.while_loop(state, cond, body, label="elo_model_gradient")
     ((_, cost, _),) = residuals(p, q, differences=False)
     # final: the best of the last trial and the stored best, with the Jacobian at that point
     use_new = cost < best_cost
