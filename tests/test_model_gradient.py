@@ -100,6 +100,27 @@ def test_inconsistent_pixels_are_flagged(mi):
     assert res.residual[3, 4] > 100 * np.median(res.residual)
 
 
+def test_one_hidden_detector_is_solved_from_three(mi):
+    """A facet so steep that it hides the right detector (Sec. 4.3 masking): Eq. 26 must mask it;
+    the model solves it from the other three detectors. A dark detector that the fitted facet
+    would see (a neighbour's shadow) is flagged instead."""
+    shape = (8, 8)
+    geo = ScanGeometry.nominal(shape, 60, 272, 127)
+    gx, gy = np.full(shape, 3.0), np.full(shape, 0.3)    # rises towards +x at 72 deg
+    flat = model_images(geo)
+    obj = model_images(geo, gx, gy)
+    assert np.all(obj["right"] / flat["right"] < 0.02) and np.all(obj["left"] > 0)  # hidden (partly, at the edge)
+    res = model_gradient(obj, flat, geo)
+    assert not res.mask.any()
+    assert np.max(np.abs(res.dzdx - 3.0)) < 1e-3 and np.max(np.abs(res.dzdy - 0.3)) < 1e-3
+    assert surface_gradient(obj, flat, geo.field_mm, 272, 127).mask.all()
+    shadowed = model_images(geo, np.full(shape, 0.4), np.zeros(shape))
+    shadowed["back"][2, 3] = 0.0                           # hidden by something else
+    res = model_gradient(shadowed, flat, geo)
+    assert res.mask[2, 3] and res.mask.sum() == 1
+    assert res.reasons[2, 3] & MASK_BITS["model_residual"]
+
+
 def test_heights_move_the_landing_points(mi):
     """A plate 15 mm above the build plane: the z = 0 model is biased, the model given the
     heights is exact (what the second pass of model_gradient_refined supplies)."""

@@ -85,8 +85,10 @@ class ModelGradientResult(GradientResult):
     iterations: int = 0
 
 
-def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step):
-    """Levenberg-Marquardt on (p, q) for all pixels; returns numpy p, q, s, cost, J^T J terms."""
+def _fit(model, points, beam, measured, weights, flat_model, p0, q0, iterations, fd_step):
+    """Levenberg-Marquardt on (p, q) for all pixels; returns numpy p, q, s, cost, J^T J terms and
+    the modelled corrected images s m_k at the solution. ``weights`` (0 or 1 per detector and
+    pixel) leave a masked detector out of the fit."""
     mi, dr = model.mi, model.dr
     Float = mi.Float
 
@@ -99,10 +101,10 @@ def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step)
         out = []
         for sig in model.signals(points, beam, normals):
             m = [s / f for s, f in zip(sig, flat_model)]
-            smm = sum_(mk * mk for mk in m)
-            s = dr.select(smm > 0, sum_(c * mk for c, mk in zip(measured, m)) / smm, 0.0)
-            r = [c - s * mk for c, mk in zip(measured, m)]
-            out.append((r, sum_(rk * rk for rk in r), s))
+            smm = sum_(w * mk * mk for w, mk in zip(weights, m))
+            s = dr.select(smm > 0, sum_(w * c * mk for w, c, mk in zip(weights, measured, m)) / smm, 0.0)
+            r = [w * (c - s * mk) for w, c, mk in zip(weights, measured, m)]
+            out.append((r, sum_(rk * rk for rk in r), s, m))
         return out
 
     def jacobian(r0, rp, rq):
@@ -115,7 +117,7 @@ def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step)
         return (it < iterations) & ~done
 
     def body(it, done, p, q, bp, bq, lam, best_cost, sb):
-        (r0, cost, s), (rp, _, _), (rq, _, _) = residuals(p, q)
+        (r0, cost, s, _), (rp, _, _, _), (rq, _, _, _) = residuals(p, q)
         # keep the step if it lowered the cost, else go back to the best point and damp more
         better = cost < best_cost
         a11, a22, a12, g1, g2 = jacobian(r0, rp, rq)
@@ -145,15 +147,16 @@ def _fit(model, points, beam, measured, flat_model, p0, q0, iterations, fd_step)
              dr.full(Float, np.inf, n_px), dr.zeros(Float, n_px))
     # one symbolic loop: a single kernel for all iterations, cached by Dr.Jit between runs
     _, _, p, q, bp, bq, lam, best_cost, sb = dr.while_loop(state, cond, body, label="elo_model_gradient")
-    ((_, cost, _),) = residuals(p, q, differences=False)
+    ((_, cost, _, _),) = residuals(p, q, differences=False)
     # final: the best of the last trial and the stored best, with the Jacobian at that point
     use_new = cost < best_cost
     p, q = dr.select(use_new, p, bp), dr.select(use_new, q, bq)
     dr.eval(p, q)
-    (r0, cost, s), (rp, _, _), (rq, _, _) = residuals(p, q)
+    (r0, cost, s, m), (rp, _, _, _), (rq, _, _, _) = residuals(p, q)
     jp = [(a - b) * (1.0 / fd_step) for a, b in zip(rp, r0)]
     jq = [(a - b) * (1.0 / fd_step) for a, b in zip(rq, r0)]
-    out = [p, q, s, cost, sum_(x * x for x in jp), sum_(x * x for x in jq), sum_(x * y for x, y in zip(jp, jq))]
+    out = [p, q, s, cost, sum_(x * x for x in jp), sum_(x * x for x in jq), sum_(x * y for x, y in zip(jp, jq)),
+           *[s * mk for mk in m]]
     dr.eval(*out)
     return [np.asarray(v, dtype=np.float64) for v in out]
 
@@ -237,18 +240,38 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
                                [mi.Vector3f(0.0, 0.0, 1.0)])[0]
     dr.eval(flat_model)
     measured = [mi.Float(np.asarray(eq26.corrected[n], np.float32).ravel()) for n in model.names]
-    p0 = np.where(start.mask, 0.0, -start.dzdx).astype(np.float32).ravel()
-    q0 = np.where(start.mask, 0.0, -start.dzdy).astype(np.float32).ravel()
-    p, q, s, cost, a11, a22, a12 = _fit(model, pts, beam, measured, flat_model, mi.Float(p0), mi.Float(q0),
-                                        int(iterations), FD_STEP)
+    # a detector the facet hides from (corrected image ~0) is left out: three values still fix
+    # p, q and s; the model must then agree that it sees (almost) nothing (checked below)
+    dark = np.stack([np.asarray(eq26.corrected[n]) <= min_corrected for n in model.names])
+    n_dark = dark.sum(axis=0)
+    one_dark = n_dark == 1
+    weights = [mi.Float(np.where(one_dark, ~dark[k], True).astype(np.float32).ravel()) for k in range(len(model.names))]
+    p0 = np.where(start.mask, 0.0, -start.dzdx)
+    q0 = np.where(start.mask, 0.0, -start.dzdy)
+    if one_dark.any():
+        # start just past the masking line of the hidden detector (n_S . d = -0.2 in p,q-form)
+        for k, name in enumerate(model.names):
+            sel = one_dark & dark[k]
+            if sel.any():
+                c = np.asarray(geometry.detectors[name].center)
+                dz = c[2] - points[..., 2]
+                dx, dy = (c[0] - points[..., 0]) / dz, (c[1] - points[..., 1]) / dz
+                t = 1.2 / np.maximum(dx * dx + dy * dy, 1e-6)
+                p0 = np.where(sel, -t * dx, p0)
+                q0 = np.where(sel, -t * dy, q0)
+    p0 = np.clip(p0, -MAX_SLOPE * 0.9, MAX_SLOPE * 0.9).astype(np.float32).ravel()
+    q0 = np.clip(q0, -MAX_SLOPE * 0.9, MAX_SLOPE * 0.9).astype(np.float32).ravel()
+    p, q, s, cost, a11, a22, a12, *predicted = _fit(model, pts, beam, measured, weights, flat_model, mi.Float(p0),
+                                                    mi.Float(q0), int(iterations), FD_STEP)
     det = a11 * a22 - a12 * a12
 
     residual = np.sqrt(np.maximum(cost, 0.0) / 4.0).reshape(shape)
-    usable = ~(eq26.reasons & (MASK_BITS["invalid_input"] | MASK_BITS["detector_dark"] | MASK_BITS["sum_small"])
-               ).astype(bool)
+    four = ~(eq26.reasons & (MASK_BITS["invalid_input"] | MASK_BITS["detector_dark"] | MASK_BITS["sum_small"])
+             ).astype(bool)
+    usable = four | (one_dark & ~(eq26.reasons & MASK_BITS["invalid_input"]).astype(bool))
     if noise is None:
-        # residual^2 * 4 = sum r^2 ~ sigma^2 chi^2_1 (4 values, 3 unknowns)
-        sel = (residual * 2.0)[usable]
+        # residual^2 * 4 = sum r^2 ~ sigma^2 chi^2_1 (4 values, 3 unknowns): four-detector pixels
+        sel = (residual * 2.0)[four]
         noise = float(np.sqrt(np.median(sel ** 2) / _CHI2_1_MEDIAN)) if sel.size else float("nan")
     with np.errstate(divide="ignore", invalid="ignore"):
         var_p = np.where(det > 0, a22 / det, np.inf) * noise ** 2
@@ -259,18 +282,31 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     dzdy = -q.reshape(shape)
     limit = max(RESIDUAL_SIGMAS * (noise if np.isfinite(noise) else 0.0), MIN_RESIDUAL)
     bad_fit = ~np.isfinite(residual) | (residual * 2.0 > limit)
-    unsolved = ~np.isfinite(sigma_p) | ~np.isfinite(sigma_q) | (np.abs(p.reshape(shape)) >= MAX_SLOPE) \
+    # the hidden detector: the model at the fitted facet must see (almost) nothing either, else
+    # something else hides it (a neighbour's shadow) and the three values are not this facet's
+    pred_dark = np.max(np.where(dark, np.stack([v.reshape(shape) for v in predicted]), 0.0), axis=0)
+    bad_fit |= one_dark & (pred_dark > 2.0 * min_corrected + limit)
+    # solvable: a regular Jacobian (the noise level may be unknown: no pixel with four detectors)
+    unsolved = ~(det > 0).reshape(shape) | ~np.isfinite(det).reshape(shape) | (np.abs(p.reshape(shape)) >= MAX_SLOPE) \
         | (np.abs(q.reshape(shape)) >= MAX_SLOPE) | ~np.isfinite(dzdx) | ~np.isfinite(dzdy)
 
     geo_mask = np.zeros(shape, dtype=bool)
     pts = points.reshape(shape + (3,))
     n = np.stack([p.reshape(shape), q.reshape(shape), np.ones(shape)], axis=-1)
+    n_hidden = np.zeros(shape, dtype=int)
     for disc in geometry.detectors.values():
         to_det = np.asarray(disc.center) - pts
         cos = np.sum(n * to_det, axis=-1) / (np.linalg.norm(n, axis=-1) * np.linalg.norm(to_det, axis=-1))
         geo_mask |= cos <= geometric_margin
+        n_hidden += cos <= geometric_margin
+    # the fitted facet may hide at most the one detector left out
+    geo_mask = np.where(one_dark, n_hidden > 1, geo_mask)
     keep = MASK_BITS["invalid_input"] | MASK_BITS["detector_dark"] | MASK_BITS["sum_small"]
-    reasons = ((eq26.reasons & keep) + MASK_BITS["geometric"] * geo_mask
+    # one hidden detector is solved from the other three: not a reason to mask (nor is the
+    # geometric masking of that detector, which is what hides it)
+    solved3 = one_dark & ~bad_fit
+    eq26_reasons = np.where(solved3, eq26.reasons & MASK_BITS["invalid_input"], eq26.reasons & keep)
+    reasons = (eq26_reasons + MASK_BITS["geometric"] * geo_mask
                + MASK_BITS["model_residual"] * (bad_fit & usable)
                + MASK_BITS["not_solved"] * (unsolved & usable)).astype(np.uint8)
     mask = reasons != 0
