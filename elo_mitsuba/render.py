@@ -246,8 +246,9 @@ class EloScene:
         ids = ", ".join(sorted(s.id() for s in self.scene.shapes() if s.id()))
         raise EloInputError(f"no shape with id {shape_id!r} (shapes: {ids})")
 
-    def set_detector(self, name: str, center=None, radius: float | None = None) -> None:
-        """Move a disk detector to ``center`` (mm), facing the origin; optionally resize it."""
+    def set_detector(self, name: str, center=None, radius: float | None = None, normal=None) -> None:
+        """Move a disk detector to ``center`` (mm), facing the origin; optionally resize it, and
+        turn its front face to ``normal`` (any length) instead of the origin."""
         mi = self.mi
         key = f"{name}.to_world"
         if name not in self.detector_names:
@@ -260,7 +261,15 @@ class EloScene:
         if c.shape != (3,) or not np.all(np.isfinite(c)) or not (r > 0 and math.isfinite(r)):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} / radius {r}; need 3 finite mm values and r > 0")
         up = [0, 0, 1] if abs(c[0]) + abs(c[1]) > 1e-9 else [0, 1, 0]
-        xf = mi.ScalarTransform4f().look_at(origin=c.tolist(), target=[0, 0, 0], up=up) @ mi.ScalarTransform4f().scale(r)
+        target = [0, 0, 0]
+        if normal is not None:
+            n = np.asarray(normal, dtype=float)
+            if n.shape != (3,) or not np.all(np.isfinite(n)) or not np.any(n):
+                raise EloInputError(f"detector {name!r}: normal {np.asarray(normal).tolist()}; need 3 finite values, not all 0")
+            n = n / np.linalg.norm(n)
+            target = (c + n).tolist()
+            up = [0, 0, 1] if abs(n[0]) + abs(n[1]) > 1e-9 else [0, 1, 0]  # up must not be parallel to n
+        xf = mi.ScalarTransform4f().look_at(origin=c.tolist(), target=target, up=up) @ mi.ScalarTransform4f().scale(r)
         if not np.any(np.abs(c) > 1e-9):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
                                 "from above it")

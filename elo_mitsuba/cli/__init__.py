@@ -22,6 +22,8 @@ COMMANDS = (
     "gradient",
     "reconstruct",
     "reflectance_map",
+    "sweep",
+    "sweep_plot",
 )
 
 DESCRIPTION = """\
@@ -37,6 +39,7 @@ examples:
   elo-mitsuba render scenes_xml/athene_flat.xml -o a.exr --events 2 --spp 64 -D dh=250
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad.exr
   elo-mitsuba reconstruct grad.exr -o height.npy
+  elo-mitsuba sweep examples/sweep_minimal.toml -o sweep.zarr --workers 2
 
 Run 'elo-mitsuba COMMAND --help' for each command's options.
 """

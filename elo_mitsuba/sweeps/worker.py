@@ -1,0 +1,226 @@
+"""What runs on a sweep worker: load each scene once, re-render it per point by changing
+parameters in place, compute the metrics, write the point into the store.
+
+A worker process keeps a small cache of loaded scenes keyed by their load-time parameters
+(:attr:`~.spec.Point.load_key`); the client sends the points grouped by that key, so each worker
+loads each key about once. Between points a scene is put back exactly as it was loaded (detector
+transforms, integrator options), so a point's numbers do not depend on which points the worker
+rendered before: they equal a fresh ``load_scene(...)``, ``set_detector(...)``, ``render(...)``.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import threading
+import time
+import traceback
+from collections import OrderedDict
+
+import numpy as np
+
+from .metrics import METRICS, PointContext, true_gradient
+from .spec import ALL_DETECTORS, SweepSpec
+from .store import STATUS_DONE, STATUS_FAILED, PointWriter, image_variable
+
+#: Loaded scenes kept per worker (LRU). Two: the object scene and, with a test surface, its flat
+#: reference; a third key evicts the oldest (Mitsuba frees a scene's memory when dropped).
+MAX_SCENES = 3
+#: Flat reference renders kept per worker: points that differ only in what the flat does not see
+#: (nothing, for now: its render depends on every load-time parameter and move) share one.
+MAX_FLATS = 2
+
+_STATE = {"scenes": OrderedDict(), "flats": OrderedDict(), "specs": {}, "writers": {}, "loads": 0}
+_LOCK = threading.Lock()  # dask may run a worker with several threads; Dr.Jit state is per process
+
+
+def set_up(threads: int | None = None) -> int:
+    """Worker set-up: the Dr.Jit thread pool size (so that workers sharing a machine do not
+    oversubscribe its cores) and the variant with our plugins. Returns the thread count."""
+    import drjit as dr
+
+    from ..runtime import ensure_variant
+
+    if threads:
+        dr.set_thread_count(int(threads))
+    ensure_variant()
+    return int(dr.thread_count())
+
+
+class LoadedScene:
+    """An :class:`~elo_mitsuba.EloScene` plus what is needed to put it back as loaded."""
+
+    def __init__(self, scene_path, load: dict, integrator: dict):
+        from ..render import load_scene
+
+        self.scene = load_scene(scene_path, **load)
+        if integrator:
+            self.scene.configure(**integrator)
+        self.options = self.scene.options
+        p = self.scene.mi_params
+        self.transforms = {d: np.array(p[f"{d}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
+                           for d in self.scene.detector_names if f"{d}.to_world" in p}
+        self.moved = False
+
+    def reset(self):
+        mi = self.scene.mi
+        if self.moved:
+            for d, m in self.transforms.items():
+                self.scene.mi_params[f"{d}.to_world"] = mi.Transform4f(mi.ScalarTransform4f(m))
+            self.scene.mi_params.update()
+            self.moved = False
+        self.scene.integrator.configure(self.options)
+
+    def apply(self, moves: dict):
+        """Detector moves of a point: ``detectors`` (all) first, then single detectors."""
+        order = sorted(moves, key=lambda d: d != ALL_DETECTORS)
+        for det in order:
+            m = moves[det]
+            for name in (self.scene.detector_names if det == ALL_DETECTORS else [det]):
+                self.moved = True
+                self.scene.set_detector(name, center=m.get("center"), radius=m.get("radius"), normal=m.get("normal"))
+
+
+def _scene(path, load: dict, integrator: dict) -> LoadedScene:
+    key = json.dumps([str(path), load, integrator], sort_keys=True, default=str)
+    cache = _STATE["scenes"]
+    if key in cache:
+        cache.move_to_end(key)
+        return cache[key]
+    while len(cache) >= MAX_SCENES:
+        cache.popitem(last=False)
+        gc.collect()
+    cache[key] = LoadedScene(path, load, integrator)
+    _STATE["loads"] += 1
+    return cache[key]
+
+
+def render_point(spec: SweepSpec, point) -> tuple:
+    """Render one point (and its flat reference with a test surface); returns
+    ``(RenderResult, flat channels or None)``. Numbers equal a direct render of the same
+    parameters and seed."""
+    scene = _scene(spec.scene, point.load, spec.integrator)
+    scene.reset()
+    scene.apply(point.moves)
+    r = point.render
+    result = scene.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"], progress=False)
+    flat = None
+    if spec.surface is not None:
+        flat = _flat(spec, point, scene)
+    return result, flat
+
+
+def _flat(spec, point, obj: LoadedScene):
+    from ..scene_files import declared_parameters, resolve_scene_path
+
+    path = resolve_scene_path(spec.surface["flat"])
+    declared = declared_parameters(path, {k: str(v) for k, v in point.load.items()})
+    load = {k: v for k, v in point.load.items() if k in declared}
+    key = json.dumps([load, point.moves, point.render], sort_keys=True, default=str)
+    cache = _STATE["flats"]
+    if key in cache:
+        return cache[key]
+    flat = _scene(path, load, spec.integrator)
+    flat.reset()
+    flat.apply(point.moves)
+    r = point.render
+    channels = flat.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"],
+                                 progress=False).channels
+    while len(cache) >= MAX_FLATS:
+        cache.popitem(last=False)
+    cache[key] = channels
+    return channels
+
+
+def point_values(spec: SweepSpec, layout: dict, result, flat) -> dict:
+    """The store's variables of one point, from its render: metrics and kept images."""
+    dets = layout["detectors"]
+    ctx = PointContext(result.channels, result.metadata, [d for d in dets if d in result.channels], flat=flat)
+    if spec.surface is not None:
+        shape = result.channels[dets[0]].shape
+        ctx.true_gradient = true_gradient(spec.surface, shape, ctx.field_mm)
+    out = {}
+    for name in layout["metrics"]:
+        value = METRICS[name].function(ctx)
+        out[name] = np.array([value.get(d, np.nan) for d in dets]) if isinstance(value, dict) else float(value)
+    f = spec.downsample
+    for ch in layout["channels"]:
+        img = result.channels[ch]
+        if f > 1:
+            h, w = img.shape
+            img = img.reshape(h // f, f, w // f, f).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+        out[image_variable(ch)] = img
+    return out
+
+
+def _spec(spec_dict) -> SweepSpec:
+    key = spec_dict["text"] + json.dumps(spec_dict.get("axes"), default=str)
+    if key not in _STATE["specs"]:
+        _STATE["specs"] = {key: SweepSpec.from_dict(spec_dict)}
+    return _STATE["specs"][key]
+
+
+def _writer(store) -> PointWriter:
+    if store not in _STATE["writers"]:
+        _STATE["writers"] = {store: PointWriter(store)}
+    return _STATE["writers"][store]
+
+
+def worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().name)
+    except (ImportError, ValueError):
+        return f"pid{os.getpid()}"
+
+
+def rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 1e6
+
+
+def one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{type(exc).__name__}: {text}"
+
+
+def run_batch(store: str, job: dict, indices: list[int]) -> list[tuple[int, int, str]]:
+    """Render the points ``indices`` of a sweep into ``store``; the task each worker runs.
+
+    A point already done (a retried batch after a worker was lost) is skipped. A point that
+    raises is recorded as failed with its one-line error; the others go on.
+
+    Returns
+    -------
+    list of (index, status, error)
+    """
+    with _LOCK:
+        spec = _spec(job["spec"])
+        writer = _writer(store)
+        name = worker_name()
+        out = []
+        for i in indices:
+            point = spec.point(i)
+            if writer.status(point.idx) == STATUS_DONE:
+                out.append((i, STATUS_DONE, ""))
+                continue
+            t0 = time.perf_counter()
+            try:
+                result, flat = render_point(spec, point)
+                values = point_values(spec, job["layout"], result, flat)
+                del result, flat
+            except Exception as exc:  # noqa: BLE001 -- a failed point is recorded, the sweep goes on
+                error = one_line(exc)
+                if os.environ.get("ELO_SWEEP_TRACEBACK"):
+                    traceback.print_exc()
+                writer.write(point.idx, {}, STATUS_FAILED, error=error, worker=name)
+                out.append((i, STATUS_FAILED, error))
+                continue
+            values["render_seconds"] = time.perf_counter() - t0
+            values["worker_rss_mb"] = rss_mb()
+            writer.write(point.idx, values, STATUS_DONE, worker=name)
+            out.append((i, STATUS_DONE, ""))
+        return out
