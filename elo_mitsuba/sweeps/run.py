@@ -22,7 +22,7 @@ from pathlib import Path
 from ..errors import EloInputError
 from . import store as zstore
 from .metrics import METRICS, applicable
-from .spec import SweepSpec, check_against_scene, load_spec
+from .spec import SweepSpec, check_against_scene, check_parameters, load_spec
 from .worker import run_batch, set_up
 
 #: Most points per task: small enough that a lost worker costs little and progress moves, large
@@ -74,7 +74,11 @@ def prepare(spec, output, *, overwrite: bool = False):
     from ..render import load_scene
 
     first = spec.point(0)
-    probe = load_scene(spec.scene, **first.load)
+    try:  # the first point's scene: names, detectors and channels are checked against it
+        check_parameters(spec)
+        probe = load_scene(spec.scene, **first.load)
+    except EloInputError as exc:
+        raise EloInputError(f"{spec.source}: {exc}") from None
     check_against_scene(spec, probe)
     if spec.integrator:
         probe.configure(**spec.integrator)
@@ -235,7 +239,7 @@ def _run_dask(spec, path, job, pending, workers, scheduler, threads, bar, max_ba
     if scheduler is None:
         cores = available_cores()
         threads = threads or max(1, cores // workers)
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                                silence_logs=logging.ERROR)
         client = Client(cluster)
     else:
