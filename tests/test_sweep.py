@@ -76,6 +76,7 @@ right.radius = [20, 30]
 [render]
 resolution = 32
 events = 2
+quality = "scene"
 spp = 4
 [keep]
 channels = "all"
@@ -102,7 +103,7 @@ def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
         scene = em.load_scene("flat_plate", res=32, dh=dh)
         for j, r in enumerate((20.0, 30.0)):
             scene.set_detector("right", radius=r)
-            direct = scene.render(spp=4, seed=7, events=2, quality="default")
+            direct = scene.render(spp=4, seed=7, events=2, quality="scene")
             for ch, img in direct.channels.items():
                 np.testing.assert_array_equal(ds[f"image_{ch}"].values[i, j], img, err_msg=f"{ch} dh={dh} r={r}")
             for k, d in enumerate(ds["detector"].values):

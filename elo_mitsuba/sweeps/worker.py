@@ -3,9 +3,10 @@ parameters in place, compute the metrics, write the point into the store.
 
 A worker process keeps a small cache of loaded scenes keyed by their load-time parameters
 (:attr:`~.spec.Point.load_key`); the client sends the points grouped by that key, so each worker
-loads each key about once. Between points a scene is put back exactly as it was loaded (detector
-transforms, integrator options), so a point's numbers do not depend on which points the worker
-rendered before: they equal a fresh ``load_scene(...)``, ``set_detector(...)``, ``render(...)``.
+loads each key about once. Between points the integrator options are put back as loaded and the point's detector moves are
+applied (:meth:`LoadedScene.prepare`), so a point's numbers do not depend on which points the worker
+rendered before: they equal a fresh ``load_scene(...)``, ``set_detector(...)``, ``render(...)``
+with the same seed, bit for bit (tested).
 """
 
 from __future__ import annotations
@@ -61,25 +62,31 @@ class LoadedScene:
         p = self.scene.mi_params
         self.transforms = {d: np.array(p[f"{d}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
                            for d in self.scene.detector_names if f"{d}.to_world" in p}
-        self.moved = False
+        self.moved: set[str] = set()
 
-    def reset(self):
+    def prepare(self, moves: dict):
+        """Put the scene back as loaded for a point with detector ``moves``, then apply them.
+
+        Only detectors moved before and not moved now are put back: in a sweep every point moves
+        the same detectors (its axes), so that never happens and no transform is ever rewritten
+        from its float32 copy (which would make a detector's inverse transform differ in the
+        last bit from a fresh load's, and so the point's numbers from a direct render's)."""
         mi = self.scene.mi
-        if self.moved:
-            for d, m in self.transforms.items():
-                self.scene.mi_params[f"{d}.to_world"] = mi.Transform4f(mi.ScalarTransform4f(m))
+        names = set()
+        for det in moves:
+            names |= set(self.scene.detector_names) if det == ALL_DETECTORS else {det}
+        stale = self.moved - names
+        for d in stale:
+            self.scene.mi_params[f"{d}.to_world"] = mi.Transform4f(mi.ScalarTransform4f(self.transforms[d]))
+        if stale:
             self.scene.mi_params.update()
-            self.moved = False
         self.scene.integrator.configure(self.options)
-
-    def apply(self, moves: dict):
-        """Detector moves of a point: ``detectors`` (all) first, then single detectors."""
-        order = sorted(moves, key=lambda d: d != ALL_DETECTORS)
-        for det in order:
+        # detectors first (all), then single ones, so that right.radius refines detectors.radius
+        for det in sorted(moves, key=lambda d: d != ALL_DETECTORS):
             m = moves[det]
             for name in (self.scene.detector_names if det == ALL_DETECTORS else [det]):
-                self.moved = True
                 self.scene.set_detector(name, center=m.get("center"), radius=m.get("radius"), normal=m.get("normal"))
+        self.moved = names
 
 
 def _scene(path, load: dict, integrator: dict) -> LoadedScene:
@@ -101,8 +108,7 @@ def render_point(spec: SweepSpec, point) -> tuple:
     ``(RenderResult, flat channels or None)``. Numbers equal a direct render of the same
     parameters and seed."""
     scene = _scene(spec.scene, point.load, spec.integrator)
-    scene.reset()
-    scene.apply(point.moves)
+    scene.prepare(point.moves)
     r = point.render
     result = scene.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"], progress=False)
     flat = None
@@ -122,8 +128,7 @@ def _flat(spec, point, obj: LoadedScene):
     if key in cache:
         return cache[key]
     flat = _scene(path, load, spec.integrator)
-    flat.reset()
-    flat.apply(point.moves)
+    flat.prepare(point.moves)
     r = point.render
     channels = flat.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"],
                                  progress=False).channels
