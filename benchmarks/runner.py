@@ -15,7 +15,7 @@ from .harness import CACHE, ROOT, Bench
 from .report import presets_table, summary
 
 #: The order sections run and appear in RESULTS.md: ``path`` compares with what ``targets`` measured.
-ORDER = ("targets", "path", "ceiling", "accuracy", "events", "scaling")
+ORDER = ("targets", "path", "ceiling", "accuracy", "events", "scaling", "sweep")
 
 DESCRIPTION = """\
 Benchmarks of the ELO forward model: speed against accuracy; ``python -m benchmarks [--quick]``.
@@ -33,7 +33,10 @@ Writes ``benchmarks/RESULTS.md`` (``--out`` to change). Sections (``--only`` to 
 * ``path``     four renders of Mitsuba's built-in ``path`` integrator (one detector emitting
                each) at equal error: the speed ratio;
 * ``scaling``  time and peak memory against resolution, spp and mesh size; a flat plate as a
-               heavy mesh.
+               heavy mesh;
+* ``sweep``    design sweeps: points/s with 1 and 2 Dask workers against a plain loop over
+               EloScene.render, overhead per point, worker memory, 10 000 points projected
+               (alone: python -m benchmarks.section_sweep).
 
 Errors are per pixel, |x - ref| / max(ref, 5% of the image mean of ref), over all pixels: the
 RMS and the 99th percentile, worst of the four detectors. Every timed configuration runs in its

@@ -8,7 +8,8 @@ never write the same file. Variables:
 * ``status`` (int8): 0 = not done, 1 = done, 2 = failed (``error`` holds the one-line reason);
   written *after* the point's data, so a worker killed half-way leaves 0 and the point is redone;
 * one variable per metric (``signal_mean`` ...) and per kept channel (``image_<channel>``);
-* ``render_seconds``, ``worker_rss_mb``, ``worker``: what each point cost and where it ran.
+* ``render_seconds``, ``worker_rss_mb``, ``finished_at``, ``worker``: what each point cost, when and
+  where it ran.
 
 Attributes: the spec (TOML text and digest), the scan geometry, the package version.
 """
@@ -104,6 +105,7 @@ def _create(path: Path, spec, layout: dict) -> None:
               f"{spec.downsample}x{spec.downsample})" if spec.downsample > 1 else f"detector channel {ch}"})
     lazy("render_seconds", [], (), np.float32, {"units": "s", "description": "render + metrics time on the worker"})
     lazy("worker_rss_mb", [], (), np.float32, {"units": "MB", "description": "worker's resident memory after the point"})
+    lazy("finished_at", [], (), np.float64, {"units": "s", "description": "when the point was stored (Unix time)"})
     # status, error and worker are written now (real values, not fill values): resume reads them
     status = np.zeros(shape, np.int8)
     data["status"] = xr.Variable(axes, status, {"flag_values": [0, 1, 2], "flag_meanings": "pending done failed"})
@@ -175,19 +177,43 @@ def read_errors(path) -> np.ndarray:
 
 
 class PointWriter:
-    """Writes one point's results into its own chunks (used on the workers; cheap to create)."""
+    """Writes one point's results into its own chunks (used on the workers).
+
+    The arrays are opened once (opening one reads its metadata files) and a point's variables
+    are written concurrently through Zarr's asynchronous API, then ``status`` last: Zarr-Python
+    3 spends ~3 ms per synchronous write, which for a dozen variables would be ~10 % of a
+    0.4 s render."""
 
     def __init__(self, path):
-        import zarr
+        import zarr.api.asynchronous as za
+        from zarr.core.sync import sync
 
-        self.group = zarr.open_group(str(path), mode="r+")
+        self._sync = sync
+        self._group = sync(za.open_group(str(path), mode="r+"))
+        self._arrays = {}
+
+    def _array(self, name):
+        if name not in self._arrays:
+            self._arrays[name] = self._sync(self._group.getitem(name))
+        return self._arrays[name]
 
     def status(self, idx) -> int:
-        return int(self.group["status"][idx])
+        return int(self._sync(self._array("status").getitem(idx)))
 
-    def write(self, idx, values: dict, status: int = STATUS_DONE, error: str = "", worker: str = "") -> None:
-        for name, value in values.items():  # data first, status last: a crash in between leaves "pending"
-            self.group[name][idx] = value
-        self.group["error"][idx] = error[:ERROR_CHARS]
-        self.group["worker"][idx] = worker[:WORKER_CHARS]
-        self.group["status"][idx] = status
+    def write(self, idx, values: dict, status: int = STATUS_DONE, error: str | None = "", worker: str = "") -> None:
+        """Store ``values`` (variable -> array for this point), then ``error``, ``worker`` and,
+        last, ``status``: a crash in between leaves the point pending. ``error=None`` leaves the
+        stored error text as it is (it is "" unless the point failed before)."""
+        import asyncio
+
+        values = dict(values)
+        if error is not None:
+            values["error"] = error[:ERROR_CHARS]
+        values["worker"] = worker[:WORKER_CHARS]
+        arrays = {name: self._array(name) for name in values}
+
+        async def data():
+            await asyncio.gather(*(arrays[n].setitem(idx, v) for n, v in values.items()))
+
+        self._sync(data())
+        self._sync(self._array("status").setitem(idx, status))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import sys
 import threading
 import time
 import traceback
@@ -173,12 +174,13 @@ def _writer(store) -> PointWriter:
 
 
 def worker_name() -> str:
-    try:
-        from distributed import get_worker
-
-        return str(get_worker().name)
-    except (ImportError, ValueError):
-        return f"pid{os.getpid()}"
+    """The Dask worker's name, or ``pid<N>`` outside Dask (without importing it there)."""
+    if "distributed" in sys.modules:
+        try:
+            return str(sys.modules["distributed"].get_worker().name)
+        except ValueError:  # not in a worker
+            pass
+    return f"pid{os.getpid()}"
 
 
 def rss_mb() -> float:
@@ -209,7 +211,8 @@ def run_batch(store: str, job: dict, indices: list[int]) -> list[tuple[int, int,
         out = []
         for i in indices:
             point = spec.point(i)
-            if writer.status(point.idx) == STATUS_DONE:
+            before = writer.status(point.idx)
+            if before == STATUS_DONE:  # a retried batch (its worker was lost): done already
                 out.append((i, STATUS_DONE, ""))
                 continue
             t0 = time.perf_counter()
@@ -226,6 +229,7 @@ def run_batch(store: str, job: dict, indices: list[int]) -> list[tuple[int, int,
                 continue
             values["render_seconds"] = time.perf_counter() - t0
             values["worker_rss_mb"] = rss_mb()
-            writer.write(point.idx, values, STATUS_DONE, worker=name)
+            values["finished_at"] = time.time()
+            writer.write(point.idx, values, STATUS_DONE, error="" if before == STATUS_FAILED else None, worker=name)
             out.append((i, STATUS_DONE, ""))
         return out
