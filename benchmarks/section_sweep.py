@@ -93,13 +93,18 @@ def run_job(job) -> dict:
                 "points": s.points, "rss": rss_by_worker}
 
 
-def measure(res=512, points=17, long_points=120, reload_points=24) -> dict:
+def measure(res=512, points=17, long_points=120, reload_points=24, rounds=2) -> dict:
     """Every configuration, one after another; returns the numbers the section reports."""
     cores = os.cpu_count() or 1
     out = {"res": res, "points": points, "cores": cores}
-    out["loop"] = _job("loop", res=res, points=points, threads=cores)
-    for w in (1, 2):
-        out[f"sweep{w}"] = _job("sweep", spec=_spec(res, points), workers=w)
+    # interleaved rounds, best rate of each: other jobs on the machine slow some runs down
+    for _ in range(rounds):
+        runs = {"loop": _job("loop", res=res, points=points, threads=cores)}
+        for w in (0, 1, 2):
+            runs[f"sweep{w}"] = _job("sweep", spec=_spec(res, points), workers=w)
+        for k, r in runs.items():
+            if k not in out or r["rate"] > out[k]["rate"]:
+                out[k] = r
     out["long"] = _job("sweep", spec=_spec(64, long_points, keep_all=False), workers=1)
     out["reload"] = _job("sweep", spec=_spec(64, reload_points, keep_all=False,
                                              vary={"dh": [200.0 + 2 * k for k in range(reload_points)]}), workers=1)
@@ -114,11 +119,11 @@ def _growth(rss_lists, skip=10):
 def markdown(m) -> str:
     loop = m["loop"]["rate"]
     rows = [["plain loop over EloScene.render (in process)", f"{m['cores']} Dr.Jit threads", fmt(loop, 3), "1.00", "-"]]
-    for w in (1, 2):
+    for w in (0, 1, 2):
         r = m[f"sweep{w}"]
-        rows.append([f"elo-mitsuba sweep, {w} local worker{'s' if w > 1 else ''}",
-                     f"{max(1, m['cores'] // w)} Dr.Jit thread(s) each", fmt(r["rate"], 3), fmt(r["rate"] / loop, 3),
-                     f"{r['wall']:.1f} s"])
+        what = "in process, no Dask (--workers 0)" if w == 0 else f"{w} local Dask worker{'s' if w > 1 else ''}"
+        rows.append([f"elo-mitsuba sweep, {what}", f"{m['cores'] // max(w, 1)} Dr.Jit thread(s) each",
+                     fmt(r["rate"], 3), fmt(r["rate"] / loop, 3), f"{r['wall']:.1f} s"])
     over = 1 / (m["sweep1"]["rate"] / loop) - 1
     best = max(m["sweep1"]["rate"], m["sweep2"]["rate"])
     lines = [
@@ -128,7 +133,7 @@ def markdown(m) -> str:
         "point: load and compilation); the wall time includes starting the local cluster.", "",
         table(["configuration", "threads", "points/s", "vs plain loop", "wall (all points)"], rows), "",
         f"Overhead of the sweep per point (1 worker against the loop, same threads): {100 * over:+.1f} % "
-        "(metrics, the Zarr write and Dask's dispatch).", "",
+        f"(of which without Dask, metrics and the Zarr write: {100 * (loop / m['sweep0']['rate'] - 1):+.1f} %).", "",
         f"Memory: {m['long']['points']} points at 64², in place: the worker's resident set grows by "
         f"{_growth(m['long']['rss']):.1f} MB from point 10 to the last "
         f"({min(min(v) for v in m['long']['rss'].values()):.0f}-{max(max(v) for v in m['long']['rss'].values()):.0f} MB). "
@@ -147,7 +152,7 @@ def run(b):
     """The section for ``python -m benchmarks``."""
     q = b.quick
     m = measure(res=128 if q else 512, points=9 if q else 17, long_points=40 if q else 120,
-                reload_points=14 if q else 24)
+                reload_points=14 if q else 24, rounds=1 if q else 2)
     return markdown(m)
 
 
@@ -158,12 +163,13 @@ def main(argv=None) -> int:
     ap.add_argument("--res", type=int, default=512)
     ap.add_argument("--points", type=int, default=17)
     ap.add_argument("--long-points", type=int, default=120)
+    ap.add_argument("--rounds", type=int, default=2, help="interleaved repetitions (best rate of each)")
     ap.add_argument("--out", help="also write the Markdown here")
     args = ap.parse_args(argv)
     if args.job:
         print("RESULT " + json.dumps(run_job(json.loads(args.job))))
         return 0
-    m = measure(res=args.res, points=args.points, long_points=args.long_points)
+    m = measure(res=args.res, points=args.points, long_points=args.long_points, rounds=args.rounds)
     text = markdown(m)
     print(text)
     print(json.dumps(m), file=sys.stderr)

@@ -89,9 +89,11 @@ def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
     import elo_mitsuba as em
 
     sched_file, _ = cluster
+    address = json.loads(sched_file.read_text())["address"]  # tcp://127.0.0.1:<ephemeral port>
+    assert address.startswith("tcp://127.0.0.1:")
     spec = _write(tmp_path / "s.toml", SPEC_DIRECT)
     out = tmp_path / "s.zarr"
-    assert _cli("sweep", spec, "-o", out, "--scheduler", sched_file, "--no-progress") == 0
+    assert _cli("sweep", spec, "-o", out, "--scheduler", address, "--no-progress") == 0
     ds = xr.open_zarr(out)
     assert ds["status"].values.tolist() == [[1, 1], [1, 1]]
     assert set(ds["worker"].values.ravel()) <= {"w1", "w2"}

@@ -15,9 +15,10 @@ from typing import Callable
 import numpy as np
 
 #: Masked-pixel criterion without a test surface: a detector whose signal at a pixel is below this
-#: fraction of its median over the field receives (almost) no direct electrons there. The same
+#: fraction of its mean over the field receives (almost) no direct electrons there. The same
 #: threshold as the gradient mask's ``detector_dark`` (analysis.gradient.MIN_CORRECTED), which
-#: applies it to STSA-corrected images (flat plate = 1); the median stands in for the flat.
+#: applies it to STSA-corrected images (flat plate = 1); the field mean stands in for the flat
+#: (a median would be more robust but costs 10 ms per detector at 512^2, 10 % of a render).
 DARK_FRACTION = 0.02
 
 
@@ -96,7 +97,7 @@ def _masked_fraction(ctx):
     dark = np.zeros(ctx.channels[ctx.detectors[0]].shape, dtype=bool)
     for d in ctx.detectors:
         img = ctx.channels[d]
-        dark |= img <= DARK_FRACTION * float(np.median(img))
+        dark |= img <= DARK_FRACTION * float(np.mean(img, dtype=np.float64))
     return float(dark.mean())
 
 
@@ -135,7 +136,7 @@ METRICS: dict[str, Metric] = {
     "masked_fraction": Metric(_masked_fraction, False, "1",
                               "share of untrusted pixels: with a test surface the gradient mask of Eq. 26 "
                               "(analysis.surface_gradient); without one, pixels where some detector gets < "
-                              f"{DARK_FRACTION:g} of its field median"),
+                              f"{DARK_FRACTION:g} of its field mean"),
 }
 
 

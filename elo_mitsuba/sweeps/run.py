@@ -239,8 +239,13 @@ def _run_dask(spec, path, job, pending, workers, scheduler, threads, bar, max_ba
     if scheduler is None:
         cores = available_cores()
         threads = threads or max(1, cores // workers)
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                               silence_logs=logging.ERROR)
+        import dask
+
+        # Dask's statistical profiler samples every worker thread's stack each 10 ms, under the GIL:
+        # measurable next to renders of ~0.1-1 s, and nobody reads it here
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                   silence_logs=logging.ERROR)
         client = Client(cluster)
     else:
         try:

@@ -103,7 +103,7 @@ def _create(path: Path, spec, layout: dict) -> None:
         lazy(image_variable(ch), ["y", "x"], (h, w), np.float32,
              {"units": layout["units"], "description": f"detector channel {ch} (box-averaged "
               f"{spec.downsample}x{spec.downsample})" if spec.downsample > 1 else f"detector channel {ch}"})
-    lazy("render_seconds", [], (), np.float32, {"units": "s", "description": "render + metrics time on the worker"})
+    lazy("render_seconds", [], (), np.float32, {"units": "s", "description": "render time on the worker (with the flat reference)"})
     lazy("worker_rss_mb", [], (), np.float32, {"units": "MB", "description": "worker's resident memory after the point"})
     lazy("finished_at", [], (), np.float64, {"units": "s", "description": "when the point was stored (Unix time)"})
     # status, error and worker are written now (real values, not fill values): resume reads them
@@ -199,6 +199,17 @@ class PointWriter:
 
     def status(self, idx) -> int:
         return int(self._sync(self._array("status").getitem(idx)))
+
+    def statuses(self, idxs) -> list[int]:
+        """The status of several points, read concurrently (one chunk each)."""
+        import asyncio
+
+        arr = self._array("status")
+
+        async def read():
+            return await asyncio.gather(*(arr.getitem(idx) for idx in idxs))
+
+        return [int(v) for v in self._sync(read())]
 
     def write(self, idx, values: dict, status: int = STATUS_DONE, error: str | None = "", worker: str = "") -> None:
         """Store ``values`` (variable -> array for this point), then ``error``, ``worker`` and,

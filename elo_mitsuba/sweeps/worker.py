@@ -194,42 +194,62 @@ def one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}"
 
 
+def _failed(writer, point, exc, name) -> tuple[int, int, str]:
+    error = one_line(exc)
+    if os.environ.get("ELO_SWEEP_TRACEBACK"):
+        traceback.print_exc()
+    writer.write(point.idx, {}, STATUS_FAILED, error=error, worker=name)
+    return point.index, STATUS_FAILED, error
+
+
+def _finish(spec, layout, writer, point, result, flat, seconds, before, name) -> tuple[int, int, str]:
+    """Metrics and the write of one rendered point (runs beside the next point's render)."""
+    try:
+        values = point_values(spec, layout, result, flat)
+        values["render_seconds"] = seconds
+        values["worker_rss_mb"] = rss_mb()
+        values["finished_at"] = time.time()
+        writer.write(point.idx, values, STATUS_DONE, error="" if before == STATUS_FAILED else None, worker=name)
+    except Exception as exc:  # noqa: BLE001 -- a failed point is recorded, the sweep goes on
+        return _failed(writer, point, exc, name)
+    return point.index, STATUS_DONE, ""
+
+
 def run_batch(store: str, job: dict, indices: list[int]) -> list[tuple[int, int, str]]:
     """Render the points ``indices`` of a sweep into ``store``; the task each worker runs.
 
     A point already done (a retried batch after a worker was lost) is skipped. A point that
-    raises is recorded as failed with its one-line error; the others go on.
+    raises is recorded as failed with its one-line error; the others go on. The metrics and the
+    Zarr write of a point run in a second thread while the next point renders (at most one
+    point waits: memory stays bounded); the task returns when every point is stored.
 
     Returns
     -------
     list of (index, status, error)
     """
-    with _LOCK:
+    from concurrent.futures import ThreadPoolExecutor
+
+    with _LOCK, ThreadPoolExecutor(1, thread_name_prefix="elo-sweep-write") as pool:
         spec = _spec(job["spec"])
         writer = _writer(store)
         name = worker_name()
-        out = []
-        for i in indices:
-            point = spec.point(i)
-            before = writer.status(point.idx)
+        out, waiting = [], None
+        points = [spec.point(i) for i in indices]
+        for i, point, before in zip(indices, points, writer.statuses([p.idx for p in points])):
             if before == STATUS_DONE:  # a retried batch (its worker was lost): done already
                 out.append((i, STATUS_DONE, ""))
                 continue
             t0 = time.perf_counter()
             try:
                 result, flat = render_point(spec, point)
-                values = point_values(spec, job["layout"], result, flat)
-                del result, flat
             except Exception as exc:  # noqa: BLE001 -- a failed point is recorded, the sweep goes on
-                error = one_line(exc)
-                if os.environ.get("ELO_SWEEP_TRACEBACK"):
-                    traceback.print_exc()
-                writer.write(point.idx, {}, STATUS_FAILED, error=error, worker=name)
-                out.append((i, STATUS_FAILED, error))
+                out.append(_failed(writer, point, exc, name))
                 continue
-            values["render_seconds"] = time.perf_counter() - t0
-            values["worker_rss_mb"] = rss_mb()
-            values["finished_at"] = time.time()
-            writer.write(point.idx, values, STATUS_DONE, error="" if before == STATUS_FAILED else None, worker=name)
-            out.append((i, STATUS_DONE, ""))
-        return out
+            seconds = time.perf_counter() - t0
+            if waiting is not None:
+                out.append(waiting.result())
+            waiting = pool.submit(_finish, spec, job["layout"], writer, point, result, flat, seconds, before, name)
+            del result, flat
+        if waiting is not None:
+            out.append(waiting.result())
+        return sorted(out)
