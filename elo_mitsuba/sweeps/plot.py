@@ -75,7 +75,7 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
             da = da.sel({dim: float(value) if numeric else value}, method="nearest" if numeric else None)
         except (KeyError, ValueError):
             raise EloInputError(f"select {dim}={value}: not among {', '.join(map(str, ds[dim].values))}") from None
-    title = metric
+    title = metric + "".join(f", {k}={v}" for k, v in (select or {}).items())
     if "detector" in da.dims and detector is not None:
         if detector not in list(ds["detector"].values):
             raise EloInputError(f"detector {detector!r}: not in {', '.join(map(str, ds['detector'].values))}")
@@ -115,6 +115,8 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         xs, xt = _positions(ds, dims[0])
         ys, yt = _positions(ds, dims[1])
         z = da.transpose(dims[1], dims[0]).values
+        if not np.all(np.isfinite(z)):
+            title += "\n(blank: undefined, e.g. every pixel masked, or not done)"
         mesh = ax.pcolormesh(np.arange(len(xs)), np.arange(len(ys)), z, cmap=CMAP_SEQUENTIAL, shading="nearest")
         ax.set_xticks(np.arange(len(xs)), xt or [f"{v:g}" for v in xs])
         ax.set_yticks(np.arange(len(ys)), yt or [f"{v:g}" for v in ys])

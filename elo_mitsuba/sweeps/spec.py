@@ -347,7 +347,8 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
         bad = [m for m in metrics if m not in METRICS]
         if bad:
             _fail(source, f"unknown metric {bad[0]!r}; metrics: {', '.join(METRICS)}")
-    if (channels == "all" or channels) and ({"res", "field"} & seen):
+    swept = {m.key for a in axes for m in a.members}
+    if (channels == "all" or channels) and ({"res", "field"} & swept):
         _fail(source, "keep.channels with res or field swept: the images would not share one pixel grid; "
               "keep metrics only, or fix res and field")
     surface = _surface(source, t.get("surface"), base)
