@@ -8,8 +8,8 @@ never write the same file. Variables:
 * ``status`` (int8): 0 = not done, 1 = done, 2 = failed (``error`` holds the one-line reason);
   written *after* the point's data, so a worker killed half-way leaves 0 and the point is redone;
 * one variable per metric (``signal_mean`` ...) and per kept channel (``image_<channel>``);
-* ``render_seconds``, ``worker_rss_mb``, ``finished_at``, ``worker``: what each point cost, when and
-  where it ran.
+* ``render_seconds``, ``worker_rss_mb``, ``worker_cpu_s``, ``finished_at``, ``worker``: what each point
+  cost, when and where it ran.
 
 Attributes: the spec (TOML text and digest), the scan geometry, the package version.
 """
@@ -106,6 +106,8 @@ def _create(path: Path, spec, layout: dict) -> None:
     lazy("render_seconds", [], (), np.float32, {"units": "s", "description": "render time on the worker (with the flat reference)"})
     lazy("worker_rss_mb", [], (), np.float32, {"units": "MB", "description": "worker's resident memory after the point"})
     lazy("finished_at", [], (), np.float64, {"units": "s", "description": "when the point was stored (Unix time)"})
+    lazy("worker_cpu_s", [], (), np.float64, {"units": "s", "description": "CPU time of the worker process (all "
+                                              "threads) when the point was stored: differences = cost per point"})
     # status, error and worker are written now (real values, not fill values): resume reads them
     status = np.zeros(shape, np.int8)
     data["status"] = xr.Variable(axes, status, {"flag_values": [0, 1, 2], "flag_meanings": "pending done failed"})

@@ -209,6 +209,7 @@ def _finish(spec, layout, writer, point, result, flat, seconds, before, name) ->
         values["render_seconds"] = seconds
         values["worker_rss_mb"] = rss_mb()
         values["finished_at"] = time.time()
+        values["worker_cpu_s"] = time.process_time()
         writer.write(point.idx, values, STATUS_DONE, error="" if before == STATUS_FAILED else None, worker=name)
     except Exception as exc:  # noqa: BLE001 -- a failed point is recorded, the sweep goes on
         return _failed(writer, point, exc, name)
