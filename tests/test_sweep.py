@@ -109,7 +109,9 @@ def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
             for ch, img in direct.channels.items():
                 np.testing.assert_array_equal(ds[f"image_{ch}"].values[i, j], img, err_msg=f"{ch} dh={dh} r={r}")
             for k, d in enumerate(ds["detector"].values):
-                assert ds["signal_mean"].values[i, j, k] == float(np.mean(direct.channels[d], dtype=np.float64))
+                img = direct.channels[d].astype(np.float64)
+                assert ds["signal_mean"].values[i, j, k] == pytest.approx(img.mean(), rel=1e-12)
+                assert ds["signal_spread"].values[i, j, k] == pytest.approx(img.std() / img.mean(), rel=1e-9)
                 share = 1 - direct.channels[f"{d}.e1"].sum(dtype=np.float64) / direct.channels[d].sum(dtype=np.float64)
                 assert ds["events2_share"].values[i, j, k] == pytest.approx(share, rel=1e-12)
     # a bigger right detector collects more

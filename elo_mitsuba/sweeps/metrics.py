@@ -69,16 +69,27 @@ class Metric:
         return None
 
 
+def _moments(ctx, d):
+    """Mean and mean square of detector ``d``'s image accumulated in float64, once per point
+    (two reductions without a float64 copy: a tenth of numpy's std's CPU time at 1024^2; no BLAS
+    dot, whose spinning threads would take the cores from the next render)."""
+    key = ("moments", d)
+    if key not in ctx.cache:
+        v = ctx.channels[d].ravel()
+        ctx.cache[key] = (float(np.add.reduce(v, dtype=np.float64)) / v.size,
+                          float(np.add.reduce(np.square(v, dtype=np.float64))) / v.size)
+    return ctx.cache[key]
+
+
 def _signal_mean(ctx):
-    return {d: float(np.mean(ctx.channels[d], dtype=np.float64)) for d in ctx.detectors}
+    return {d: _moments(ctx, d)[0] for d in ctx.detectors}
 
 
 def _signal_spread(ctx):
     out = {}
     for d in ctx.detectors:
-        img = ctx.channels[d].astype(np.float64)
-        mean = img.mean()
-        out[d] = float(img.std() / mean) if mean > 0 else float("nan")
+        mean, square = _moments(ctx, d)
+        out[d] = float(np.sqrt(max(square - mean * mean, 0.0)) / mean) if mean > 0 else float("nan")
     return out
 
 
@@ -97,7 +108,7 @@ def _masked_fraction(ctx):
     dark = np.zeros(ctx.channels[ctx.detectors[0]].shape, dtype=bool)
     for d in ctx.detectors:
         img = ctx.channels[d]
-        dark |= img <= DARK_FRACTION * float(np.mean(img, dtype=np.float64))
+        dark |= img <= DARK_FRACTION * _moments(ctx, d)[0]
     return float(dark.mean())
 
 

@@ -267,8 +267,8 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
     scene = t["scene"]
     if not isinstance(scene, str) or not scene:
         _fail(source, f"scene = {scene!r}; give a shipped scene name or an XML path as a string")
-    if scene.lower().endswith(".xml") and not Path(scene).is_absolute():
-        scene = str(base / scene)
+    if scene.lower().endswith(".xml"):  # absolute: the digest (resume) must not depend on the cwd
+        scene = str((base / scene).resolve())
     seed = _integer(source, "seed", t.get("seed", 0), 0, (1 << 32) - 1)
     for sec in ("fixed", "vary", "zip", "render", "integrator", "keep", "surface"):
         if sec in t and not isinstance(t[sec], dict):
@@ -450,8 +450,8 @@ def _surface(source, s, base: Path):
     out = {"flat": s.get("flat", "flat_plate")}
     if not isinstance(out["flat"], str):
         _fail(source, f"surface.flat = {out['flat']!r}; the flat reference scene's name or XML path")
-    if out["flat"].lower().endswith(".xml") and not Path(out["flat"]).is_absolute():
-        out["flat"] = str(base / out["flat"])
+    if out["flat"].lower().endswith(".xml"):
+        out["flat"] = str((base / out["flat"]).resolve())
     if "object" in s:
         if s["object"] not in SURFACE_OBJECTS:
             _fail(source, f"surface.object = {s['object']!r}; the package knows the true gradient of "
