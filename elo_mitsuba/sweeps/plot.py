@@ -116,7 +116,7 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         ys, yt = _positions(ds, dims[1])
         z = da.transpose(dims[1], dims[0]).values
         if not np.all(np.isfinite(z)):
-            title += "\n(blank: undefined, e.g. every pixel masked, or not done)"
+            title += " (blank: undefined)"
         mesh = ax.pcolormesh(np.arange(len(xs)), np.arange(len(ys)), z, cmap=CMAP_SEQUENTIAL, shading="nearest")
         ax.set_xticks(np.arange(len(xs)), xt or [f"{v:g}" for v in xs])
         ax.set_yticks(np.arange(len(ys)), yt or [f"{v:g}" for v in ys])
