@@ -284,3 +284,55 @@ spp = 64
     assert (ds["status"].values == 1).all(), ds["error"].values
     assert "w2" in set(ds["worker"].values)
     assert "12/12 points done" in stdout
+
+
+def test_zipped_groups_moves_and_the_gradient_metric(tmp_path):
+    """A zipped group is one dimension with a coordinate per member; detectors.radius and
+    right.normal move detectors; with a test surface the Eq. 26 error is that of
+    analysis.surface_gradient on the object and flat renders against the true gradient."""
+    import elo_mitsuba as em
+    from elo_mitsuba.analysis import surface_gradient
+    from elo_mitsuba.sweeps.metrics import gradient_rms, true_gradient
+
+    spec = _write(tmp_path / "z.toml", """\
+scene = "corrugated_sheet"
+[fixed]
+field = 20
+[zip.position]
+dh = [272, 250]
+dw = [127, 150]
+[vary]
+detectors.radius = [20, 30]
+right.normal = [[-127, 0, -272]]
+[render]
+resolution = 32
+spp = 2
+[surface]
+object = "corrugated_sheet"
+""")
+    out = tmp_path / "z.zarr"
+    assert _cli("sweep", spec, "-o", out, "--workers", "0", "--no-progress") == 0
+    ds = xr.open_zarr(out)
+    assert dict(ds.sizes) == {"position": 2, "detectors.radius": 2, "right.normal": 1, "detector": 4, "xyz": 3}
+    assert ds["dw"].dims == ("position",) and ds["dw"].values.tolist() == [127, 150]
+    assert ds["right.normal_xyz"].values.tolist() == [[-127, 0, -272]]
+    assert set(ds.data_vars) >= {"gradient_rms_eq26", "masked_fraction", "signal_mean", "signal_spread"}
+    # point (position 1, radius 30): recompute the metric from direct renders
+    kw = {"field": 20, "res": 32, "dh": 250, "dw": 150}
+    renders = {}
+    for name in ("corrugated_sheet", "flat_plate"):
+        scene = em.load_scene(name, **kw)
+        for d in scene.detector_names:
+            scene.set_detector(d, radius=30.0)
+        scene.set_detector("right", normal=(-127, 0, -272))
+        renders[name] = scene.render(spp=2, seed=0, quality="default")
+    geo = renders["corrugated_sheet"].metadata["detectors"]
+    d_h = float(np.mean([geo[d]["center"][2] for d in geo]))
+    d_w = float(np.mean([np.hypot(*geo[d]["center"][:2]) for d in geo]))
+    g = surface_gradient(renders["corrugated_sheet"].channels, renders["flat_plate"].channels, (20.0, 20.0), d_h, d_w)
+    truth = true_gradient({"object": "corrugated_sheet"}, (32, 32), (20.0, 20.0))
+    assert abs(truth[0]).max() == pytest.approx(1.0)  # the flanks' slope, where a pixel lies on one
+    expected = gradient_rms(g.dzdx, g.dzdy, g.mask, truth)
+    at = {"position": 1, "detectors.radius": 1, "right.normal": 0}
+    assert float(ds["gradient_rms_eq26"].isel(at)) == pytest.approx(expected, rel=1e-12)
+    assert float(ds["masked_fraction"].isel(at)) == pytest.approx(float(g.mask.mean()))
