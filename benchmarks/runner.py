@@ -15,7 +15,7 @@ from .harness import CACHE, ROOT, Bench
 from .report import presets_table, summary
 
 #: The order sections run and appear in RESULTS.md: ``path`` compares with what ``targets`` measured.
-ORDER = ("targets", "path", "ceiling", "accuracy", "events", "scaling", "analysis")
+ORDER = ("targets", "path", "ceiling", "accuracy", "events", "scaling", "sweep", "analysis")
 
 DESCRIPTION = """\
 Benchmarks of the ELO forward model: speed against accuracy; ``python -m benchmarks [--quick]``.
@@ -34,6 +34,9 @@ Writes ``benchmarks/RESULTS.md`` (``--out`` to change). Sections (``--only`` to 
                each) at equal error: the speed ratio;
 * ``scaling``  time and peak memory against resolution, spp and mesh size; a flat plate as a
                heavy mesh;
+* ``sweep``    design sweeps: points/s with 1 and 2 Dask workers against a plain loop over
+               EloScene.render, overhead per point, worker memory, 10 000 points projected
+               (alone: python -m benchmarks.section_sweep);
 * ``analysis`` the model-based gradient against Eq. 26 at 1500² (time, memory), its disc rule,
                calibrate and the analysis commands end to end.
 

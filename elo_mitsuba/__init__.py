@@ -7,6 +7,7 @@ The package is layered as the pipeline is:
   integrator ``elo``) built on them;
 * :mod:`elo_mitsuba.render` -- load a scene, render the detector images, write EXR;
 * :mod:`elo_mitsuba.analysis` -- STSA correction, gradients (Eq. 26), height maps, design tools;
+* :mod:`elo_mitsuba.sweeps` -- design sweeps on one machine or a Dask cluster, into Zarr;
 * :mod:`elo_mitsuba.cli` -- the ``elo-mitsuba`` command, thin over all of the above.
 
 Importing the package imports Mitsuba but compiles nothing; the LLVM check and the variant choice
@@ -18,6 +19,7 @@ from ._version import __version__  # noqa: E402
 from .errors import EloEnvironmentError, EloError, EloInputError  # noqa: E402
 from .runtime import ensure_variant  # noqa: E402
 from .render import EloScene, RenderResult, load_scene, render  # noqa: E402
+from .sweeps import sweep  # noqa: E402  (Dask, xarray, Zarr are imported when it runs)
 
 
 def _hook_mitsuba():
@@ -37,5 +39,5 @@ _hook_mitsuba()
 
 __all__ = [
     "EloEnvironmentError", "EloError", "EloInputError", "EloScene", "RenderResult", "ensure_variant",
-    "load_scene", "render", "__version__",
+    "load_scene", "render", "sweep", "__version__",
 ]

@@ -23,6 +23,8 @@ COMMANDS = (
     "calibrate",
     "reconstruct",
     "reflectance_map",
+    "sweep",
+    "sweep_plot",
 )
 
 DESCRIPTION = """\
@@ -39,6 +41,7 @@ examples:
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad.exr
   elo-mitsuba calibrate flat.exr --dh 272 --dw 127 -o CALIB.json
   elo-mitsuba reconstruct grad.exr -o height.npy
+  elo-mitsuba sweep examples/sweep_minimal.toml -o sweep.zarr --workers 2
 
 Run 'elo-mitsuba COMMAND --help' for each command's options.
 """

@@ -1,0 +1,21 @@
+"""Design sweeps: many renders of one scene over a grid of parameters, on this machine or a Dask
+cluster, into one Zarr store readable by ``xarray.open_zarr``.
+
+* :mod:`.spec`    the TOML spec, validated before any render (:func:`load_spec`);
+* :mod:`.metrics` the design metrics computed on the workers (a registry);
+* :mod:`.store`   the Zarr layout, per-point status, resume;
+* :mod:`.worker`  what a worker does: load once, re-render in place, write its own point;
+* :mod:`.run`     the client: cluster, tasks, progress (:func:`sweep`);
+* :mod:`.plot`    a metric over one or two swept parameters (:func:`plot_metric`).
+
+Dask, xarray and Zarr are imported inside the functions that use them, so importing
+``elo_mitsuba`` stays fast.
+"""
+
+from .metrics import GRADIENT_METHODS, METRICS, register_gradient_method
+from .plot import plot_metric
+from .run import SweepSummary, sweep
+from .spec import SweepSpec, load_spec
+
+__all__ = ["GRADIENT_METHODS", "METRICS", "SweepSpec", "SweepSummary", "load_spec", "plot_metric",
+           "register_gradient_method", "sweep"]

@@ -1,0 +1,132 @@
+"""A sweep metric over one swept parameter (a line per detector) or two (a heat map), as PNG."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EloInputError
+
+
+def _open(store):
+    import xarray as xr
+
+    path = Path(store)
+    if not (path / ".zgroup").is_file():
+        raise EloInputError(f"{path} is not a sweep's Zarr store")
+    return xr.open_zarr(str(path))
+
+
+def _label(ds, dim) -> str:
+    c = ds[dim]
+    name = c.attrs.get("long_name", dim)
+    units = c.attrs.get("units", "")
+    return f"{name} ({units})" if units and units != "1" else name
+
+
+def _positions(ds, dim):
+    """Numeric positions and tick labels of a swept coordinate (strings become categories)."""
+    vals = ds[dim].values
+    if vals.dtype.kind in "iuf":
+        return vals.astype(float), None
+    return np.arange(len(vals), dtype=float), [str(v) for v in vals]
+
+
+def plot_metric(store, metric: str, path, *, detector: str | None = None, select: dict | None = None,
+                x: str | None = None, overwrite: bool = False) -> Path:
+    """Plot ``metric`` of a sweep store against its swept parameters.
+
+    Parameters
+    ----------
+    store : str or Path
+        The sweep's ``.zarr`` store.
+    metric : str
+        A data variable without image dimensions (``signal_mean``, ``gradient_rms_eq26``, ...).
+    path : str or Path
+        The ``.png`` to write.
+    detector : str, optional
+        For per-detector metrics: one detector (default: a line per detector; a heat map shows
+        the mean over detectors).
+    select : dict, optional
+        ``{dim: value}`` for swept dimensions beyond the one or two plotted (nearest value for
+        numbers, exact for strings).
+    x : str, optional
+        The dimension along the horizontal axis (default: the first one left).
+    overwrite : bool
+        Replace an existing PNG.
+
+    Returns
+    -------
+    Path
+    """
+    from ..analysis.plots import CMAP_SEQUENTIAL, _figure, _save
+
+    ds = _open(store)
+    if metric not in ds.data_vars or {"y", "x"} & set(ds[metric].dims) or metric in ("error", "worker"):
+        allowed = [v for v in ds.data_vars if not {"y", "x"} & set(ds[v].dims) and v not in ("error", "worker")]
+        raise EloInputError(f"{store}: no metric {metric!r}; metrics in this store: {', '.join(allowed)}")
+    da = ds[metric].where(ds["status"] == 1)
+    for dim, value in (select or {}).items():
+        if dim not in da.dims:
+            raise EloInputError(f"select {dim}: not a dimension of {metric} ({', '.join(da.dims)})")
+        try:
+            numeric = ds[dim].values.dtype.kind in "iuf"
+            da = da.sel({dim: float(value) if numeric else value}, method="nearest" if numeric else None)
+        except (KeyError, ValueError):
+            raise EloInputError(f"select {dim}={value}: not among {', '.join(map(str, ds[dim].values))}") from None
+    title = metric + "".join(f", {k}={v}" for k, v in (select or {}).items())
+    if "detector" in da.dims and detector is not None:
+        if detector not in list(ds["detector"].values):
+            raise EloInputError(f"detector {detector!r}: not in {', '.join(map(str, ds['detector'].values))}")
+        da = da.sel(detector=detector)
+        title += f" ({detector})"
+    dims = [d for d in da.dims if d != "detector" and da.sizes[d] > 1]
+    da = da.squeeze([d for d in da.dims if d != "detector" and da.sizes[d] == 1])
+    if len(dims) == 0 or len(dims) > 2:
+        raise EloInputError(f"{metric} varies over {len(dims)} swept dimensions ({', '.join(dims) or 'none'}); "
+                            "plot one or two: fix the others with --select DIM=VALUE")
+    if x is not None:
+        if x not in dims:
+            raise EloInputError(f"--x {x}: not among the plotted dimensions ({', '.join(dims)})")
+        dims.remove(x)
+        dims.insert(0, x)
+    units = ds[metric].attrs.get("units", "")
+    vlabel = f"{metric} ({units})" if units and units != "1" else metric
+    fig, axes = _figure()
+    ax = axes[0]
+    if len(dims) == 1:
+        xs, ticks = _positions(ds, dims[0])
+        if "detector" in da.dims:
+            for d in ds["detector"].values:
+                ax.plot(xs, da.sel(detector=d).transpose(dims[0]).values, "o-", label=str(d))
+            ax.legend(title="detector")
+        else:
+            ax.plot(xs, da.transpose(dims[0]).values, "o-")
+        if ticks:
+            ax.set_xticks(xs, ticks)
+        ax.set_xlabel(_label(ds, dims[0]))
+        ax.set_ylabel(vlabel)
+        ax.grid(alpha=0.3)
+    else:
+        if "detector" in da.dims:
+            da = da.mean("detector")
+            title += " (mean over detectors)"
+        xs, xt = _positions(ds, dims[0])
+        ys, yt = _positions(ds, dims[1])
+        z = da.transpose(dims[1], dims[0]).values
+        if not np.all(np.isfinite(z)):
+            title += " (blank: undefined)"
+        mesh = ax.pcolormesh(np.arange(len(xs)), np.arange(len(ys)), z, cmap=CMAP_SEQUENTIAL, shading="nearest")
+        ax.set_xticks(np.arange(len(xs)), xt or [f"{v:g}" for v in xs])
+        ax.set_yticks(np.arange(len(ys)), yt or [f"{v:g}" for v in ys])
+        if z.size <= 64:  # small grids: the numbers in the cells
+            for j in range(z.shape[0]):
+                for i in range(z.shape[1]):
+                    if np.isfinite(z[j, i]):
+                        ax.text(i, j, f"{z[j, i]:.3g}", ha="center", va="center", fontsize=8, color="0.5")
+        ax.set_xlabel(_label(ds, dims[0]))
+        ax.set_ylabel(_label(ds, dims[1]))
+        fig.colorbar(mesh, ax=ax, label=vlabel)
+    ax.set_title(title)
+    return _save(fig, path, overwrite)
