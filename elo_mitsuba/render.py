@@ -247,9 +247,12 @@ class EloScene:
         raise EloInputError(f"no shape with id {shape_id!r} (shapes: {ids})")
 
     def set_detector(self, name: str, center=None, radius: float | None = None, normal=None) -> None:
-        """Move a disk detector to ``center`` (mm), facing the origin or along ``normal`` (its front
-        normal, towards the field; any length); optionally resize it. Unchanged arguments keep
-        their current values, except that a new centre without ``normal`` faces the origin."""
+        """Move a disk detector to ``center`` (mm; default: where it is), facing the origin or along
+        ``normal`` (its front normal, towards the field; any length); optionally resize it.
+
+        Without ``normal`` the detector faces the origin, also when only the radius changes: the
+        result depends on the arguments alone, not on earlier moves (a sweep's point equals a
+        fresh scene with the same call, bit for bit)."""
         mi = self.mi
         key = f"{name}.to_world"
         if name not in self.detector_names:
@@ -267,12 +270,7 @@ class EloScene:
         if not np.any(np.abs(c) > 1e-9):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
                                 "from above it")
-        if normal is not None:
-            n = _vector3(name, "normal", normal)
-        elif center is None:
-            n = np.asarray(geo["normal"], dtype=float)
-        else:
-            n = -c
+        n = _vector3(name, "normal", normal) if normal is not None else -c
         if not np.linalg.norm(n) > 0:
             raise EloInputError(f"detector {name!r}: normal {n.tolist()} is zero")
         n = n / np.linalg.norm(n)

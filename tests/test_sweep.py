@@ -336,3 +336,11 @@ object = "corrugated_sheet"
     at = {"position": 1, "detectors.radius": 1, "right.normal": 0}
     assert float(ds["gradient_rms_eq26"].isel(at)) == pytest.approx(expected, rel=1e-12)
     assert float(ds["masked_fraction"].isel(at)) == pytest.approx(float(g.mask.mean()))
+    # the model method's metric: the same computation on the point's renders and its own discs
+    from elo_mitsuba.analysis.model_gradient import model_gradient
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+    r = renders["corrugated_sheet"]
+    m = model_gradient(r.channels, renders["flat_plate"].channels, ScanGeometry.from_metadata(r.metadata, (32, 32)))
+    assert float(ds["gradient_rms_model"].isel(at)) == pytest.approx(gradient_rms(m.dzdx, m.dzdy, m.mask, truth),
+                                                                      rel=1e-6)

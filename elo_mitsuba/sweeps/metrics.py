@@ -164,6 +164,23 @@ def register_gradient_method(name: str, function: Callable) -> None:
 register_gradient_method("eq26", GRADIENT_METHODS["eq26"])
 
 
+def _model(ctx):
+    """The model-based gradient (:mod:`elo_mitsuba.analysis.model_gradient`) with the point's
+    rendered detectors as its geometry, computed once per point."""
+    if "model" not in ctx.cache:
+        from ..analysis.model_gradient import model_gradient
+        from ..analysis.scan_geometry import ScanGeometry
+
+        shape = next(iter(ctx.channels.values())).shape
+        geo = ScanGeometry.from_metadata(ctx.metadata, shape, "sweep point")
+        ctx.cache["model"] = model_gradient(ctx.channels, ctx.flat, geo)
+    res = ctx.cache["model"]
+    return res.dzdx, res.dzdy, res.mask
+
+
+register_gradient_method("model", _model)
+
+
 def applicable(ctx: dict) -> list[str]:
     """The metrics that apply to a sweep (default of ``keep.metrics``)."""
     return [name for name, m in METRICS.items() if m.unavailable(ctx) is None]
