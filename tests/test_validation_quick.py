@@ -21,7 +21,7 @@ pytestmark = pytest.mark.skipif(not (REPO_ROOT / "validation" / "runner.py").is_
 VERDICTS = ("agrees", "agrees approx.", "partly", "disagrees")
 #: rows the quick run must produce (one or more per study)
 EXPECTED_ROWS = {"E1", "E3", "4a", "4c", "4d", "4e", "10b", "10e", "12a", "12b", "T1", "14a", "14b",
-                 "15a", "15b", "6a", "7a", "7b", "11a", "3b", "C1", "C2", "C3"}
+                 "15a", "15b", "6a", "7a", "7b", "11a", "3b", "C1", "C2", "C3", "G1", "G6"}
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +59,7 @@ def test_key_numbers_are_physical(quick_run):
     assert 0.8 < v["10e"]["grad_centre"] < 1.25           # Eq. 26 restores the slope
     assert 0.3 < v["7a"]["mx_slope"] < 0.7                # M_x falls short of the gradient
     assert 0.8 < v["11a"]["eq26_slope"] < 1.2
+    assert v["G1"]["model_worst"] < 0.01 < 0.1 < v["G1"]["eq26_worst"]  # the model fit removes Eq. 26's bias
     means = [v["15a"][f"mean_{z}"] for z in (25, 50, 60, 75)]
     assert means == sorted(means, reverse=True)           # mean falls with zeta
 

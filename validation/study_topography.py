@@ -84,7 +84,7 @@ def run(ctx):
     err_m, _ = _errors(mod, field, margin)
     h_e, h_m = _heights(e26, field), _heights(mod, field)
     st.add(Row(
-        "T1", "Eq. 26 is exact only for point detectors and Lambert's law; the model fit (full g_BSE, disc "
+        "G1", "Eq. 26 is exact only for point detectors and Lambert's law; the model fit (full g_BSE, disc "
         "detectors, each pixel's beam) removes its bias: error of the facet slopes (median over a facet) "
         "<= 1 % in every patch",
         "Eq. 26 (paper's method)",
@@ -94,7 +94,7 @@ def run(ctx):
         {"eq26_worst": err_e.max(), "model_worst": err_m.max(), "eq26_median": float(np.median(err_e)),
          "model_median": float(np.median(err_m))}, "topography_errors"))
     st.add(Row(
-        "T2", "Height per patch after the same integration (DCT over the patch): RMSE against the true relief, "
+        "G2", "Height per patch after the same integration (DCT over the patch): RMSE against the true relief, "
         "and against the integrated true gradient (what the gradient error alone does)",
         "Eq. 26 + integration",
         f"vs truth: Eq. 26 {1000 * h_e[0]:.1f} µm, model {1000 * h_m[0]:.1f} µm; vs integrated truth: Eq. 26 "
@@ -113,7 +113,7 @@ def run(ctx):
     hn_e, hn_m = _heights(e26n, field), _heights(modn, field)
     ok = ~modn.mask
     st.add(Row(
-        "T3", "With 1 % Gaussian noise on every object and flat pixel: errors, height, and the model's "
+        "G3", "With 1 % Gaussian noise on every object and flat pixel: errors, height, and the model's "
         "noise estimate and uncertainty", "—",
         f"worst patch (facet slope): Eq. 26 {100 * err_en.max():.1f} %, model {100 * err_mn.max():.2f} %; per pixel "
         f"(median |error|, worst patch): Eq. 26 {100 * max(r['median_error'] for r in rows_en):.1f} %, model "
@@ -131,7 +131,7 @@ def run(ctx):
     err_eb, _ = _errors(e26b, field, max(margin, 0.5))
     err_mb, _ = _errors(modb, field, max(margin, 0.5))
     st.add(Row(
-        "T4", "Beam blur (Gaussian, 0.27 mm FWHM as ATHENE): the model assumes a single ray; inside facets "
+        "G4", "Beam blur (Gaussian, 0.27 mm FWHM as ATHENE): the model assumes a single ray; inside facets "
         "(0.5 mm from ridges) blur mixes nothing", "—",
         f"worst patch: Eq. 26 {100 * err_eb.max():.1f} %, model {100 * err_mb.max():.2f} %; masked {100 * modb.mask.mean():.1f} % "
         f"(without blur {100 * mod.mask.mean():.1f} %)", settings + ", fwhm 0.27 mm",
@@ -145,7 +145,7 @@ def run(ctx):
     err_m2, _ = _errors(mod2, field, margin)
     share = float(np.mean([two.channels[f"{n}.e2"].sum() / two.channels[n].sum() for n in NAMES]))
     st.add(Row(
-        "T5", "The 2nd event (flank to flank on the sawtooth; the model is 1st-event only): what it costs",
+        "G5", "The 2nd event (flank to flank on the sawtooth; the model is 1st-event only): what it costs",
         "—", f"2nd event {100 * share:.1f} % of the signal; worst patch: Eq. 26 {100 * err_e2.max():.1f} %, model "
         f"{100 * err_m2.max():.2f} % (1st event only: {100 * err_m.max():.2f} %); flagged by the residual "
         f"{100 * np.mean((mod2.reasons & 32) != 0):.2f} % (per patch, Eq. 26 / model in %: "
@@ -166,7 +166,7 @@ def run(ctx):
         err_mz, _ = _errors(modz, field, margin)
         fin = np.isfinite(err_mz)
         st.add(Row(
-            "T7", f"Table 1 layout ζ = {zeta}° (detectors low): facets steeper than the detectors' elevation mask "
+            "G7", f"Table 1 layout ζ = {zeta}° (detectors low): facets steeper than the detectors' elevation mask "
             "them (Sec. 4.3); the model flags what it cannot fit and keeps the rest", "—",
             f"masked: Eq. 26 {100 * e26z.mask.mean():.1f} %, model {100 * modz.mask.mean():.1f} %; facet slope error "
             f"on the patches left: Eq. 26 worst {100 * np.nanmax(err_ez):.1f} %, model worst "
@@ -198,7 +198,7 @@ def run(ctx):
                      ("calibrated", cal.apply(nominal))):
         worst[label] = _errors(model_gradient(im, fl, g), field, margin)[0].max()
     st.add(Row(
-        "T6", "Calibration from a flat plate (right detector 5.4 mm and 3° off the drawing, gains 0.8-1.3, "
+        "G6", "Calibration from a flat plate (right detector 5.4 mm and 3° off the drawing, gains 0.8-1.3, "
         "0.5 % noise per pixel): centres recovered; topography with the calibrated geometry",
         "—", f"worst centre error {centre_err:.2f} mm (σ ≈ {cal.detectors['right'].sigma['cx']:.2f} mm); gains within "
         f"{100 * max(abs(cal.detectors[n].gain / gains[n] - 1) for n in NAMES):.2f} %; worst patch with the drawing's "
