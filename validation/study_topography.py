@@ -164,16 +164,22 @@ def run(ctx):
         e26z, modz = both({n: lo.channels[n] for n in NAMES}, {n: lf.channels[n] for n in NAMES}, lgeo)
         err_ez, rowsz = _errors(e26z, field, margin)
         err_mz, _ = _errors(modz, field, margin)
-        fin = np.isfinite(err_mz)
+        both4 = np.isfinite(err_ez) & np.isfinite(err_mz)     # patches Eq. 26 keeps too
+        only_model = ~np.isfinite(err_ez) & np.isfinite(err_mz)  # solved from three detectors
+        worst4 = float(np.max(err_mz[both4])) if both4.any() else float("nan")
+        worst3 = float(np.max(err_mz[only_model])) if only_model.any() else 0.0
         st.add(Row(
-            "G7", f"Table 1 layout ζ = {zeta}° (detectors low): facets steeper than the detectors' elevation mask "
-            "them (Sec. 4.3); the model flags what it cannot fit and keeps the rest", "—",
+            "G7", f"Table 1 layout ζ = {zeta}° (detectors low): facets steeper than the detectors' elevation hide "
+            "them (Sec. 4.3); Eq. 26 must mask such pixels, the model solves a pixel with one hidden detector from "
+            "the other three and flags what it cannot fit", "—",
             f"masked: Eq. 26 {100 * e26z.mask.mean():.1f} %, model {100 * modz.mask.mean():.1f} %; facet slope error "
-            f"on the patches left: Eq. 26 worst {100 * np.nanmax(err_ez):.1f} %, model worst "
-            f"{100 * np.nanmax(err_mz[fin]):.2f} % (per patch: {_patch_table(err_ez, err_mz, rowsz)})",
-            settings + f", layout {layout}", verdict_from(np.nanmax(err_mz[fin]) <= 0.02, approx=np.nanmax(err_mz[fin]) > 0.01),
-            "a patch fully masked has no error to report (nan)",
-            {"model_worst_zeta": float(np.nanmax(err_mz[fin])), "model_masked_zeta": float(modz.mask.mean()),
+            f"on the patches both keep: Eq. 26 worst {100 * np.nanmax(err_ez):.1f} %, model worst {100 * worst4:.2f} %; "
+            f"on the {int(only_model.sum())} patches only the model solves (three detectors): worst {100 * worst3:.2f} % "
+            f"(per patch: {_patch_table(err_ez, err_mz, rowsz)})",
+            settings + f", layout {layout}", verdict_from(worst4 <= 0.01 and worst3 <= 0.03, approx=worst3 > 0.01),
+            "three values fix p, q and the scale exactly: the model's small errors (a hidden disc's rim still "
+            "seen) are not averaged out; nan = patch masked by both",
+            {"model_worst_zeta": worst4, "model_worst_three": worst3, "model_masked_zeta": float(modz.mask.mean()),
              "eq26_masked_zeta": float(e26z.mask.mean())}))
 
     # a detector off the drawing: calibration from a noisy flat
