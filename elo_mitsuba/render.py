@@ -351,15 +351,15 @@ class EloScene:
         for p in range(passes):
             n = min(per_pass, spp - done)
             img = mi.render(self.scene, spp=n, seed=(seed * 65537 + p) % (1 << 32))
-            planes = _channel_planes(img)  # (C, H, W) float32: one gather, one copy
+            planes = _channel_planes(img, 1, len(names))  # (channels, H, W) float32; 'Y' (column 0) skipped
             del img
             if passes == 1:
-                channels = {name: planes[i + 1] for i, name in enumerate(names)}
+                channels = {name: planes[i] for i, name in enumerate(names)}
             else:
                 if channels is None:
                     channels = {name: np.zeros(planes.shape[1:], np.float64) for name in names}
                 for i, name in enumerate(names):
-                    channels[name] += planes[i + 1] * (n / spp)
+                    channels[name] += planes[i] * (n / spp)
             del planes
             done += n
             report(done, time.perf_counter() - t0)
@@ -385,20 +385,21 @@ def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
     return int(number)
 
 
-def _channel_planes(img, group: int = 4) -> np.ndarray:
-    """A developed film (Dr.Jit tensor, H x W x C) as a numpy array C x H x W (each channel
-    contiguous): a few channels per gather on the device, then one copy each, so that time and
-    peak memory stay low."""
-    import drjit as dr
-    import mitsuba as mi
+def _channel_planes(img, first: int = 1, count: int | None = None) -> np.ndarray:
+    """Channels ``first`` .. ``first + count - 1`` of a developed film (Dr.Jit tensor, H x W x C)
+    as a numpy array (count, H, W), each channel contiguous.
 
-    h, w, c = (int(x) for x in img.shape)
-    out = np.empty((c, h, w), np.float32)
-    for first in range(0, c, group):
-        n = min(group, c - first)
-        idx = dr.arange(mi.UInt32, h * w * n)
-        src = (idx % (h * w)) * c + idx // (h * w) + first
-        out[first:first + n] = np.asarray(dr.gather(mi.Float, img.array, src)).reshape(n, h, w)
+    On the CPU ``np.asarray`` is a view of Dr.Jit's buffer (on a GPU one transfer), so the only
+    fresh memory is the output itself: a new process pays about 2 s/GB to touch fresh pages, and
+    the earlier per-group gathers touched four times as much (gather result, its numpy copy, the
+    output, all channels including the unused 'Y' sum).
+    """
+    arr = np.asarray(img)
+    count = arr.shape[2] - first if count is None else count
+    out = np.empty((count,) + arr.shape[:2], np.float32)
+    rows = max(1, (1 << 22) // max(1, arr.shape[1] * arr.shape[2] * 4))  # blocks of ~4 MB stay in cache
+    for r in range(0, arr.shape[0], rows):  # 2x faster than one strided copy per channel
+        out[:, r:r + rows] = arr[r:r + rows, :, first:first + count].transpose(2, 0, 1)
     return out
 
 
