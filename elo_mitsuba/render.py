@@ -174,6 +174,15 @@ class EloScene:
                 out[shape.id() or f"shape{len(out)}"] = mat.describe()
         return out
 
+    def _material_notes(self) -> list[str]:
+        """What was done to a user's material (a measured composition normalised), per shape."""
+        notes = []
+        for shape in self.scene.shapes():
+            note = getattr(getattr(shape.bsdf(), "material", None), "note", "")
+            if note:
+                notes.append(f"material of {shape.id() or 'a shape'!r}: {note}")
+        return notes
+
     def metadata(self, spp: int, seed: int) -> dict:
         s = self.sensor
         geometry = self.detector_geometry()
@@ -193,7 +202,7 @@ class EloScene:
             "detector_samples": self.integrator.detector_samples,
             "quality": getattr(self, "quality", "scene"),
             "integrator_options": self.integrator.options.as_dict(),
-            "notes": list(getattr(self.integrator, "notes", [])),
+            "notes": list(getattr(self.integrator, "notes", [])) + self._material_notes(),
             "spp": int(spp),
             "seed": int(seed),
             "detectors": geometry,

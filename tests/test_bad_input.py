@@ -121,6 +121,10 @@ CLI_CASES = [
     ("render --variant", [*R, *OUT, "--variant", "scalar_rgb"], "is not supported"),
     ("render --units", [*R, *OUT, "--units", "volts"], "invalid choice: 'volts'"),
     ("render --quality", [*R, *OUT, "--quality", "best"], "invalid choice: 'best'"),
+    ("render --beam-current without volts", [*R, *OUT, "--beam-current", "1e-3"], "add --units voltage"),
+    ("render --transimpedance without volts", [*R, *OUT, "--transimpedance", "1e6"], "add --units voltage"),
+    ("render --beam-current -1", [*R, *OUT, "--units", "voltage", "--beam-current", "-1"], "beam_current=-1.0"),
+    ("render --transimpedance x", [*R, *OUT, "--units", "voltage", "--transimpedance", "x"], "'x' is not a number"),
     ("render --detector-samples 0", [*R, *OUT, "--detector-samples", "0"], "0 must be >= 1"),
     ("render --detector-samples no effect", [*R, *OUT, "--detector-samples", "4"], "would change nothing"),
     ("render --layout zeta99", [*R, *OUT, "--layout", "zeta99"], "unknown detector layout 'zeta99'"),
@@ -340,3 +344,13 @@ def test_the_table_is_large_enough():
     assert len(CLI_CASES) + len(API_CASES) >= 100
     assert len({c[0] for c in CLI_CASES}) == len(CLI_CASES) and len({c[0] for c in API_CASES}) == len(API_CASES)
     json.dumps([c[1] for c in CLI_CASES])  # plain argv lists
+
+
+def test_a_measured_composition_is_normalised_with_a_note():
+    from elo_mitsuba.physics import get_material
+
+    m = get_material("Ti:0.9,Al:0.06,V:0.0395")  # sums to 0.9995: rounded analysis values
+    assert abs(sum(m.composition.values()) - 1) < 1e-12 and "normalised" in m.note and "normalised" in m.describe()
+    assert get_material("Ti:0.9,Al:0.06,V:0.04").note == ""
+    scene = em.load_scene("flat_plate", res=2, material="Ti:0.9,Al:0.06,V:0.0395")
+    assert any("normalised to 1" in n for n in scene.metadata(1, 0)["notes"])

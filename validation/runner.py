@@ -212,8 +212,8 @@ def main(argv=None) -> int:
 
 def add_arguments(parser):
     parser.add_argument("--quick", action="store_true",
-                        help="tiny resolutions (about a minute; for CI). Default: the full settings "
-                             "(about 10 minutes on 2 cores)")
+                        help="tiny resolutions (about 40 s on 2 cores; for CI). Default: the full settings "
+                             "(about 4-7 min on 2 cores)")
     parser.add_argument("--output-dir", metavar="DIR", default=None,
                         help="where REPORT.md and figures/ go (default, in the current folder: validation-report/, "
                              "validation-quick/ with --quick, validation-partial/ with --only)")
