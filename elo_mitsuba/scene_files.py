@@ -171,6 +171,37 @@ def explain_mitsuba_error(exc: Exception, path: Path, values: Mapping[str, str] 
     return f"{path}{where}: {first}"
 
 
+def portable_scene_text(source: Path) -> str:
+    """The text of scene ``source`` with every relative file reference (``<include filename>``,
+    ``<string name="filename">``) made absolute against its folder, so that a copy anywhere
+    loads the same files; ``$parameters`` in the references are kept (``layouts/$layout.xml``)."""
+    from xml.sax.saxutils import escape
+
+    source = Path(source)
+
+    def absolute(m):
+        ref = m.group(2)
+        if Path(ref).is_absolute():
+            return m.group(0)
+        return f'{m.group(1)}{escape((source.parent.resolve() / ref).as_posix(), {chr(34): "&quot;"})}"'
+
+    text = source.read_text()
+    text = re.sub(r'(<include\s+filename=")([^"]+)"', absolute, text)
+    return re.sub(r'(<string\s+name="filename"\s+value=")([^"]+)"', absolute, text)
+
+
+def write_scene_copy(scene_path, source="athene_flat", *, overwrite: bool = False) -> Path:
+    """Write a copy of a shipped scene (or any scene file) that works from any folder: its
+    includes and meshes referenced by absolute path (:func:`portable_scene_text`), the
+    parameters and everything else unchanged, to edit as one's own."""
+    scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene")
+    src = resolve_scene_path(source)
+    text = portable_scene_text(src)
+    header = (f"<!-- Written by 'elo-mitsuba new-scene' from {src.name}: includes and meshes by absolute path, so "
+              "this file works from any folder. -->\n")
+    return atomic_write(scene_path, lambda tmp: tmp.write_text(header + text))
+
+
 def write_scene(scene_path, mesh_path, *, material: str | None = None, overwrite: bool = False) -> Path:
     """Write a Mitsuba scene that renders ``mesh_path`` like ``scenes_xml/melt_plate.xml``.
 

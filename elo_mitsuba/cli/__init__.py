@@ -22,6 +22,7 @@ COMMANDS = (
     "gradient",
     "reconstruct",
     "reflectance_map",
+    "new_scene",
 )
 
 DESCRIPTION = """\
