@@ -33,7 +33,7 @@ def d(tmp_path_factory):
     (d / "afile").write_bytes(SENTINEL)
     (d / "adir").mkdir()
     (d / "adir.exr").mkdir()
-    (d / "adir.md").mkdir()
+    (d / "folder" ".md").mkdir()  # a folder named like the report
     for suffix in ("exr", "png", "npy", "ply", "xml", "json", "md", "npz", "tif"):
         (d / f"exists.{suffix}").write_bytes(SENTINEL)
     rng = np.random.default_rng(0)
@@ -236,7 +236,7 @@ CLI_CASES = [
     ("validate --update-report --quick", ["validate", "--quick", "--update-report"], "--update-report rewrites"),
     ("benchmark --out no folder", ["benchmark", "--out", "{d}/nodir/r.md"], "does not exist"),
     ("benchmark --out suffix", ["benchmark", "--out", "{d}/r.txt"], "must end in .md"),
-    ("benchmark --out is a folder", ["benchmark", "--out", "{d}/adir.md"], "is a folder"),
+    ("benchmark --out is a folder", ["benchmark", "--out", "{d}/folder.md"], "is a folder"),
     # -- the command itself
     ("unknown command", ["paint", "x"], "invalid choice: 'paint'"),
 ]
