@@ -2,7 +2,7 @@
 
 Errors are per pixel, |x - ref| / max(ref, FLOOR x the image mean of ref), over all pixels: the
 RMS and the 99th percentile, worst of the four detectors. References are cached in
-``out/bench_cache/`` and keyed by the job and a fingerprint of the code and scenes.
+:data:`CACHE` (``~/.cache/elo-mitsuba/bench_cache/`` or ``$ELO_BENCH_CACHE``) and keyed by the job and a fingerprint of the code and scenes.
 """
 
 from __future__ import annotations

@@ -64,18 +64,25 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     import sys
+    from pathlib import Path
+
+    from ..files import check_output
+
+    # the arguments first: a rejected one costs no import of the analysis (scipy, matplotlib)
+    out = check_output(args.output, (".exr", ".npy", ".tif", ".tiff"), overwrite=args.overwrite)
+    if args.preview:
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+    if args.min_component < 1:
+        raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
+    if not Path(args.gradient).is_file():
+        raise EloInputError(f"{args.gradient}: no such file")
 
     from ..analysis import integrate_gradient
     from ..analysis.integrate import reconstruction_quality, resolve_method
     from ..analysis.io import HEIGHT_SUFFIXES, read_gradient, write_height
     from ..analysis.plots import preview_height
-    from ..files import check_output
 
-    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
-    if args.preview:
-        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
-    if args.min_component < 1:
-        raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
+    check_output(out, HEIGHT_SUFFIXES, overwrite=args.overwrite)  # the one list of suffixes
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
     field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
     method = resolve_method(args.method, grad["dzdx"], grad["dzdy"], mask)  # what runs is what is reported
