@@ -2,7 +2,9 @@
 # Install elo-mitsuba and everything it needs, then run the main job or the tests.
 #
 #   bash install.sh          install, verify, render the shipped scene athene_flat
-#                            into out/athene_flat.exr (once the renderer exists)
+#                            into athene_flat.exr in the folder it was started from
+#                            (ELO_OUT_DIR to choose another; never into the checkout unless
+#                            started there)
 #   bash install.sh --test   install, verify, run the test suite: python3 -m pytest -q tests
 #                            (further arguments are passed on to pytest)
 #
@@ -17,6 +19,7 @@
 # Environment: PYTHON (default python3), ELO_SKIP_APT=1 to never touch apt.
 set -euo pipefail
 
+OUT_DIR=${ELO_OUT_DIR:-$PWD}  # where the main job's image goes: the caller's folder, not the checkout
 cd "$(dirname "${BASH_SOURCE[0]}")"
 PYTHON="${PYTHON:-python3}"
 
@@ -139,10 +142,9 @@ else
     ELO=("$PYTHON" -m elo_mitsuba)
 fi
 if "${ELO[@]}" render --help >/dev/null 2>&1; then
-    say "running: elo-mitsuba render athene_flat -o out/athene_flat.exr --overwrite"
-    mkdir -p out
-    "${ELO[@]}" render athene_flat -o out/athene_flat.exr --overwrite
-    say "done: out/athene_flat.exr"
+    say "running: elo-mitsuba render athene_flat -o $OUT_DIR/athene_flat.exr --overwrite"
+    "${ELO[@]}" render athene_flat -o "$OUT_DIR/athene_flat.exr" --overwrite
+    say "done: $OUT_DIR/athene_flat.exr"
 else
     say "installed and verified; the renderer (elo-mitsuba render) is not part of this version yet"
 fi

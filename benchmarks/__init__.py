@@ -1,7 +1,8 @@
 """Benchmarks of the ELO forward model: what a render costs and how accurate it is.
 
 ``python -m benchmarks [--quick] [--only SECTION ...] [--out FILE] [--fresh]`` (or
-``elo-mitsuba benchmark ...`` from a source checkout) writes ``benchmarks/RESULTS.md``. Sections
+``elo-mitsuba benchmark ...`` from a source checkout) writes ``RESULTS.md`` in the current folder
+(``--update-report``: the committed ``benchmarks/RESULTS.md``). Sections
 (one module ``benchmarks.section_<name>`` each): the ray-cast ceiling, accuracy against time,
 events 1-4, the 1500² targets, Mitsuba's ``path`` integrator at equal error, scaling. Every timed
 configuration runs in its own process (:mod:`benchmarks.worker`), so that its peak memory is its

@@ -1,7 +1,13 @@
-"""``python -m benchmarks [--quick] [--out FILE] [--only SECTION ...] [--fresh]``: see benchmarks/__init__.py."""
+"""``python -m benchmarks ...``: see benchmarks/__init__.py. A user error is one line, exit status 2."""
 
 import sys
 
+from elo_mitsuba.errors import EloError
+
 from .runner import main
 
-sys.exit(main())
+try:
+    sys.exit(main())
+except EloError as exc:  # ``elo-mitsuba benchmark`` prints these itself (cli/checkout.py)
+    print(f"python -m benchmarks: error: {exc}", file=sys.stderr)
+    sys.exit(2)

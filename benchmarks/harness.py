@@ -2,7 +2,7 @@
 
 Errors are per pixel, |x - ref| / max(ref, FLOOR x the image mean of ref), over all pixels: the
 RMS and the 99th percentile, worst of the four detectors. References are cached in
-``out/bench_cache/`` and keyed by the job and a fingerprint of the code and scenes.
+:data:`CACHE` (``~/.cache/elo-mitsuba/bench_cache/`` or ``$ELO_BENCH_CACHE``) and keyed by the job and a fingerprint of the code and scenes.
 """
 
 from __future__ import annotations
@@ -21,7 +21,10 @@ import numpy as np
 from .config import settings
 
 ROOT = Path(__file__).resolve().parents[1]
-CACHE = ROOT / "out" / "bench_cache"
+#: References, meshes and images the runs share: outside the checkout (a cache, not an output),
+#: in $ELO_BENCH_CACHE or the user's cache folder.
+CACHE = Path(os.environ.get("ELO_BENCH_CACHE")
+             or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "elo-mitsuba" / "bench_cache")
 DETS = ("right", "left", "back", "front")
 FLOOR = 0.05
 

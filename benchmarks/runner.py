@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from . import SECTIONS
-from .harness import CACHE, ROOT, Bench
+from .harness import ROOT, Bench
 from .report import presets_table, summary
 
 #: The order sections run and appear in RESULTS.md: ``path`` compares with what ``targets`` measured.
@@ -20,7 +20,8 @@ ORDER = ("targets", "path", "ceiling", "accuracy", "events", "scaling", "sweep",
 DESCRIPTION = """\
 Benchmarks of the ELO forward model: speed against accuracy; ``python -m benchmarks [--quick]``.
 
-Writes ``benchmarks/RESULTS.md`` (``--out`` to change). Sections (``--only`` to pick some):
+Writes ``RESULTS.md`` in the current folder (``--out FILE`` to change; ``--update-report`` rewrites
+the committed ``benchmarks/RESULTS.md`` of the checkout). Sections (``--only`` to pick some):
 
 * ``ceiling``  Mitsuba's raw ray-cast throughput on each scene and our integrator's throughput
                as a fraction of it (rays it casts per sample / time);
@@ -44,7 +45,7 @@ Errors are per pixel, |x - ref| / max(ref, 5% of the image mean of ref), over al
 RMS and the 99th percentile, worst of the four detectors. Every timed configuration runs in its
 own process (benchmarks/worker.py); peak memory is the resident set of one render in it (the
 peak is reset before each timed render; import, scene and Dr.Jit's caches count); references and
-images are cached in out/bench_cache/ (``--fresh`` to recompute).
+images are cached in ~/.cache/elo-mitsuba/bench_cache/ (or $ELO_BENCH_CACHE; ``--fresh`` to recompute).
 """
 
 
@@ -107,16 +108,19 @@ def run_benchmarks(sections=SECTIONS, quick=False, fresh=False, out=None):
     fresh : bool
         Recompute the cached references.
     out : path, optional
-        Default ``benchmarks/RESULTS.md``; with ``quick`` ``out/bench_cache/RESULTS-quick.md``.
+        Default ``RESULTS.md`` in the current folder (``RESULTS-quick.md`` with ``quick``); checked
+        before any work (folder exists, not a folder itself).
 
     Returns
     -------
     pathlib.Path
         The file written.
     """
+    from elo_mitsuba.files import check_output
+
     if out is None:
-        out = CACHE / "RESULTS-quick.md" if quick else ROOT / "benchmarks" / "RESULTS.md"
-    out = Path(out)
+        out = Path("RESULTS-quick.md" if quick else "RESULTS.md")
+    out = check_output(out, (".md",), overwrite=True, what="--out")  # before minutes of work
     b = Bench(quick, fresh)
     info = machine_info()
     t0 = time.perf_counter()
@@ -136,12 +140,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks", description=DESCRIPTION,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smaller resolutions and fewer samples (minutes)")
-    ap.add_argument("--out", help="markdown file to write (default benchmarks/RESULTS.md; with --quick "
-                    "out/bench_cache/RESULTS-quick.md)")
+    ap.add_argument("--out", help="markdown file to write (default RESULTS.md in the current folder; with --quick "
+                    "RESULTS-quick.md)")
+    ap.add_argument("--update-report", action="store_true",
+                    help="write the committed benchmarks/RESULTS.md of the checkout (full run only)")
     ap.add_argument("--only", nargs="+", choices=SECTIONS, help="run only these sections")
     ap.add_argument("--fresh", action="store_true", help="recompute cached references")
     args = ap.parse_args(argv)
-    out = run_benchmarks(args.only or SECTIONS, quick=args.quick, fresh=args.fresh, out=args.out)
+    out = args.out
+    if args.update_report:
+        if args.out or args.quick or args.only:
+            ap.error("--update-report writes benchmarks/RESULTS.md from a full run: no --out, --quick or --only")
+        out = ROOT / "benchmarks" / "RESULTS.md"
+    out = run_benchmarks(args.only or SECTIONS, quick=args.quick, fresh=args.fresh, out=out)
     print(f"wrote {out}", file=sys.stderr)
     return 0
 

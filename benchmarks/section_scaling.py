@@ -13,7 +13,7 @@ TITLE = "Scaling"
 
 def mesh_scene(n_grid, flat=False):
     """A melt-plate scene (or a flat plate) whose mesh is the height map sampled on n_grid x n_grid
-    points, cached in out/bench_cache/; (scene path, triangles)."""
+    points, cached in the bench cache (harness.CACHE); (scene path, triangles)."""
     from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh
     from elo_mitsuba.objects.melt_plate import melt_plate_height
     from elo_mitsuba.scene_files import write_scene

@@ -128,5 +128,19 @@ def run(b):
             table(["configuration", "spp", "settings", "time (s)", "peak RSS (MB)", "1st event RMS", "1st event p99",
                    "total RMS", "total p99", "events 2 error (RMS, of total)"], rows), "",
             "Command line end to end (new process: import, scene load, kernels from the cache, render, EXR): " +
-            ", ".join(f"`--quality {q}` {t:.1f} s (exit {rc})" for q, t, rc in cli)]
+            ", ".join(f"`--quality {q}` {t:.1f} s (exit {rc})" for q, t, rc in cli), "",
+            table(["command line, new process", "end to end (s)", "warm render (s)", "ratio (target <= 2)"],
+                  _cli_rows(cli, results))]
     return "\n".join(text)
+
+
+def _cli_rows(cli, results):
+    """``elo-mitsuba render athene_flat --quality Q`` in a new process against the warm render of
+    the same preset (EloScene.render with the scene loaded): the cost of the command line itself."""
+    rows = []
+    for q, t, rc in cli:
+        warm = results.get(f"preset {q}")
+        w = median(warm["times"]) if warm else None
+        rows.append([f"`render athene_flat --quality {q}`" + ("" if rc == 0 else f" (exit {rc})"), fmt(t, 3),
+                     fmt(w, 3) if w else "-", f"{t / w:.1f}" if w else "-"])
+    return rows

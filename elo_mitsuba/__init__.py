@@ -12,8 +12,14 @@ The package is layered as the pipeline is:
 
 Importing the package imports Mitsuba but compiles nothing; the LLVM check and the variant choice
 happen at the first render (:func:`elo_mitsuba.runtime.ensure_variant`), which stops with one
-actionable line instead of the abort that Debian 12's LLVM 15/16 would cause.
+actionable line instead of the abort that Debian 12's LLVM 15/16 would cause. The ``elo-mitsuba``
+command itself does not import Mitsuba until a sub-command needs it (a rejected argument costs
+a fraction of a second; ``gradient`` and ``reconstruct`` never load it).
 """
+
+import os as _os
+import sys as _sys
+
 
 from ._version import __version__  # noqa: E402
 from .errors import EloEnvironmentError, EloError, EloInputError  # noqa: E402
@@ -35,7 +41,17 @@ def _hook_mitsuba():
     runtime.register_plugins()
 
 
-_hook_mitsuba()
+def _cli_process() -> bool:
+    """True when this interpreter runs the ``elo-mitsuba`` command (console script, or
+    ``python -m elo_mitsuba``, during whose import ``sys.argv[0]`` is ``-m``): no user code can set
+    a variant there, and :func:`ensure_variant` does the hooking when a command needs Mitsuba."""
+    argv0 = _sys.argv[0] if _sys.argv else ""
+    return _os.path.basename(argv0) in ("elo-mitsuba", "elo-mitsuba.exe") or (
+        argv0 == "-m" and "mitsuba" not in _sys.modules)
+
+
+if not _cli_process() or "mitsuba" in _sys.modules:
+    _hook_mitsuba()
 
 __all__ = [
     "EloEnvironmentError", "EloError", "EloInputError", "EloScene", "RenderResult", "ensure_variant",

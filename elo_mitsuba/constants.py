@@ -20,6 +20,9 @@ LOBE_WIDTH_DEG = 13.0
 ACCELERATION_VOLTAGE_KV = 60.0
 #: Tolerance on the sum of weight fractions of a composition.
 COMPOSITION_SUM_TOL = 1e-6
+#: A measured composition (an analysis certificate rounds each element) may miss 1 by this much:
+#: it is normalised to sum 1, with a note; beyond it the fractions are refused as a real mismatch.
+MEASURED_COMPOSITION_TOL = 1e-3
 #: Nominal composition used wherever the paper says Ti-6Al-4V (docs/paper-notes.md §5).
 DEFAULT_MATERIAL = "Ti-6Al-4V"
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from ._version import __version__
 from .errors import EloError, EloInputError
+from .budget import check_render
 from .exr import write_exr
 from .grid import ORIENTATION
 from .options import QUALITIES, EloOptions, quality_options
@@ -45,6 +46,10 @@ MAX_SPP_PER_PASS = 1024
 #: Options whose validity depends on the scene (detector ids, detector shapes for the quadrature):
 #: EloScene.configure checks them at once; the others are checked by EloOptions alone.
 _NEEDS_THE_SCENE = {"front_only", "detector_sampling", "quadrature_triangles"}
+#: Off a terminal, progress lines start once a render has run this long (short renders stay quiet).
+PROGRESS_AFTER_S = 3.0
+#: ... and come at least this often between the 10 % steps.
+PROGRESS_EVERY_S = 30.0
 #: Largest seed: Mitsuba's samplers take 32-bit seeds.
 MAX_SEED = (1 << 32) - 1
 
@@ -129,7 +134,7 @@ class EloScene:
         except EloError:
             raise
         except Exception as exc:  # Mitsuba wraps everything in RuntimeError
-            raise EloInputError(explain_mitsuba_error(exc, self.path)) from None
+            raise EloInputError(explain_mitsuba_error(exc, self.path, values)) from None
         self.integrator = self.scene.integrator()
         self.sensor = self.scene.sensors()[0]
         if not hasattr(self.integrator, "prepare_scene"):
@@ -154,6 +159,9 @@ class EloScene:
                 out[name] = _shape_geometry(self.mi, shape)
             else:  # disk, rectangle, sphere ...: exact from the transform
                 out[name] = _disk_geometry(self.mi_params[key], shape)
+            if not (out[name]["area_mm2"] > 0 and np.all(np.isfinite(out[name]["normal"]))):
+                raise EloInputError(f"{self.path}: detector {name!r} has area {out[name]['area_mm2']:g} mm^2 "
+                                    "(a scale of 0 in its transform?); a detector needs a radius > 0")
         return out
 
     def materials(self) -> dict[str, str]:
@@ -165,6 +173,15 @@ class EloScene:
             if mat is not None:
                 out[shape.id() or f"shape{len(out)}"] = mat.describe()
         return out
+
+    def _material_notes(self) -> list[str]:
+        """What was done to a user's material (a measured composition normalised), per shape."""
+        notes = []
+        for shape in self.scene.shapes():
+            note = getattr(getattr(shape.bsdf(), "material", None), "note", "")
+            if note:
+                notes.append(f"material of {shape.id() or 'a shape'!r}: {note}")
+        return notes
 
     def metadata(self, spp: int, seed: int) -> dict:
         s = self.sensor
@@ -185,7 +202,7 @@ class EloScene:
             "detector_samples": self.integrator.detector_samples,
             "quality": getattr(self, "quality", "scene"),
             "integrator_options": self.integrator.options.as_dict(),
-            "notes": list(getattr(self.integrator, "notes", [])),
+            "notes": list(getattr(self.integrator, "notes", [])) + self._material_notes(),
             "spp": int(spp),
             "seed": int(seed),
             "detectors": geometry,
@@ -205,6 +222,13 @@ class EloScene:
                 raise EloInputError(
                     f"{self.path}: detector {name!r} has its centre at z={c[2]:g} mm, at or below the "
                     "build plane z=0; detectors must be above the plate"
+                )
+            # the whole disc, not only its centre: its lowest rim point is r sin(tilt) below the centre
+            low = c[2] - geo["radius"] * math.sqrt(max(0.0, 1.0 - float(n[2]) ** 2))
+            if low <= 0:
+                raise EloInputError(
+                    f"{self.path}: detector {name!r} (centre z={c[2]:g} mm, radius {geo['radius']:g} mm) reaches down "
+                    f"to z={low:.3g} mm, through the build plane z=0; raise it (dh) or move it inwards (dw)"
                 )
             if np.dot(n, -c) <= 0:
                 raise EloInputError(
@@ -311,7 +335,11 @@ class EloScene:
         ``spp`` defaults to the quality preset's (``quality``, see
         :data:`~elo_mitsuba.options.QUALITY_PRESETS`), or
         without one to the scene's sampler. Large jobs run as several passes of one compiled
-        kernel (with a progress line on stderr when ``progress`` or a terminal).
+        kernel. Before any work, a render that cannot fit in memory is refused and a long one
+        gets a note (:func:`elo_mitsuba.budget.check_render`). ``progress``: None (default) shows
+        progress on stderr for multi-pass renders, as a bar on a terminal and otherwise as a line
+        per 10 % once the render has run for :data:`PROGRESS_AFTER_S`; True always, False never
+        (no notes either).
         """
         mi = self.mi
         seed = _whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
@@ -326,9 +354,12 @@ class EloScene:
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
         passes = math.ceil(spp / per_pass)
-        if progress is None:
-            progress = passes > 1 and sys.stderr.isatty()
         names = self.integrator.channel_names()
+        notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(), passes)
+        if progress is not False:
+            for note in notes:
+                print(f"elo-mitsuba: note: {note}", file=sys.stderr, flush=True)
+        report = _Progress(spp, passes, progress)
         # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
         # float32 channel-major array, so that peak memory stays near the film's own (<= 1 GB at
         # 1500^2); several passes are summed in float64
@@ -338,21 +369,19 @@ class EloScene:
         for p in range(passes):
             n = min(per_pass, spp - done)
             img = mi.render(self.scene, spp=n, seed=(seed * 65537 + p) % (1 << 32))
-            planes = _channel_planes(img)  # (C, H, W) float32: one gather, one copy
+            planes = _channel_planes(img, 1, len(names))  # (channels, H, W) float32; 'Y' (column 0) skipped
             del img
             if passes == 1:
-                channels = {name: planes[i + 1] for i, name in enumerate(names)}
+                channels = {name: planes[i] for i, name in enumerate(names)}
             else:
                 if channels is None:
                     channels = {name: np.zeros(planes.shape[1:], np.float64) for name in names}
                 for i, name in enumerate(names):
-                    channels[name] += planes[i + 1] * (n / spp)
+                    channels[name] += planes[i] * (n / spp)
             del planes
             done += n
-            if progress:
-                _progress(done, spp, time.perf_counter() - t0)
-        if progress:
-            print(file=sys.stderr)
+            report(done, time.perf_counter() - t0)
+        report.end()
         if passes > 1:
             channels = {name: img.astype(np.float32) for name, img in channels.items()}
         for name, img in channels.items():
@@ -385,29 +414,57 @@ def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
     return int(number)
 
 
-def _channel_planes(img, group: int = 4) -> np.ndarray:
-    """A developed film (Dr.Jit tensor, H x W x C) as a numpy array C x H x W (each channel
-    contiguous): a few channels per gather on the device, then one copy each, so that time and
-    peak memory stay low."""
-    import drjit as dr
-    import mitsuba as mi
+def _channel_planes(img, first: int = 1, count: int | None = None) -> np.ndarray:
+    """Channels ``first`` .. ``first + count - 1`` of a developed film (Dr.Jit tensor, H x W x C)
+    as a numpy array (count, H, W), each channel contiguous.
 
-    h, w, c = (int(x) for x in img.shape)
-    out = np.empty((c, h, w), np.float32)
-    for first in range(0, c, group):
-        n = min(group, c - first)
-        idx = dr.arange(mi.UInt32, h * w * n)
-        src = (idx % (h * w)) * c + idx // (h * w) + first
-        out[first:first + n] = np.asarray(dr.gather(mi.Float, img.array, src)).reshape(n, h, w)
+    On the CPU ``np.asarray`` is a view of Dr.Jit's buffer (on a GPU one transfer), so the only
+    fresh memory is the output itself: a new process pays about 2 s/GB to touch fresh pages, and
+    the earlier per-group gathers touched four times as much (gather result, its numpy copy, the
+    output, all channels including the unused 'Y' sum).
+    """
+    arr = np.asarray(img)
+    count = arr.shape[2] - first if count is None else count
+    out = np.empty((count,) + arr.shape[:2], np.float32)
+    rows = max(1, (1 << 22) // max(1, arr.shape[1] * arr.shape[2] * 4))  # blocks of ~4 MB stay in cache
+    for r in range(0, arr.shape[0], rows):  # 2x faster than one strided copy per channel
+        out[:, r:r + rows] = arr[r:r + rows, :, first:first + count].transpose(2, 0, 1)
     return out
 
 
-def _progress(done, total, elapsed):
-    width = 30
-    filled = int(width * done / total)
-    eta = elapsed / done * (total - done)
-    print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{total} spp, "
-          f"{elapsed:.1f} s, {eta:.1f} s left", end="", file=sys.stderr, flush=True)
+class _Progress:
+    """Progress of the pass loop on stderr: rate and time left, as a bar redrawn on a terminal,
+    else (logs, pipes, CI) a line per 10 %, or every :data:`PROGRESS_EVERY_S` in between, once the
+    render has run :data:`PROGRESS_AFTER_S`."""
+
+    def __init__(self, total: int, passes: int, enabled: bool | None):
+        self.total, self.passes = total, passes
+        self.tty = sys.stderr.isatty()
+        self.enabled = (passes > 1) if enabled is None else bool(enabled)
+        self.always = bool(enabled)
+        self.next_step, self.drawn, self.last = 0.1, False, -math.inf
+
+    def __call__(self, done: int, elapsed: float) -> None:
+        if not self.enabled or done <= 0:
+            return
+        eta = elapsed / done * (self.total - done)
+        text = (f"{done}/{self.total} spp ({100 * done / self.total:.0f} %), {elapsed:.1f} s, "
+                f"{done / max(elapsed, 1e-9):.3g} spp/s, {eta:.1f} s left")
+        if self.tty:
+            width = 30
+            filled = int(width * done / self.total)
+            print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {text}", end="", file=sys.stderr, flush=True)
+            self.drawn = True
+        elif (self.always or elapsed >= PROGRESS_AFTER_S) and (
+                done / self.total >= self.next_step - 1e-12 or elapsed - self.last >= PROGRESS_EVERY_S
+                or self.last == -math.inf):
+            print(f"  render: {text}", file=sys.stderr, flush=True)
+            self.next_step = math.floor(10 * done / self.total + 1e-9) / 10 + 0.1
+            self.last = elapsed
+
+    def end(self) -> None:
+        if self.drawn:
+            print(file=sys.stderr)
 
 
 def _disk_geometry(to_world, shape) -> dict:
@@ -415,9 +472,12 @@ def _disk_geometry(to_world, shape) -> dict:
     m = np.array(to_world.matrix, dtype=float).reshape(4, 4) if hasattr(to_world, "matrix") else None
     m = m.squeeze() if m is not None else np.eye(4)
     centre = m[:3, 3]
+    area = float(shape.surface_area()[0])
+    if abs(np.linalg.det(m[:3, :3])) < 1e-300:  # a zero scale: no normal; the caller names the detector
+        return {"center": [round(float(x), 6) for x in centre], "normal": [math.nan] * 3, "radius": 0.0,
+                "area_mm2": 0.0}
     normal = np.linalg.inv(m[:3, :3]).T @ np.array([0.0, 0.0, 1.0])
     normal /= np.linalg.norm(normal)
-    area = float(shape.surface_area()[0])
     return {
         "center": [round(float(x), 6) for x in centre],
         "normal": [round(float(x), 6) for x in normal],

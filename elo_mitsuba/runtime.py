@@ -113,6 +113,7 @@ def ensure_variant(variant: str | None = None):
 
     If a supported variant is already active and no variant is requested, it is kept.
     """
+    import_backend()  # first import (the CLI defers it to here): Dr.Jit's LLVM noise held back
     import mitsuba as mi
 
     current = mi.variant()

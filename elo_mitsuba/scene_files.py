@@ -33,6 +33,9 @@ def shipped_scenes() -> dict[str, Path]:
 
 def resolve_scene_path(scene: str | Path) -> Path:
     """A path to an XML file, or the name of a shipped scene (``flat_plate``, ``athene_flat``, ...)."""
+    if not isinstance(scene, (str, os.PathLike)):
+        raise EloInputError(f"scene {scene!r} ({type(scene).__name__}): give an XML path or a shipped scene name "
+                            f"({', '.join(shipped_scenes())})")
     path = Path(scene)
     if path.is_file():
         return path
@@ -78,6 +81,30 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> N
                 _collect_defaults(inc, values, declared, depth + 1)
             else:
                 _refuse_value_without_file(path, pattern, values)
+                if "$" not in name:  # Mitsuba would fail on it; say why before "not declared" errors
+                    raise EloInputError(
+                        f"{path}: included file {name!r} not found (an include is relative to the scene's "
+                        f"folder {path.parent}); a copied scene needs its {Path(name).parts[0]}/ folder too, "
+                        "or write a self-contained copy: elo-mitsuba new-scene NAME.xml --from SCENE")
+        elif node.tag == "shape" and node.get("type") == "ply" and depth < 8:
+            _check_ply(path, node, {**declared, **values})
+
+
+def _check_ply(path: Path, node, known: Mapping) -> None:
+    """A ``<shape type="ply">`` whose file is missing or not a PLY: say which file, in one line
+    (Mitsuba's own message on binary garbage is a UTF-8 decode error)."""
+    for child in node:
+        if child.tag == "string" and child.get("name") == "filename" and child.get("value"):
+            name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), child.get("value"))
+            if "$" in name:
+                return
+            mesh = path.parent / name
+            if not mesh.is_file():
+                raise EloInputError(f"{path}: mesh file {name!r} not found (relative to {path.parent})")
+            with open(mesh, "rb") as f:
+                head = f.read(4096)
+            if not head.startswith(b"ply") or b"end_header" not in head:
+                raise EloInputError(f"{path}: mesh file {mesh} is not a PLY file (no 'ply' ... 'end_header' header)")
 
 
 def _refuse_value_without_file(path: Path, pattern: str, values: Mapping) -> None:
@@ -110,9 +137,18 @@ def layout_parameters(layout: str | int) -> dict[str, float]:
     return {"dh": dh, "dw": dw}
 
 
-def explain_mitsuba_error(exc: Exception, path: Path) -> str:
-    """One line from Mitsuba's multi-line loader error: where, and the innermost message."""
+def explain_mitsuba_error(exc: Exception, path: Path, values: Mapping[str, str] | None = None) -> str:
+    """One line from Mitsuba's multi-line loader error: where, and the innermost message.
+
+    ``values`` (the user's -D settings): a value Mitsuba could not parse is named by its parameter.
+    """
     text = str(exc)
+    m = re.search(r'could not parse (\w[\w ]*?) value "([^"]*)"', text)
+    if m:
+        names = [k for k, v in (values or {}).items() if str(v) == m.group(2)]
+        if names:
+            return (f"{path}: parameter {names[0]}={m.group(2)!r} is not a valid {m.group(1)} value "
+                    f"(-D {names[0]}=...)")
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     where = ""
     m = re.search(r"\(line (\d+), col (\d+)\)", text)
@@ -133,6 +169,37 @@ def explain_mitsuba_error(exc: Exception, path: Path) -> str:
         unused = ", ".join(re.findall(r"\$(\w+)=", text))
         return f"{path}: parameter(s) {unused} not used by this scene"
     return f"{path}{where}: {first}"
+
+
+def portable_scene_text(source: Path) -> str:
+    """The text of scene ``source`` with every relative file reference (``<include filename>``,
+    ``<string name="filename">``) made absolute against its folder, so that a copy anywhere
+    loads the same files; ``$parameters`` in the references are kept (``layouts/$layout.xml``)."""
+    from xml.sax.saxutils import escape
+
+    source = Path(source)
+
+    def absolute(m):
+        ref = m.group(2)
+        if Path(ref).is_absolute():
+            return m.group(0)
+        return f'{m.group(1)}{escape((source.parent.resolve() / ref).as_posix(), {chr(34): "&quot;"})}"'
+
+    text = source.read_text()
+    text = re.sub(r'(<include\s+filename=")([^"]+)"', absolute, text)
+    return re.sub(r'(<string\s+name="filename"\s+value=")([^"]+)"', absolute, text)
+
+
+def write_scene_copy(scene_path, source="athene_flat", *, overwrite: bool = False) -> Path:
+    """Write a copy of a shipped scene (or any scene file) that works from any folder: its
+    includes and meshes referenced by absolute path (:func:`portable_scene_text`), the
+    parameters and everything else unchanged, to edit as one's own."""
+    scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene")
+    src = resolve_scene_path(source)
+    text = portable_scene_text(src)
+    header = (f"<!-- Written by 'elo-mitsuba new-scene' from {src.name}: includes and meshes by absolute path, so "
+              "this file works from any folder. -->\n")
+    return atomic_write(scene_path, lambda tmp: tmp.write_text(header + text))
 
 
 def write_scene(scene_path, mesh_path, *, material: str | None = None, overwrite: bool = False) -> Path:

@@ -11,7 +11,7 @@ from elo_mitsuba.constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
 from elo_mitsuba.options import QUALITY_PRESETS, EloOptions, filter_window_levels, quality_options
 
 BAD = [
-    ("events", 0, "events=0; must be >= 1"), ("events", 2.5, "whole number"), ("events", True, "number"),
+    ("events", 0, r"events=0; must be in \[1, 10\]"), ("events", 2.5, "whole number"), ("events", True, "number"),
     ("detector_sampling", "grid", "allowed: independent, stratified, quadrature"),
     ("detector_samples", 0, ">= 1"), ("bounce_detector_samples", -1, ">= 1"),
     ("quadrature_triangles", 3, r"\[4, 256\]"), ("quadrature_triangles", 257, r"\[4, 256\]"),

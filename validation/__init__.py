@@ -3,8 +3,9 @@
 One command regenerates every claim of the paper that a simulation can check, as figures in the
 style of the paper's and a report that puts the paper's number beside ours:
 
-    python -m validation            # default settings, ~10 min on 2 cores -> validation/REPORT.md
-    python -m validation --quick    # tiny resolutions, ~1 min -> out/validation-quick/REPORT.md
+    python -m validation            # default settings, ~4-7 min on 2 cores -> ./validation-report/REPORT.md
+    python -m validation --quick    # tiny resolutions, ~40 s -> ./validation-quick/REPORT.md
+    python -m validation --update-report   # rewrites the committed validation/REPORT.md
     elo-mitsuba validate [--quick]  # the same, from a source checkout
 
 Studies (one module each, run in this order):
@@ -44,8 +45,9 @@ def run(quick: bool = False, output_dir=None, only=None, log=print, json_path=No
         Tiny resolutions and sample counts (about a minute); the default settings take about
         ten minutes on two cores.
     output_dir : path, optional
-        Default ``validation/`` for the full default run (the committed report),
-        ``out/validation-quick/`` for ``quick``, ``out/validation-partial/`` with ``only``.
+        Default, in the current folder: ``validation-report/``, ``validation-quick/`` for
+        ``quick``, ``validation-partial/`` with ``only`` (the committed ``validation/`` only when
+        given explicitly, as ``--update-report`` does).
     only : iterable of str, optional
         Subset of :data:`STUDIES`.
     log : callable or None

@@ -16,9 +16,12 @@ from .config import settings as _settings
 from .report import StudyResult, rows_as_dicts, write_report
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUTPUT = REPO_ROOT / "validation"
-QUICK_OUTPUT = REPO_ROOT / "out" / "validation-quick"
-PARTIAL_OUTPUT = REPO_ROOT / "out" / "validation-partial"
+#: The committed report: written only with --update-report (a full default run).
+COMMITTED_OUTPUT = REPO_ROOT / "validation"
+#: Default output folders, in the current folder (never the checkout unless run from there).
+DEFAULT_OUTPUT = Path("validation-report")
+QUICK_OUTPUT = Path("validation-quick")
+PARTIAL_OUTPUT = Path("validation-partial")
 
 
 class Renderer:
@@ -111,9 +114,26 @@ def environment_info(quick: bool, mode_cmd: str) -> dict:
     }
 
 
-def run_validation(quick=False, output_dir=None, only=None, log=print, json_path=None, figures=True):
+def check_outputs(out_dir: Path, json_path=None, overwrite: bool = False) -> None:
+    """Refuse, before any study runs, an output folder that is a file (or under one), an existing
+    report without ``overwrite``, and a bad ``--json`` path (one line, EloInputError)."""
+    from elo_mitsuba.errors import EloInputError
+    from elo_mitsuba.files import check_output
+
+    for folder in (out_dir, *out_dir.parents):
+        if folder.exists() and not folder.is_dir():
+            raise EloInputError(f"--output-dir {out_dir}: {folder} is a file, not a folder")
+    if (out_dir / "REPORT.md").exists() and not overwrite:
+        raise EloInputError(f"--output-dir {out_dir} holds a REPORT.md already; pass --overwrite to replace it "
+                            "(or choose another --output-dir)")
+    if json_path is not None:
+        check_output(json_path, (".json",), overwrite=overwrite, what="--json")
+
+
+def run_validation(quick=False, output_dir=None, only=None, log=print, json_path=None, figures=True,
+                   overwrite=False):
     t_start = time.perf_counter()
-    # only the full default run writes validation/REPORT.md (the committed report)
+    # only --update-report (output_dir=COMMITTED_OUTPUT) writes validation/REPORT.md, the committed report
     if output_dir is not None:
         out_dir = Path(output_dir)
     else:
@@ -122,6 +142,7 @@ def run_validation(quick=False, output_dir=None, only=None, log=print, json_path
     unknown = set(only or ()) - set(STUDIES)
     if unknown:
         raise ValueError(f"unknown studies {sorted(unknown)}; choose from {', '.join(STUDIES)}")
+    check_outputs(out_dir, json_path, overwrite=overwrite or out_dir.resolve() == COMMITTED_OUTPUT.resolve())
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
 
@@ -191,11 +212,14 @@ def main(argv=None) -> int:
 
 def add_arguments(parser):
     parser.add_argument("--quick", action="store_true",
-                        help="tiny resolutions (about a minute; for CI). Default: the full settings "
-                             "(about 10 minutes on 2 cores)")
+                        help="tiny resolutions (about 40 s on 2 cores; for CI). Default: the full settings "
+                             "(about 4-7 min on 2 cores)")
     parser.add_argument("--output-dir", metavar="DIR", default=None,
-                        help="where REPORT.md and figures/ go (default: validation/ for the full default "
-                             "run, out/validation-quick/ with --quick, out/validation-partial/ with --only)")
+                        help="where REPORT.md and figures/ go (default, in the current folder: validation-report/, "
+                             "validation-quick/ with --quick, validation-partial/ with --only)")
+    parser.add_argument("--update-report", action="store_true",
+                        help="write the committed validation/REPORT.md and figures of the checkout (full default run)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing REPORT.md / --json file")
     parser.add_argument("--only", nargs="+", metavar="STUDY", choices=STUDIES, default=None,
                         help=f"run only these studies ({', '.join(STUDIES)})")
     parser.add_argument("--json", metavar="FILE", default=None, help="also write the rows as JSON")
@@ -210,8 +234,16 @@ def run_from_args(args) -> int:
             module = importlib.import_module(f"{__package__}.study_{name}")
             print(f"{name:12s} {module.TITLE}")
         return 0
-    result = run_validation(quick=args.quick, output_dir=args.output_dir, only=args.only,
-                            json_path=args.json, figures=not args.no_figures)
+    output_dir = args.output_dir
+    if args.update_report:
+        if args.output_dir or args.quick or args.only or args.no_figures:
+            from elo_mitsuba.errors import EloInputError
+
+            raise EloInputError("--update-report rewrites validation/REPORT.md from the full default run: "
+                                "no --output-dir, --quick, --only or --no-figures")
+        output_dir = COMMITTED_OUTPUT
+    result = run_validation(quick=args.quick, output_dir=output_dir, only=args.only,
+                            json_path=args.json, figures=not args.no_figures, overwrite=args.overwrite)
     bad = [r.id for r in result.rows if r.verdict == "disagrees"]
     print(f"{len(result.rows)} claims: " + ", ".join(
         f"{sum(r.verdict == v for r in result.rows)} {v}" for v in ("agrees", "agrees approx.", "partly", "disagrees"))

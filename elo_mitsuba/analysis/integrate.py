@@ -25,6 +25,8 @@ i.e. *against* the row index. All returned heights are finite; masked pixels hol
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage, sparse
@@ -34,6 +36,14 @@ from ..errors import EloInputError
 from .geometry import pixel_size
 
 METHODS = ("dct", "fft", "masked")
+
+#: :func:`reconstruction_quality` warns above these (documented in ``reconstruct --help``).
+#: Integrability residual: the relative RMS misfit between the gradient of the height map and the
+#: input gradient (0 for an integrable field; about 0.7 for pure noise, whose curl-free part
+#: carries half the energy). Above 0.3 a third of the input is not the gradient of any surface.
+MAX_INTEGRABILITY_RESIDUAL = 0.3
+#: Untrusted share of the pixels above which the height map covers too little of the field.
+MAX_MASKED_FRACTION = 0.5
 
 
 def _pixel_gradients(dzdx, dzdy, field_mm):
@@ -260,28 +270,119 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
     mask_out : ndarray of bool (H, W)
         Pixels whose height is not measured (the input mask, grown by the masked solver).
     """
-    dzdx = np.asarray(dzdx, dtype=float)
-    dzdy = np.asarray(dzdy, dtype=float)
-    bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != dzdx.shape:
-            raise EloInputError(f"mask shape {mask.shape} differs from the gradient's {dzdx.shape}")
-        bad = bad | mask
-    if method == "auto":
-        method = "masked" if bad.any() else "dct"
+    dzdx, dzdy, bad = _checked_inputs(dzdx, dzdy, mask)
+    method = resolve_method(method, dzdx, dzdy, bad)
     if method == "masked":
         return integrate_masked(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size)
     if method == "dct":
         z = integrate_dct(np.where(bad, 0.0, dzdx), np.where(bad, 0.0, dzdy), field_mm)
     elif method == "fft":
         z = integrate_fft(np.where(bad, 0.0, dzdx), np.where(bad, 0.0, dzdy), field_mm)
-    else:
-        raise EloInputError(f"integration method {method!r}: choose one of auto, {', '.join(METHODS)}")
     if bad.any() and not bad.all():
         z = z - z[~bad].mean()
     z = np.where(bad, 0.0, z)
     return z, bad
+
+
+def _checked_inputs(dzdx, dzdy, mask):
+    """The gradient as float arrays of one 2-D shape, and the untrusted pixels (mask or non-finite)."""
+    dzdx = np.asarray(dzdx, dtype=float)
+    dzdy = np.asarray(dzdy, dtype=float)
+    if dzdx.shape != dzdy.shape or dzdx.ndim != 2:
+        raise EloInputError(f"dzdx {dzdx.shape} and dzdy {dzdy.shape}: expected two 2-D arrays of one shape")
+    bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != dzdx.shape:
+            raise EloInputError(f"mask shape {mask.shape} differs from the gradient's {dzdx.shape}")
+        bad = bad | mask
+    return dzdx, dzdy, bad
+
+
+def resolve_method(method: str, dzdx, dzdy, mask=None) -> str:
+    """The solver :func:`integrate_gradient` runs for ``method``: ``"auto"`` is ``"masked"`` when a
+    pixel is masked or a gradient non-finite, else ``"dct"``. One rule, so that what a caller
+    reports is what ran."""
+    if method != "auto" and method not in METHODS:
+        raise EloInputError(f"integration method {method!r}: choose one of auto, {', '.join(METHODS)}")
+    if method != "auto":
+        return method
+    bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
+    if mask is not None:
+        bad = bad | np.asarray(mask, dtype=bool)
+    return "masked" if bad.any() else "dct"
+
+
+def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
+    """How far a height map can be trusted: figures computed from its input and itself.
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        The gradient that was integrated (mm/mm).
+    field_mm : float or (float, float)
+        Scan field in mm.
+    height, mask_out : ndarray (H, W)
+        What :func:`integrate_gradient` returned.
+
+    Returns
+    -------
+    dict
+        ``integrability_residual``: RMS over neighbouring trusted pixel pairs of
+        (Z_b - Z_a - (g_a + g_b)/2), relative to the RMS of (g_a + g_b)/2: 0 when the gradient is
+        that of a surface, about 0.7 for noise (least squares keeps only the curl-free part).
+        ``masked_fraction``: share of pixels without height. ``bowl_mm``: peak-to-valley of the
+        best-fitting quadric (tilt and bowl) over the largest trusted region, and ``relief_mm``:
+        that of the height minus the quadric. A small bias of the gradient over the field
+        (flat-field correction, Eq. 26 at steep flanks, noise) integrates to exactly such a
+        quadric, so ``bowl_mm > relief_mm`` says the height *range* is not measured relief.
+        ``warnings``: one line per figure above :data:`MAX_INTEGRABILITY_RESIDUAL`,
+        :data:`MAX_MASKED_FRACTION`, or a bowl larger than the relief.
+    """
+    dzdx, dzdy, bad = _checked_inputs(dzdx, dzdy, mask_out)
+    gc, gr = _pixel_gradients(np.where(bad, 0.0, dzdx), np.where(bad, 0.0, dzdy), field_mm)
+    z = np.asarray(height, dtype=float)
+    ok = ~bad
+    num = den = 0.0
+    for axis in (1, 0):  # pairs along columns (+x), then along rows
+        g = gc if axis == 1 else gr
+        a = (slice(None), slice(None, -1)) if axis == 1 else (slice(None, -1), slice(None))
+        b = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
+        pair = ok[a] & ok[b]
+        target = 0.5 * (g[a] + g[b])[pair]
+        num += float(np.sum(((z[b] - z[a])[pair] - target) ** 2))
+        den += float(np.sum(target ** 2))
+    residual = math.sqrt(num / den) if den > 0 else 0.0
+    masked = float(bad.mean())
+    bowl = relief = 0.0
+    labels, n = ndimage.label(ok)
+    if n:
+        largest = labels == 1 + int(np.argmax(ndimage.sum_labels(ok, labels, range(1, n + 1))))
+        rows, cols = np.nonzero(largest)
+        if rows.size >= 6:
+            step = max(1, rows.size // 250_000)  # a quadric needs few points; keep it fast
+            x = cols / max(z.shape[1] - 1, 1) - 0.5
+            y = rows / max(z.shape[0] - 1, 1) - 0.5
+            basis = np.stack([np.ones_like(x), x, y, x * x, y * y, x * y], axis=1)
+            coef, *_ = np.linalg.lstsq(basis[::step], z[rows, cols][::step], rcond=None)
+            quad = basis @ coef
+            bowl = float(np.ptp(quad))
+            relief = float(np.ptp(z[rows, cols] - quad))
+    warnings = []
+    if residual > MAX_INTEGRABILITY_RESIDUAL:
+        warnings.append(f"integrability residual {residual:.2f} > {MAX_INTEGRABILITY_RESIDUAL:g}: the gradient is "
+                        "not that of a surface (noise, or inconsistent detector images); the heights are not reliable")
+    if masked > MAX_MASKED_FRACTION:
+        warnings.append(f"{100 * masked:.1f} % of the pixels have no height (> {100 * MAX_MASKED_FRACTION:g} %)")
+    pixel = max(pixel_size(z.shape, field_mm))
+    if bowl > relief and bowl > 0.01 * pixel:
+        warnings.append(f"a field-wide tilt/bowl of {bowl:.3g} mm exceeds the relief of {relief:.3g} mm: a small "
+                        "bias of the gradient integrates to that shape, so the height range is not measured relief "
+                        "(local relief is)")
+    return {"integrability_residual": round(residual, 4), "masked_fraction": round(masked, 6),
+            "bowl_mm": round(bowl, 6), "relief_mm": round(relief, 6), "warnings": warnings,
+            "thresholds": {"integrability_residual": MAX_INTEGRABILITY_RESIDUAL,
+                           "masked_fraction": MAX_MASKED_FRACTION, "bowl": "bowl_mm > relief_mm"}}
 
 
 def height_gradient(height, field_mm):

@@ -119,7 +119,9 @@ def load_detector_set(exr_path=None, files: Mapping | None = None, what: str = "
     if exr_path and given:
         raise EloInputError(f"{what}: give either one EXR or the four single files, not both")
     if exr_path:
-        return read_detector_exr(exr_path, event)
+        images, meta = read_detector_exr(exr_path, event)
+        check_detector_images(images, {n: f"{exr_path} channel {n!r}" for n in images})
+        return images, meta
     if not given:
         return None, {}
     missing = [n for n in DETECTOR_NAMES if n not in given]
@@ -129,7 +131,50 @@ def load_detector_set(exr_path=None, files: Mapping | None = None, what: str = "
     for n, f in given.items():
         images[n], m = read_image(f)
         meta = meta or m
+    shapes = {n: img.shape for n, img in images.items()}
+    if len(set(shapes.values())) != 1:
+        raise EloInputError(f"{what}: the four images differ in shape ({', '.join(f'{n} {s}' for n, s in shapes.items())})")
+    check_detector_images(images, {n: str(given[n]) for n in images})
     return images, meta
+
+
+def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, str]) -> None:
+    """Refuse detector images no gradient can come from, naming the file and what is wrong.
+
+    A detector image is a collected signal (count, current or voltage): finite, of one sign and
+    not zero everywhere. NaN/Inf, values of both signs (an offset not subtracted) and an all-zero
+    image (a detector not connected, a wrong channel) would otherwise end as a masked gradient
+    without a reason. An image <= 0 throughout (an inverting amplifier) is accepted here: the
+    STSA division by a flat of the same sign cancels it (:func:`check_signs`).
+    """
+    for n, img in images.items():
+        finite = np.isfinite(img)
+        if not finite.all():
+            raise EloInputError(f"{names[n]}: {int((~finite).sum())} of {img.size} pixels are NaN or Inf; "
+                                "detector images must be finite")
+        if not img.any():
+            raise EloInputError(f"{names[n]}: all {img.size} pixels are 0; the {n} detector recorded nothing "
+                                "(not connected, or the wrong channel/file)")
+        low, high = float(img.min()), float(img.max())
+        if low < 0 < high:
+            raise EloInputError(f"{names[n]}: {int((img < 0).sum())} pixels are negative (min {low:.4g}) and "
+                                f"others positive (max {high:.4g}); a detector signal has one sign: subtract a "
+                                "dark offset only down to 0")
+
+
+def check_signs(images: Mapping[str, np.ndarray], flats: Mapping[str, np.ndarray] | None, names: Mapping[str, str]):
+    """Negative detector images only with a flat-plate image of the same sign (the ratio is > 0).
+
+    Without a flat the images are taken as already STSA-corrected ratios, which are >= 0.
+    """
+    for n, img in images.items():
+        negative = float(img.min()) < 0
+        if flats is None and negative:
+            raise EloInputError(f"{names[n]}: {int((img < 0).sum())} pixels are negative (min {float(img.min()):.4g}); "
+                                "STSA-corrected images (--no-flat) are ratios >= 0")
+        if flats is not None and negative != (float(flats[n].min()) < 0):
+            raise EloInputError(f"{names[n]}: the {n} image and its flat-plate image have opposite signs; "
+                                "record both through the same amplifier")
 
 
 def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, stsa_corrected: bool,
@@ -214,8 +259,9 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     """Write a height map (mm) by suffix.
 
     ``.exr``: channels ``height`` and ``mask`` (1 = no height measured) and the metadata;
-    ``.npy``: the float64 height array; ``.tif``: float32. NPY/TIFF carry no mask: masked pixels
-    hold 0 there (use EXR to keep the mask).
+    ``.npy``: the float64 height array; ``.tif``: float32 with the metadata as JSON in its
+    ImageDescription. NPY/TIFF carry no mask: masked pixels hold 0 there (use EXR to keep the
+    mask); NPY carries no metadata either.
     """
     path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
     height = np.asarray(height, dtype=float)
@@ -231,5 +277,8 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     else:
         import tifffile
 
-        atomic_write(path, lambda tmp: tifffile.imwrite(tmp, height.astype(np.float32)))
+        from ..exr import _metadata_json
+
+        text = _metadata_json(path, dict(metadata or {}))
+        atomic_write(path, lambda tmp: tifffile.imwrite(tmp, height.astype(np.float32), description=text))
     return path

@@ -25,6 +25,7 @@ COMMANDS = (
     "reflectance_map",
     "sweep",
     "sweep_plot",
+    "new_scene",
 )
 
 DESCRIPTION = """\
@@ -54,7 +55,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole parser, or with ``only`` (a module of :data:`COMMANDS`) just that sub-command's:
+    the others' parsers import what their help needs (scipy for 'reconstruct'), which a
+    'render' need not pay for."""
     parser = _Parser(
         prog="elo-mitsuba",
         description=DESCRIPTION,
@@ -66,8 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f"{__name__}.{name}").add_parser(sub)
-    checkout.add_parsers(sub)
+        if only is None or name == only:
+            importlib.import_module(f"{__name__}.{name}").add_parser(sub)
+    if only is None:
+        checkout.add_parsers(sub)
     return parser
 
 
@@ -79,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
         except EloError as exc:
             print(f"elo-mitsuba: error: {exc}", file=sys.stderr)
             return 2
-    parser = build_parser()
+    wanted = argv[0].replace("-", "_") if argv else None
+    parser = build_parser(only=wanted if wanted in COMMANDS else None)
     args = parser.parse_args(argv)
     if not hasattr(args, "run"):
         parser.print_help()

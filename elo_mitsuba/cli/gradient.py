@@ -180,10 +180,26 @@ def _same(a, b, rtol=1e-6):
     return np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=rtol, atol=0)
 
 
+def _report_mask(res) -> None:
+    """Why pixels are masked (share per reason of MASK_BITS), and a warning when most are."""
+    import sys
+
+    from ..analysis.gradient import MASK_BITS
+
+    if not res.mask.any():
+        return
+    shares = [f"{name} {100 * np.mean((res.reasons & bit) > 0):.2f} %" for name, bit in MASK_BITS.items()
+              if np.any(res.reasons & bit)]
+    print(f"masked pixels by reason (a pixel may have several): {', '.join(shares)}")
+    if res.mask.mean() > 0.5:
+        print(f"elo-mitsuba: warning: {100 * res.mask.mean():.1f} % of the pixels are masked; see the reasons above "
+              "and the mask thresholds in 'elo-mitsuba gradient --help'", file=sys.stderr)
+
+
 def run(args) -> int:
     from ..analysis import geometry_from_metadata, surface_gradient
     from ..analysis.gradient import MIN_CORRECTED, MIN_DENOMINATOR
-    from ..analysis.io import load_detector_set, write_gradient
+    from ..analysis.io import check_signs, load_detector_set, write_gradient
     from ..analysis.model_gradient import ITERATIONS
     from ..analysis.plots import preview_gradient
     from ..analysis.stsa import MIN_SUM
@@ -215,12 +231,15 @@ def run(args) -> int:
                             "or --no-flat if the images are already STSA-corrected")
     if flats is not None and args.no_flat:
         raise EloInputError("--no-flat contradicts the flat-plate images given")
+    check_signs(images, flats, {n: args.object or getattr(args, n) for n in DETECTOR_NAMES})
 
     # Geometry: explicit flags win; otherwise the object header, else the flat header.
     header = meta if meta else flat_meta
     source = args.object or args.flat or "command line"
     if not header and (args.field is None or args.dh is None or args.dw is None):
-        raise EloInputError("single-file inputs carry no geometry: pass --field, --dh and --dw (mm)")
+        what = (f"{source} has no elo-mitsuba geometry header (not written by 'elo-mitsuba render')"
+                if (args.object or args.flat) else "single-channel inputs carry no geometry")
+        raise EloInputError(f"{what}: pass --field, --dh and --dw (mm)")
     shape = next(iter(images.values())).shape
     header_discs = args.method == "model" and args.dh is None and args.dw is None and bool((header or {}).get("detectors"))
     if header_discs:
@@ -289,6 +308,7 @@ def run(args) -> int:
     print(f"wrote {out}: {shape[1]}x{shape[0]} px, field {geo['field_mm'][0]:g}x{geo['field_mm'][1]:g} mm, "
           f"d_h={geo['d_h']:g} mm, d_w={geo['d_w']:g} mm, method {args.method}, {100 * res.mask.mean():.2f} % masked"
           + extra)
+    _report_mask(res)
     if args.preview:
         title = "Surface gradient (model fit)" if args.method == "model" else "Surface gradient (Eq. 26)"
         preview_gradient(res.dzdx, res.dzdy, geo["field_mm"], Path(args.preview), mask=res.mask, title=title,

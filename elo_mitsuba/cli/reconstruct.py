@@ -23,7 +23,16 @@ Solvers (Queau, Durou & Aujol 2018 survey the field):
   auto    'masked' if any pixel is masked, else 'dct' (default)
 
 Output by suffix: .exr (channels height and mask, 1 = no height; geometry in the header), .npy
-(float64) or .tif (float32). NPY/TIFF hold 0 at masked pixels and no mask.
+(float64) or .tif (float32, the header as JSON in its ImageDescription). NPY/TIFF hold 0 at
+masked pixels and no mask; NPY holds no header (use .exr or .tif to keep the figures below).
+
+How far the result can be trusted is printed and stored in the header ("quality"):
+  integrability residual  relative RMS misfit between the height map's gradient and the input
+                          (0 = the gradient of a surface, ~0.7 = noise); warning above {res:g}
+  masked fraction         share of pixels without height; warning above {mask:g}
+  bowl / relief           peak-to-valley of the best-fitting quadric (tilt + bowl) and of the
+                          rest; a small gradient bias integrates to a bowl, so a bowl larger than
+                          the relief is warned about: the height range is then not relief
 """
 
 EPILOG = """\
@@ -34,11 +43,11 @@ examples:
 
 
 def add_parser(subparsers):
-    from ..analysis.integrate import METHODS
+    from ..analysis.integrate import MAX_INTEGRABILITY_RESIDUAL, MAX_MASKED_FRACTION, METHODS
 
     p = subparsers.add_parser(
         "reconstruct", help="gradient EXR -> height map (normal integration)",
-        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=DESCRIPTION.format(res=MAX_INTEGRABILITY_RESIDUAL, mask=MAX_MASKED_FRACTION), epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("gradient", metavar="GRAD.exr", help="output of 'elo-mitsuba gradient'")
     p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|npy|tif)", help="height map to write")
@@ -54,21 +63,32 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from ..analysis import integrate_gradient
-    from ..analysis.io import HEIGHT_SUFFIXES, read_gradient, write_height
-    from ..analysis.plots import preview_height
+    import sys
+    from pathlib import Path
+
     from ..files import check_output
 
-    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
+    # the arguments first: a rejected one costs no import of the analysis (scipy, matplotlib)
+    out = check_output(args.output, (".exr", ".npy", ".tif", ".tiff"), overwrite=args.overwrite)
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
     if args.min_component < 1:
         raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
+    if not Path(args.gradient).is_file():
+        raise EloInputError(f"{args.gradient}: no such file")
+
+    from ..analysis import integrate_gradient
+    from ..analysis.integrate import reconstruction_quality, resolve_method
+    from ..analysis.io import HEIGHT_SUFFIXES, read_gradient, write_height
+    from ..analysis.plots import preview_height
+
+    check_output(out, HEIGHT_SUFFIXES, overwrite=args.overwrite)  # the one list of suffixes
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
     field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
-    height, mask_out = integrate_gradient(grad["dzdx"], grad["dzdy"], field, method=args.method,
+    method = resolve_method(args.method, grad["dzdx"], grad["dzdy"], mask)  # what runs is what is reported
+    height, mask_out = integrate_gradient(grad["dzdx"], grad["dzdy"], field, method=method,
                                           mask=mask, min_component_size=args.min_component)
-    method = args.method if args.method != "auto" else ("masked" if mask is not None and mask.any() else "dct")
+    quality = reconstruction_quality(grad["dzdx"], grad["dzdy"], field, height, mask_out)
     out_meta = {
         "quantity": "height map (relative, zero mean)",
         "units": "mm",
@@ -77,6 +97,7 @@ def run(args) -> int:
         "method": method,
         "mask": "1 = no height measured (0 stored there), 0 = measured",
         "source": str(args.gradient),
+        "quality": quality,
     }
     for key in ("d_h_mm", "d_w_mm", "material", "projection"):
         if key in meta:
@@ -86,6 +107,11 @@ def run(args) -> int:
     span = float(np.ptp(height[valid])) if valid.any() else 0.0
     print(f"wrote {out}: method {method}, {height.shape[1]}x{height.shape[0]} px, height range {span:.4g} mm, "
           f"{100 * mask_out.mean():.2f} % without height")
+    print(f"quality: integrability residual {quality['integrability_residual']:.3f}, "
+          f"{100 * quality['masked_fraction']:.2f} % masked, bowl {quality['bowl_mm']:.3g} mm, "
+          f"relief {quality['relief_mm']:.3g} mm")
+    for line in quality["warnings"]:
+        print(f"elo-mitsuba: warning: {line}", file=sys.stderr)
     if args.preview:
         preview_height(height, field, args.preview, mask=mask_out if mask_out.any() else None,
                        title=f"Height map ({method})", overwrite=args.overwrite)

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from ..errors import EloInputError
 from ..files import check_output
-from ._args import define, positive_int, seed
+from ..constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
+from ._args import define, number, positive_int, seed
 
 HELP = "render the detector images of an XML scene to a multichannel EXR"
 
@@ -68,7 +69,13 @@ def add_parser(subparsers):
     p.add_argument("--variant", help="Mitsuba variant: llvm_ad_mono (CPU, default) or cuda_ad_mono (NVIDIA GPU); also $ELO_MITSUBA_VARIANT")
     p.add_argument("-D", dest="defines", action="append", type=define, default=[], metavar="NAME=VALUE", help="set a scene parameter, e.g. -D dh=250 -D dw=140 -D wd=450 -D field=80 -D fwhm=0.27")
     p.add_argument("--layout", metavar="zetaNN", help="detector layout of Table 1: zeta25, zeta50, zeta60, zeta75 (sets dh and dw)")
-    p.add_argument("--units", choices=("fraction", "voltage"), help="N_d/N_0 (default) or detector voltage U_d = N_d/N_0 * I_b * T (Eq. 9)")
+    p.add_argument("--units", choices=("fraction", "voltage"),
+                   help=f"N_d/N_0 (default) or detector voltage U_d = N_d/N_0 * I_b * T (Eq. 9), with the beam current "
+                        f"I_b (--beam-current, default {BEAM_CURRENT_A:g} A) and the amplifier transimpedance T "
+                        f"(--transimpedance, default {TRANSIMPEDANCE_V_PER_A:g} V/A)")
+    p.add_argument("--beam-current", type=number, metavar="A", help="beam current I_b in A for --units voltage")
+    p.add_argument("--transimpedance", type=number, metavar="V_PER_A",
+                   help="detector amplifier transimpedance T in V/A for --units voltage")
     p.add_argument("--detector-samples", type=positive_int, help="points sampled on each detector per event (default 1); the presets integrate the 1st event by "
                    "the triangle quadrature, so there it sets events >= 2 only")
     p.add_argument("--quality", choices=("draft", "default", "reference", "scene"), default="default",
@@ -91,10 +98,14 @@ def run(args) -> int:
                             "replaces; give --spp instead (or --quality scene)")
     if args.resolution is not None:
         params["res"] = args.resolution
+    chain = {k: v for k, v in (("beam_current", args.beam_current), ("transimpedance", args.transimpedance))
+             if v is not None}
+    if chain and args.units != "voltage":
+        raise EloInputError(f"--{next(iter(chain)).replace('_', '-')} scales volts only; add --units voltage")
     t0 = time.perf_counter()
     scene = load_scene(args.scene, variant=args.variant, detector_layout=args.layout, **params)
     if args.units:
-        scene.configure(units=args.units)
+        scene.configure(units=args.units, **chain)
     if args.detector_samples:  # explicit wins over the preset (which does not set it)
         scene.configure(detector_samples=args.detector_samples, bounce_detector_samples=args.detector_samples)
         if args.quality != "scene":

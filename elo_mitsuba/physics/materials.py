@@ -6,6 +6,7 @@ A :class:`Material` is built from a preset name (``"Ti-6Al-4V"``, ``"316L"``, ``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Mapping
@@ -57,10 +58,13 @@ class Material:
     composition : dict
         ``{symbol: weight fraction}``, validated: known symbols, Z inside the range of Eq. 11,
         fractions in (0, 1] summing to 1 within 1e-6.
+    note : str
+        How the composition was obtained from the user's, if not as given (normalised).
     """
 
     name: str
     composition: Mapping[str, float] = field(default_factory=dict)
+    note: str = ""
 
     def __post_init__(self):
         validate_composition(self.composition, self.name)
@@ -88,11 +92,13 @@ class Material:
 
     def describe(self) -> str:
         parts = ",".join(f"{s}:{c:g}" for s, c in self.composition.items())
-        return f"{self.name} ({parts})"
+        return f"{self.name} ({parts})" + (f"; {self.note}" if self.note else "")
 
 
-def validate_composition(composition: Mapping[str, float], what: str = "composition") -> None:
-    """Raise :class:`EloInputError` naming the first problem with a composition."""
+def validate_composition(composition: Mapping[str, float], what: str = "composition",
+                         tolerance: float = COMPOSITION_SUM_TOL) -> None:
+    """Raise :class:`EloInputError` naming the first problem with a composition (its fractions
+    must sum to 1 within ``tolerance``)."""
     if not composition:
         raise EloInputError(f"{what}: empty composition; give {{element: weight fraction}}")
     lo, hi = ETA0_Z_RANGE
@@ -111,9 +117,10 @@ def validate_composition(composition: Mapping[str, float], what: str = "composit
         if not (np.isfinite(f) and 0.0 < f <= 1.0):
             raise EloInputError(f"{what}: fraction of {sym} is {frac!r}; allowed is (0, 1]")
     total = float(sum(float(v) for v in composition.values()))
-    if abs(total - 1.0) > COMPOSITION_SUM_TOL:
+    if abs(total - 1.0) > tolerance:
         raise EloInputError(
-            f"{what}: weight fractions sum to {total:.9g}, not 1 (tolerance {COMPOSITION_SUM_TOL:g})"
+            f"{what}: weight fractions sum to {total:.9g}, not 1 (tolerance {tolerance:g}; a measured composition "
+            "within 1e-3 of 1 is normalised)"
         )
 
 
@@ -138,8 +145,25 @@ def parse_composition(text: str) -> dict[str, float]:
             comp[sym] = float(val)
         except ValueError:
             raise EloInputError(f"composition {text!r}: fraction {val!r} of {sym} is not a number") from None
-    validate_composition(comp, f"composition {text!r}")
+    from ..constants import MEASURED_COMPOSITION_TOL
+
+    validate_composition(comp, f"composition {text!r}", MEASURED_COMPOSITION_TOL)  # normalised by get_material
     return comp
+
+
+def _measured(name: str, composition: dict) -> Material:
+    """A user's composition; one that misses a sum of 1 by at most MEASURED_COMPOSITION_TOL
+    (rounded analysis values) is normalised, with a note saying so."""
+    from ..constants import MEASURED_COMPOSITION_TOL
+
+    try:
+        total = float(sum(float(v) for v in composition.values()))
+    except (TypeError, ValueError):
+        total = math.nan  # validate_composition names the bad fraction
+    if math.isfinite(total) and COMPOSITION_SUM_TOL < abs(total - 1.0) <= MEASURED_COMPOSITION_TOL:
+        scaled = {s: float(v) / total for s, v in composition.items()}
+        return Material(name, scaled, note=f"fractions summed to {total:.6g}; normalised to 1")
+    return Material(name, composition)  # validated there: a real mismatch is refused
 
 
 def get_material(spec: "str | Mapping[str, float] | Material | None" = None) -> Material:
@@ -155,7 +179,7 @@ def get_material(spec: "str | Mapping[str, float] | Material | None" = None) -> 
     if isinstance(spec, Material):
         return spec
     if isinstance(spec, Mapping):
-        return Material("custom", dict(spec))
+        return _measured("custom", dict(spec))
     if not isinstance(spec, str):
         raise EloInputError(f"material {spec!r}: expected a preset name or a composition")
     if spec in PRESETS:
@@ -165,7 +189,7 @@ def get_material(spec: "str | Mapping[str, float] | Material | None" = None) -> 
         name = _ALIASES[key]
         return Material(name, PRESETS[name])
     if ":" in spec or "=" in spec:
-        return Material(spec, parse_composition(spec))
+        return _measured(spec, parse_composition(spec))
     raise EloInputError(
         f"unknown material {spec!r}; presets are {', '.join(PRESETS)}, or give a composition "
         "such as 'Ti:0.9,Al:0.06,V:0.04'"

@@ -1,0 +1,55 @@
+"""Unbounded work is estimated before it starts: refused where it cannot fit in memory, noted
+where it is long, and shown as progress (also off a terminal)."""
+
+import io
+
+import pytest
+
+import elo_mitsuba as em
+import importlib
+
+from elo_mitsuba import budget
+from elo_mitsuba.cli import main
+
+render = importlib.import_module("elo_mitsuba.render")  # the module (elo_mitsuba.render is the function)
+
+
+def test_memory_that_cannot_fit_is_refused_with_the_numbers():
+    with pytest.raises(em.EloInputError, match=r"a 100000x100000 render with 4 channels needs about 1.2 TB of memory, "
+                                               r"1 GB is available"):
+        budget.check_render((100000, 100000), 5, 1, 1, 1, available=10 ** 9)
+    assert budget.check_render((1500, 1500), 13, 1, 2, 1, available=10 ** 10) == []  # the README's render
+
+
+def test_long_renders_and_big_kernels_get_a_note():
+    notes = budget.check_render((64, 64), 5, 10 ** 9, 1, 10 ** 6, available=10 ** 10)
+    assert any("4.1e+12 samples" in n and "days" in n for n in notes)
+    assert any("compiling the kernel" in n for n in budget.check_render((8, 8), 29, 1, 7, 1, available=10 ** 10))
+
+
+def test_events_beyond_the_unrolled_limit_are_refused():
+    scene = em.load_scene("flat_plate", res=2)
+    with pytest.raises(em.EloInputError, match=r"events=100; must be in \[1, 10\].*compile time grows"):
+        scene.render(events=100)
+
+
+def test_cli_refuses_a_resolution_that_cannot_fit(tmp_path, capsys):
+    assert main(["render", "flat_plate", "-o", str(tmp_path / "o.exr"), "--resolution", "100000"]) == 2
+    err = capsys.readouterr().err
+    assert "needs about 1.2 TB of memory" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_progress_lines_off_a_terminal(monkeypatch):
+    err = io.StringIO()
+    monkeypatch.setattr(render.sys, "stderr", err)
+    p = render._Progress(100, 10, None)
+    for k in range(1, 11):
+        p(10 * k, 1.0 * k)  # 10 passes, 1 s each: quiet for the first PROGRESS_AFTER_S
+    p.end()
+    lines = err.getvalue().splitlines()
+    assert lines[0].startswith("  render: 30/100 spp (30 %), 3.0 s") and "s left" in lines[0]
+    assert len(lines) == 8 and lines[-1].startswith("  render: 100/100 spp (100 %)")
+    err.truncate(0)
+    render._Progress(100, 1, None)(100, 50.0)  # a single pass: nothing to report
+    assert err.getvalue() == ""

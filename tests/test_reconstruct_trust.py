@@ -1,0 +1,148 @@
+"""Item 1 of issue 13: reconstruct says when its input cannot be trusted, gradient says why pixels
+are masked and refuses images no gradient can come from, and the reported solver is the one run."""
+
+import json
+
+import numpy as np
+import pytest
+
+from elo_mitsuba.analysis.integrate import (
+    MAX_INTEGRABILITY_RESIDUAL,
+    height_gradient,
+    integrate_gradient,
+    reconstruction_quality,
+    resolve_method,
+)
+from elo_mitsuba.cli import main
+from elo_mitsuba.exr import read_exr, write_exr
+
+FIELD = 40.0
+
+
+def _surface(shape=(120, 120)):
+    y, x = np.mgrid[0:shape[0], 0:shape[1]] / shape[0] * FIELD
+    return 0.3 * np.sin(x / 3) * np.cos(y / 5)
+
+
+def test_an_integrable_gradient_is_trusted():
+    p, q = height_gradient(_surface(), FIELD)
+    h, m = integrate_gradient(p, q, FIELD)
+    qual = reconstruction_quality(p, q, FIELD, h, m)
+    assert qual["integrability_residual"] < 0.01 and qual["warnings"] == []
+    assert qual["bowl_mm"] < qual["relief_mm"]
+
+
+def test_noise_is_flagged_as_not_a_surface():
+    rng = np.random.default_rng(0)
+    p, q = rng.normal(size=(2, 100, 100))
+    h, m = integrate_gradient(p, q, FIELD)
+    qual = reconstruction_quality(p, q, FIELD, h, m)
+    assert 0.6 < qual["integrability_residual"] and qual["integrability_residual"] > MAX_INTEGRABILITY_RESIDUAL
+    assert any("not that of a surface" in w for w in qual["warnings"])
+
+
+def test_a_biased_gradient_is_flagged_as_a_bowl():
+    # the README example's failure: a small relief plus a gradient bias growing across the field
+    p, q = height_gradient(_surface(), FIELD)
+    y, x = np.mgrid[0:120, 0:120] / 120 * FIELD - FIELD / 2
+    p, q = p + 0.05 * x, q + 0.05 * y  # integrable: the curl does not see it, the bowl figure does
+    h, m = integrate_gradient(p, q, FIELD)
+    qual = reconstruction_quality(p, q, FIELD, h, m)
+    assert qual["bowl_mm"] > qual["relief_mm"] and any("tilt/bowl" in w for w in qual["warnings"])
+
+
+def test_mostly_masked_is_flagged():
+    p, q = height_gradient(_surface(), FIELD)
+    mask = np.zeros(p.shape, bool)
+    mask[:80] = True
+    h, m = integrate_gradient(p, q, FIELD, mask=mask)
+    assert any("have no height" in w for w in reconstruction_quality(p, q, FIELD, h, m)["warnings"])
+
+
+def test_auto_names_the_solver_it_runs():
+    p, q = height_gradient(_surface((20, 20)), FIELD)
+    assert resolve_method("auto", p, q) == "dct"
+    p[3, 3] = np.nan
+    assert resolve_method("auto", p, q) == "masked"
+    assert resolve_method("fft", p, q) == "fft"
+
+
+def test_cli_reports_and_stores_the_figures(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    p, q = rng.normal(size=(2, 64, 64))
+    p[5, 5] = np.nan  # another tool's gradient EXR: NaN, and no mask channel
+    write_exr(tmp_path / "g.exr", {"dzdx": np.nan_to_num(p), "dzdy": q}, {"field_mm": [FIELD, FIELD]})
+    # NaN cannot be written by write_exr; write it through OpenEXR directly
+    import OpenEXR
+
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                       "elo_mitsuba": json.dumps({"field_mm": [FIELD, FIELD]})},
+                      {"dzdx": p.astype(np.float32), "dzdy": q.astype(np.float32)}) as f:
+        f.write(str(tmp_path / "g.exr"))
+    assert main(["reconstruct", str(tmp_path / "g.exr"), "-o", str(tmp_path / "h.exr")]) == 0
+    cap = capsys.readouterr()
+    assert "method masked" in cap.out and "integrability residual" in cap.out
+    assert "elo-mitsuba: warning: integrability residual" in cap.err
+    _, meta = read_exr(tmp_path / "h.exr")
+    assert meta["method"] == "masked" and meta["quality"]["integrability_residual"] > MAX_INTEGRABILITY_RESIDUAL
+    assert main(["reconstruct", str(tmp_path / "g.exr"), "-o", str(tmp_path / "h.tif")]) == 0
+    import tifffile
+
+    with tifffile.TiffFile(tmp_path / "h.tif") as t:
+        assert json.loads(t.pages[0].description)["quality"]["warnings"]
+
+
+def _four(tmp_path, prefix, img):
+    paths = []
+    for n in ("right", "left", "back", "front"):
+        np.save(tmp_path / f"{prefix}_{n}.npy", img)
+        paths += [f"--{n}", str(tmp_path / f"{prefix}_{n}.npy")]
+    return paths
+
+
+@pytest.mark.parametrize("prefix,value,message", [
+    ("zero", 0.0, "all 1600 pixels are 0; the right detector recorded nothing"),
+    ("neg", -1.0, "1600 pixels are negative (min -1); STSA-corrected images (--no-flat) are ratios >= 0"),
+    ("nan", np.nan, "1600 of 1600 pixels are NaN or Inf"),
+])
+def test_gradient_refuses_images_no_gradient_can_come_from(tmp_path, capsys, prefix, value, message):
+    argv = ["gradient", *_four(tmp_path, prefix, np.full((40, 40), value)), "--no-flat", "--field", "80",
+            "--dh", "272", "--dw", "127", "-o", str(tmp_path / "g.exr")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "g.exr").exists()
+
+
+def test_gradient_refuses_an_offset_and_a_flat_of_the_other_sign(tmp_path, capsys):
+    img = np.ones((40, 40))
+    img[0, 0] = -0.5
+    base = ["--field", "80", "--dh", "272", "--dw", "127", "-o", str(tmp_path / "g.exr")]
+    assert main(["gradient", *_four(tmp_path, "mixed", img), "--no-flat", *base]) == 2
+    assert "1 pixels are negative (min -0.5) and others positive (max 1)" in capsys.readouterr().err
+    flat = [a.replace("--", "--flat-") if a.startswith("--") else a for a in _four(tmp_path, "f", np.ones((40, 40)))]
+    assert main(["gradient", *_four(tmp_path, "inv", -np.ones((40, 40))), *flat, *base]) == 2
+    assert "opposite signs" in capsys.readouterr().err
+    assert not (tmp_path / "g.exr").exists()
+
+
+def test_gradient_says_why_pixels_are_masked(tmp_path, capsys):
+    img = np.ones((40, 40))
+    img[:30] = 1e-3  # dark over most of the field
+    argv = ["gradient", *_four(tmp_path, "dark", img), "--no-flat", "--field", "80", "--dh", "272", "--dw", "127",
+            "-o", str(tmp_path / "g.exr")]
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert "masked pixels by reason" in cap.out and "detector_dark 75.00 %" in cap.out
+    assert "elo-mitsuba: warning: 75.0 % of the pixels are masked" in cap.err
+
+
+def test_an_exr_without_header_is_named(tmp_path, capsys):
+    import OpenEXR  # an EXR of another tool: no elo_mitsuba attribute at all
+
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {n: np.ones((8, 8), np.float32) for n in ("right", "left", "back", "front")}) as f:
+        f.write(str(tmp_path / "o.exr"))
+    assert main(["gradient", str(tmp_path / "o.exr"), "--no-flat", "-o", str(tmp_path / "g.exr")]) == 2
+    err = capsys.readouterr().err
+    assert "o.exr has no elo-mitsuba geometry header" in err and "single" not in err
