@@ -50,6 +50,7 @@ CASES = (
     ("melt_scene_e3", ["render", "melt_plate", "-o", "{d}/melt3.exr", "--resolution", "24", "--quality", "scene",
                        "--spp", "2", "--events", "3", "-D", "projection=orthographic", "--quiet"]),
     ("gradient", ["gradient", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/grad.exr"]),
+    ("gradient_eq26", ["gradient", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/grad26.exr", "--method", "eq26"]),
     ("reconstruct", ["reconstruct", "{d}/grad.exr", "-o", "{d}/height.exr"]),
     ("reconstruct_npy", ["reconstruct", "{d}/grad.exr", "-o", "{d}/height.npy", "--method", "dct"]),
     ("mesh", ["mesh", "{d}/hm.npy", "-o", "{d}/hm.ply", "--pixel-size", "0.5", "--scene", "{d}/hm.xml"]),
