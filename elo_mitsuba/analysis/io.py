@@ -226,6 +226,9 @@ def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, sts
                                  "the 1st event only")
     if model_geometry is not None:
         meta["model_geometry"] = model_geometry.as_dict()
+        # reconstruct needs the beam of recorded images too (no forward-model header)
+        meta.setdefault("work_distance_mm", model_geometry.work_distance_mm)
+        meta.setdefault("projection", model_geometry.projection)
     if calibration is not None:
         meta["calibration"] = str(calibration)
     return write_exr(path, channels, meta, overwrite=overwrite)

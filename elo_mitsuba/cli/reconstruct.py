@@ -86,9 +86,19 @@ def run(args) -> int:
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
     field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
     method = resolve_method(args.method, grad["dzdx"], grad["dzdy"], mask)  # what runs is what is reported
-    height, mask_out = integrate_gradient(grad["dzdx"], grad["dzdy"], field, method=method,
+    gx, gy = grad["dzdx"], grad["dzdy"]
+    perspective = meta.get("projection") == "perspective" and meta.get("work_distance_mm")
+    if perspective:
+        # the slopes are those where each pixel's beam lands; the height over the scan grid has
+        # the gradient of scan_grid_gradient (else a zero-mean relief integrates to a bowl)
+        from ..analysis.integrate import scan_grid_gradient
+
+        gx, gy = scan_grid_gradient(gx, gy, field, meta["work_distance_mm"])
+        gx = np.where(mask, 0.0, gx) if mask is not None else gx
+        gy = np.where(mask, 0.0, gy) if mask is not None else gy
+    height, mask_out = integrate_gradient(gx, gy, field, method=method,
                                           mask=mask, min_component_size=args.min_component)
-    quality = reconstruction_quality(grad["dzdx"], grad["dzdy"], field, height, mask_out)
+    quality = reconstruction_quality(gx, gy, field, height, mask_out)
     out_meta = {
         "quantity": "height map (relative, zero mean)",
         "units": "mm",
@@ -98,8 +108,10 @@ def run(args) -> int:
         "mask": "1 = no height measured (0 stored there), 0 = measured",
         "source": str(args.gradient),
         "quality": quality,
+        "grid": ("scan grid of a perspective scan: pixel (i, j) holds the height where its beam lands "
+                 "(slopes converted, analysis.integrate.scan_grid_gradient)") if perspective else "scan grid",
     }
-    for key in ("d_h_mm", "d_w_mm", "material", "projection"):
+    for key in ("d_h_mm", "d_w_mm", "material", "projection", "work_distance_mm"):
         if key in meta:
             out_meta[key] = meta[key]
     write_height(out, height, mask_out, out_meta, overwrite=args.overwrite)
