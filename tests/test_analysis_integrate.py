@@ -187,10 +187,9 @@ def test_perspective_scan_slopes_are_converted_to_the_scan_grid():
     def z(u):
         return 0.3 * np.sin(k * u)
 
-    lx, ly = x.copy(), y.copy()
-    for _ in range(30):  # landing points L = S (1 - Z(L) / wd)
-        t = 1.0 - z(lx) / wd
-        lx, ly = x * t, y * t
+    lx = x.copy()
+    for _ in range(30):  # landing points L = S (1 - Z(L) / wd); Z depends on x only
+        lx = x * (1.0 - z(lx) / wd)
     gx = 0.3 * k * np.cos(k * lx)          # the surface slope at the landing point
     gy = np.zeros_like(gx)
     h_true = z(lx)
