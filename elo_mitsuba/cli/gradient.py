@@ -36,7 +36,7 @@ Output EXR channels: dzdx, dzdy (mm/mm), Mx, My, sum_rl, sum_bf (Eq. 23, materia
 mask (1 = untrusted pixel: a detector masked or dark, a sum or the Eq. 26 denominator near zero,
 the model's misfit, bad input; gradient 0 there) and mask_reason (bit field, see the header).
 The header carries the geometry so that 'elo-mitsuba reconstruct' needs no flags.
-Run time on 2 CPU cores at 1500 x 1500 (benchmarks/RESULTS-analysis.md): eq26 about 3 s, model 14-30 s.
+Run time at 1500 x 1500 on 2 idle CPU cores, end to end: eq26 3 s, model 12 s (14-30 s under load).
 """
 
 EPILOG = """\
