@@ -153,10 +153,8 @@ def _fit(model, points, beam, measured, weights, flat_model, p0, q0, iterations,
     p, q = dr.select(use_new, p, bp), dr.select(use_new, q, bq)
     dr.eval(p, q)
     (r0, cost, s, m), (rp, _, _, _), (rq, _, _, _) = residuals(p, q)
-    jp = [(a - b) * (1.0 / fd_step) for a, b in zip(rp, r0)]
-    jq = [(a - b) * (1.0 / fd_step) for a, b in zip(rq, r0)]
-    out = [p, q, s, cost, sum_(x * x for x in jp), sum_(x * x for x in jq), sum_(x * y for x, y in zip(jp, jq)),
-           *[s * mk for mk in m]]
+    a11, a22, a12, _, _ = jacobian(r0, rp, rq)
+    out = [p, q, s, cost, a11, a22, a12, *[s * mk for mk in m]]
     dr.eval(*out)
     return [np.asarray(v, dtype=np.float64) for v in out]
 
@@ -235,9 +233,12 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     points, dirs = geometry.beam(heights)
     beam = to_vector(mi, dirs)
     pts = mi.Point3f(to_vector(mi, points))
-    flat_pts, flat_dirs = geometry.beam(None)
-    flat_model = model.signals(mi.Point3f(to_vector(mi, flat_pts)), to_vector(mi, flat_dirs),
-                               [mi.Vector3f(0.0, 0.0, 1.0)])[0]
+    if heights is None:  # the flat plate lands where the object does
+        flat_pts, flat_beam = pts, beam
+    else:
+        flat_points, flat_dirs = geometry.beam(None)
+        flat_pts, flat_beam = mi.Point3f(to_vector(mi, flat_points)), to_vector(mi, flat_dirs)
+    flat_model = model.signals(flat_pts, flat_beam, [mi.Vector3f(0.0, 0.0, 1.0)])[0]
     dr.eval(flat_model)
     measured = [mi.Float(np.asarray(eq26.corrected[n], np.float32).ravel()) for n in model.names]
     # a detector the facet hides from (corrected image ~0) is left out: three values still fix
