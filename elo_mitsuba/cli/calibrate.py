@@ -8,7 +8,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
-from .gradient import field_arg, positive_float
+from .gradient import field_arg, nominal_geometry, positive_float
 
 DESCRIPTION = """\
 Fit where each detector really is, from the four images of a plane plate (any unit: volts,
@@ -68,7 +68,6 @@ def run(args) -> int:
     from ..analysis.calibration import calibrate, write_calibration
     from ..analysis.io import load_detector_set
     from ..analysis.scan_geometry import ScanGeometry
-    from ..constants import DETECTOR_DIAMETER_MM, WORK_DISTANCE_MM
     from ..files import check_output
     from ..grid import field_xy
 
@@ -87,12 +86,7 @@ def run(args) -> int:
         field = args.field if args.field is not None else header.get("field_mm")
         if field is None:
             raise EloInputError(f"{source}: no scan field in the input; pass --field FX[,FY] (mm)")
-        kw = {"work_distance_mm": args.wd or header.get("work_distance_mm", WORK_DISTANCE_MM),
-              "projection": args.projection or header.get("projection", "perspective")}
-        if args.material:
-            kw["material"] = args.material
-        nominal = ScanGeometry.nominal(shape, field_xy(field, shape), args.dh, args.dw,
-                                       radius=args.radius or DETECTOR_DIAMETER_MM / 2, **kw)
+        nominal = nominal_geometry(args, header, shape, field_xy(field, shape), args.dh, args.dw)
     else:
         for flag in ("radius", "wd", "projection"):
             if getattr(args, flag) is not None:

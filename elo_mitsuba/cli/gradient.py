@@ -130,22 +130,30 @@ def add_parser(subparsers):
     return p
 
 
+def nominal_geometry(args, header, shape, field_mm, d_h, d_w):
+    """The drawing's layout of Eq. 17 from --dh/--dw and --radius/--wd/--projection/--material,
+    each defaulting to the header's value, else the package's (shared by gradient and calibrate)."""
+    from ..analysis.scan_geometry import ScanGeometry
+    from ..constants import DETECTOR_DIAMETER_MM, WORK_DISTANCE_MM
+
+    header = header or {}
+    kw = {"work_distance_mm": args.wd or header.get("work_distance_mm", WORK_DISTANCE_MM),
+          "projection": args.projection or header.get("projection", "perspective")}
+    if args.material:
+        kw["material"] = args.material
+    return ScanGeometry.nominal(shape, field_mm, d_h, d_w, radius=args.radius or DETECTOR_DIAMETER_MM / 2, **kw)
+
+
 def _model_geometry(args, header, shape, geo, source):
     """The scan geometry the model inverts: the header's discs, or the nominal layout of
     --dh/--dw/--radius; --calibration replaces the detectors."""
     from ..analysis.scan_geometry import ScanGeometry
-    from ..constants import DETECTOR_DIAMETER_MM, WORK_DISTANCE_MM
 
     explicit = args.dh is not None or args.dw is not None or not (header or {}).get("detectors")
     if explicit:
         if (args.dh is None) != (args.dw is None) and (header or {}).get("detectors"):
             raise EloInputError("give both --dh and --dw (a nominal layout), or neither (the header's detectors)")
-        kw = {"work_distance_mm": args.wd or (header or {}).get("work_distance_mm", WORK_DISTANCE_MM),
-              "projection": args.projection or (header or {}).get("projection", "perspective")}
-        if args.material:
-            kw["material"] = args.material
-        model = ScanGeometry.nominal(shape, geo["field_mm"], geo["d_h"], geo["d_w"],
-                                     radius=args.radius or DETECTOR_DIAMETER_MM / 2, **kw)
+        model = nominal_geometry(args, header, shape, geo["field_mm"], geo["d_h"], geo["d_w"])
     else:
         for flag in ("radius", "wd", "projection"):
             if getattr(args, flag) is not None:
