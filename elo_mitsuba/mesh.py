@@ -127,6 +127,28 @@ def heightmap_to_mesh(
     return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
 
 
+def mesh_surface_height(height_mm, pixel_size_mm, x, y) -> np.ndarray:
+    """The height of the surface :func:`heightmap_to_mesh` makes of ``height_mm`` (step 1, no
+    simplification) at scene points (x, y): linear on each of its triangles (every cell split along
+    its bottom-left to top-right diagonal), so exactly what the renderer intersects. Points outside
+    the grid take the nearest border cell's plane."""
+    height = validate_heightmap(height_mm)
+    p = validate_pixel_size(pixel_size_mm)
+    nr, nc = height.shape
+    xs, ys = pixel_centres(height.shape, p)
+    # fractional column from x (left to right) and row from y (row 0 is the +y edge)
+    fc = (np.asarray(x, float) - xs[0]) / p
+    fr = (ys[0] - np.asarray(y, float)) / p
+    j = np.clip(np.floor(fc).astype(int), 0, nc - 2)
+    i = np.clip(np.floor(fr).astype(int), 0, nr - 2)
+    u = fc - j          # towards +x
+    v = 1.0 - (fr - i)  # towards +y, from the cell's bottom (row i + 1)
+    tl, tr = height[i, j], height[i, j + 1]
+    bl, br = height[i + 1, j], height[i + 1, j + 1]
+    lower = u >= v  # triangle (bl, br, tr); else (bl, tr, tl)
+    return np.where(lower, bl + u * (br - bl) + v * (tr - br), bl + v * (tl - bl) + u * (tr - tl))
+
+
 def _add_walls_and_base(vertices, faces, idx, base):
     """Close a grid surface with vertical side walls and a bottom at z = base."""
     # boundary loop, counter-clockwise seen from +z: bottom row left->right, right column

@@ -33,6 +33,8 @@ from ..physics.scattering import lobe_weight_table
 
 #: Nodes of the disc rule (in s = (r/R)^2, in the azimuth).
 DEFAULT_NODES = (1, 4)
+#: Largest cosine of incidence the model uses (see FacetModel._setup).
+COS_MAX = 1.0 - 1e-6
 
 
 @lru_cache(maxsize=16)
@@ -126,7 +128,9 @@ class FacetModel:
         cos_t = -dr.dot(n, beam_dirs)
         # a non-finite normal must not reach the table's gather index (out of bounds); its g is 0
         cos_t = dr.select(dr.isfinite(cos_t), cos_t, 0.0)
-        theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
+        # below 1: acos has an infinite derivative at 1 (a facet square to the beam), and the
+        # inversion differentiates this; the angle changes by < 0.1 deg, W(theta) by < 1e-7
+        theta_deg = dr.acos(dr.clip(cos_t, 0.0, COS_MAX)) * (180.0 / dr.pi)
         weight = table_lookup(self._table, theta_deg, self._table_size)
         mirror = n * (2.0 * cos_t) + beam_dirs
         return (self._diffuse, weight, theta_deg * self._inv_width, n, mirror, cos_t > 0)

@@ -175,6 +175,19 @@ class ScanGeometry:
             dirs = np.broadcast_to(np.array([0.0, 0.0, -1.0]), points.shape).copy()
         return points, dirs
 
+    def landing_heights(self, surface, iterations: int = 8) -> np.ndarray:
+        """Heights (H, W) where each pixel's beam lands on the surface ``surface(x, y) -> z`` (mm):
+        the fixed point h = Z(t x, t y), t = 1 - h / wd, of the perspective beam (a contraction for
+        |grad Z| |x| / wd < 1); Z(x, y) of the aim points for the orthographic one."""
+        x, y = self.aim_points()
+        h = np.asarray(surface(x, y), float)
+        if self.projection != "perspective":
+            return h
+        for _ in range(int(iterations)):
+            t = 1.0 - h / self.work_distance_mm
+            h = np.asarray(surface(x * t, y * t), float)
+        return h
+
     def symmetric_layout(self) -> tuple[float, float]:
         """Mean d_h (centre z) and d_w (centre distance from the z-axis) of the four detectors,
         the Eq. 17 geometry closest to this one (Eq. 26's start needs it)."""

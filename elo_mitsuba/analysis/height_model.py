@@ -1,0 +1,369 @@
+"""The detector images of a height map, and their derivatives with respect to every height.
+
+The forward model that :mod:`.inversion` inverts, written once in Dr.Jit and differentiated by
+Dr.Jit's automatic differentiation (forward mode), never by a second hand-written physics:
+
+* **Surface.** The unknowns are the heights at the pixels' *corners*, ``g`` of shape (H + 1, W + 1);
+  each pixel is the bilinear patch over its four corners, and the beam of pixel (i, j) lands at
+  the patch's centre, at the mean height of the corners, ``h = corner_mean(g)`` (the height map
+  the package reports: the scan-grid convention of :func:`~.integrate.scan_grid_gradient`).
+  The landing point is P = (t x, t y, h) with t = 1 - h / wd for the perspective beam (x, y the
+  aim point on z = 0), (x, y, h) for the orthographic one; each corner's point likewise, and the
+  facet normal is the patch's normal at its centre, (P_tr + P_br - P_tl - P_bl) x (P_tl + P_tr -
+  P_bl - P_br) normalised. On a plane this is the plane's normal exactly, perspective included.
+  Corners rather than central differences of the pixel heights: central differences do not see a
+  height pattern that alternates from pixel to pixel along a row or a column (a whole line of
+  frequencies), and an inversion would fill those with noise; the patch misses only the one
+  corner checkerboard, which the solver's regulariser fixes.
+* **1st event.** N_1,d/N_0 of that facet (Eq. 5 over each disc, g_BSE of Eq. 13) by
+  :class:`~.detector_model.FacetModel`, the renderer's own g_BSE code.
+* **Shadowing.** A detector whose centre the surface hides from the landing point (the ray to the
+  disc centre passes under the height field) contributes 0. Visibility is a step function of the
+  heights: it is evaluated in the value and held fixed in the derivative (its discontinuity has no
+  derivative), and it is decided for the disc centre only, so a disc that a ridge cuts in part is
+  counted whole or not at all.
+* **Beam profile.** The renderer's beam of FWHM w lands at Gaussian offsets around the aim point;
+  the image is then the sharp-beam image convolved with that Gaussian on the scan grid (exact to
+  the grid's sampling: the sub-beams see the surface at other scan points). With w below a pixel
+  the convolution is left out.
+* **Later events** (2nd and more, e.g. a chamber's walls): a fixed image per detector, added to the
+  blurred 1st event, typically the ``<id>.e2`` channels of a full render of the current surface.
+* **Gains**: a factor per detector (the STSA correction of Eq. 15 cancels them).
+
+What the model leaves out: the variation of the later events with the heights within one solve, the
+shadow of a neighbour on part of a disc, and the slope variation inside one pixel (the surface is
+as smooth as its samples).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import EloInputError
+from ..grid import pixel_coordinates, pixel_size
+from .detector_model import DEFAULT_NODES, FacetModel
+
+#: The stencil of one pixel's facet: its four corners (top = the +y side, row i of the corner grid).
+STENCIL = ("tl", "tr", "bl", "br")
+_CORNER = {"tl": (0, 0), "tr": (0, 1), "bl": (1, 0), "br": (1, 1)}  # (row, column) offsets
+#: Shadow march: step along the ray's ground track, in pixels (a ridge narrower than this can be
+#: stepped over); most steps per ray.
+SHADOW_STEP_PX = 0.5
+MAX_SHADOW_STEPS = 4096
+#: A beam FWHM below this many pixels is not convolved (the Gaussian would be a delta on the grid).
+MIN_BLUR_PX = 0.25
+FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+
+# ---- the stencil, as linear maps of the height array (and their transposes) ----------------------
+def neighbour(h, side: str) -> np.ndarray:
+    """Heights of each pixel's neighbour on ``side`` (left/right along columns, up/down along rows:
+    up is row i - 1, the +y side), extrapolated linearly beyond the border."""
+    if side == "centre":
+        return h
+    axis = 1 if side in ("left", "right") else 0
+    sign = -1 if side in ("left", "up") else 1
+    out = np.roll(h, -sign, axis=axis)
+    edge = 0 if sign < 0 else -1
+    inner = 1 if sign < 0 else -2
+    sl_e = [slice(None)] * 2
+    sl_i = [slice(None)] * 2
+    sl_e[axis], sl_i[axis] = edge, inner
+    out[tuple(sl_e)] = 2.0 * h[tuple(sl_e)] - h[tuple(sl_i)]
+    return out
+
+
+def neighbour_t(v, side: str) -> np.ndarray:
+    """The transpose of :func:`neighbour`: sum_ij v_ij * neighbour(h)_ij = sum_ij neighbour_t(v)_ij h_ij."""
+    if side == "centre":
+        return v
+    axis = 1 if side in ("left", "right") else 0
+    sign = -1 if side in ("left", "up") else 1
+    sl_e = [slice(None)] * 2
+    sl_i = [slice(None)] * 2
+    edge = 0 if sign < 0 else -1
+    inner = 1 if sign < 0 else -2
+    sl_e[axis], sl_i[axis] = edge, inner
+    inner_v = v.copy()
+    inner_v[tuple(sl_e)] = 0.0  # the border's own value is extrapolated, not rolled in
+    out = np.roll(inner_v, sign, axis=axis)
+    out[tuple(sl_e)] += 2.0 * v[tuple(sl_e)]
+    out[tuple(sl_i)] -= v[tuple(sl_e)]
+    return out
+
+
+def corner(g, which: str) -> np.ndarray:
+    """The (H, W) heights of each pixel's corner ``which`` from the corner grid ``g`` (H + 1, W + 1)."""
+    di, dj = _CORNER[which]
+    return g[di:di + g.shape[0] - 1, dj:dj + g.shape[1] - 1]
+
+
+def corner_t(v, which: str) -> np.ndarray:
+    """The transpose of :func:`corner`: (H + 1, W + 1) from per-pixel values ``v`` (H, W)."""
+    di, dj = _CORNER[which]
+    out = np.zeros((v.shape[0] + 1, v.shape[1] + 1))
+    out[di:di + v.shape[0], dj:dj + v.shape[1]] = v
+    return out
+
+
+def corner_mean(g) -> np.ndarray:
+    """Pixel heights (H, W): the mean of each pixel's four corners (its patch's centre)."""
+    return 0.25 * sum(corner(g, c) for c in STENCIL)
+
+
+def corners_from_pixels(h) -> np.ndarray:
+    """Corner heights (H + 1, W + 1) of pixel heights (H, W): the mean of the four pixels around
+    each inner corner, extrapolated linearly at the border (a plane maps onto itself)."""
+    h = np.asarray(h, float)
+    pad = np.pad(h, 1, mode="reflect", reflect_type="odd")  # odd reflection = linear extrapolation
+    return 0.25 * (pad[:-1, :-1] + pad[:-1, 1:] + pad[1:, :-1] + pad[1:, 1:])
+
+
+def blur_sigma_px(fwhm_mm: float, shape, field_mm) -> tuple[float, float]:
+    """Standard deviation of the beam profile in pixels (rows, columns); (0, 0) below :data:`MIN_BLUR_PX`."""
+    dx, dy = pixel_size(shape, field_mm)
+    sigma = float(fwhm_mm) / FWHM_PER_SIGMA
+    if not np.isfinite(sigma) or sigma < 0:
+        raise EloInputError(f"beam fwhm {fwhm_mm!r} mm: must be a finite number >= 0")
+    if fwhm_mm / max(dx, dy) < MIN_BLUR_PX:
+        return 0.0, 0.0
+    return sigma / dy, sigma / dx
+
+
+def blur(image, sigma_px) -> np.ndarray:
+    """The beam-profile convolution on the scan grid (separable Gaussian, edges extended); symmetric,
+    so it is its own transpose up to the border treatment (``mode='reflect'``, which is symmetric)."""
+    if not any(sigma_px):
+        return image
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(image, sigma_px, mode="reflect", truncate=4.0)
+
+
+# ---- visibility ---------------------------------------------------------------------------------
+def visibility(geometry, heights, points) -> np.ndarray:
+    """1 where the ray from each landing point to each detector's centre clears the height field,
+    else 0: (K, H, W) float32, detectors in ``geometry.detectors`` order.
+
+    The ray is marched along its ground track in steps of :data:`SHADOW_STEP_PX` pixels, and the
+    height field (bilinear in the scan grid) is looked up where the ray is; it stops once the ray
+    is above the highest point of the surface.
+    """
+    from scipy.ndimage import map_coordinates
+
+    h = np.asarray(heights, float)
+    shape = h.shape
+    dx, dy = pixel_size(shape, geometry.field_mm)
+    top = float(h.max())
+    px, py, pz = (points[..., c] for c in range(3))
+    wd = geometry.work_distance_mm
+    perspective = geometry.projection == "perspective"
+    x0, y0 = pixel_coordinates(shape, geometry.field_mm)
+    col0, row0 = x0[0, 0], y0[0, 0]
+    out = np.ones((len(geometry.detectors),) + shape, np.float32)
+    if top - float(h.min()) <= 0.0:
+        return out  # a plane (or a single level) shadows nothing
+    for k, disc in enumerate(geometry.detectors.values()):
+        c = np.asarray(disc.center, float)
+        vx, vy, vz = c[0] - px, c[1] - py, c[2] - pz
+        ground = np.hypot(vx, vy)
+        rise = vz / np.maximum(ground, 1e-12)  # height gained per mm along the ground track
+        ux, uy = vx / np.maximum(ground, 1e-12), vy / np.maximum(ground, 1e-12)
+        step = SHADOW_STEP_PX * min(dx, dy)
+        # steps until the ray clears the top (or leaves the field), per pixel
+        need = np.where(rise > 0, (top - pz) / np.maximum(rise, 1e-12) / step, MAX_SHADOW_STEPS)
+        n_steps = int(min(MAX_SHADOW_STEPS, np.ceil(np.max(np.minimum(need, MAX_SHADOW_STEPS)))))
+        hidden = np.zeros(shape, bool)
+        active = need >= 1.0
+        for s in range(1, n_steps + 1):
+            if not active.any():
+                break
+            d = s * step
+            wx, wy, wz = px + ux * d, py + uy * d, pz + rise * d
+            # world point -> scan-grid coordinates (the landing map shrinks by t = 1 - z/wd)
+            t = (1.0 - wz / wd) if perspective else 1.0
+            col = (wx / t - col0) / dx
+            row = (row0 - wy / t) / dy
+            inside = (col >= 0) & (col <= shape[1] - 1) & (row >= 0) & (row <= shape[0] - 1)
+            sel = active & inside
+            if not sel.any():
+                break
+            zs = map_coordinates(h, [row[sel], col[sel]], order=1, mode="nearest")
+            blocked = np.zeros(shape, bool)
+            blocked[sel] = zs > wz[sel]
+            hidden |= blocked
+            active &= ~hidden & inside & (s < need)
+        out[k] = ~hidden
+    return out
+
+
+# ---- the model ----------------------------------------------------------------------------------
+@dataclass
+class Linearisation:
+    """The model at one height map: values and the derivatives that Gauss-Newton needs.
+
+    Attributes
+    ----------
+    sharp : ndarray (K, H, W)
+        1st event with shadowing, single-ray beam (before the beam profile), gains applied.
+    images : ndarray (K, H, W)
+        The model images: ``blur(sharp) + later``.
+    partials : ndarray (4, K, H, W) or None
+        d sharp / d g of each pixel's corners (:data:`STENCIL` order).
+    visible : ndarray (K, H, W)
+        The shadowing held fixed.
+    """
+
+    sharp: np.ndarray
+    images: np.ndarray
+    partials: np.ndarray | None
+    visible: np.ndarray
+
+
+class HeightModel:
+    """Detector images of height maps on one scan's grid, and their derivatives.
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+        Field, grid, beam, detectors and material (:mod:`.scan_geometry`).
+    fwhm_mm : float
+        Beam profile FWHM (0: a single ray).
+    later : mapping of str to ndarray (H, W), optional
+        Fixed images of the events >= 2 per detector (same units as the 1st event).
+    gains : mapping of str to float, optional
+        Detector gains (default 1).
+    shadows : bool
+        Evaluate the surface's shadowing of the detectors (a plane has none; off saves the march).
+    nodes : (int, int)
+        Disc rule of :class:`~.detector_model.FacetModel`.
+    """
+
+    def __init__(self, geometry, *, fwhm_mm: float = 0.0, later: Mapping | None = None,
+                 gains: Mapping | None = None, shadows: bool = True, nodes=DEFAULT_NODES):
+        self.geometry = geometry
+        self.names = tuple(geometry.detectors)
+        self.shape = tuple(geometry.shape)
+        self.sigma_px = blur_sigma_px(fwhm_mm, self.shape, geometry.field_mm)
+        self.fwhm_mm = float(fwhm_mm)
+        self.shadows = bool(shadows)
+        self.facets = FacetModel(geometry.detectors, geometry.material, nodes=nodes)
+        self.gains = np.array([float((gains or {}).get(n, 1.0)) for n in self.names])
+        if later is None:
+            self.later = np.zeros((len(self.names),) + self.shape, np.float32)
+        else:
+            missing = [n for n in self.names if n not in later]
+            if missing:
+                raise EloInputError(f"later-event images lack the detector(s) {', '.join(missing)}")
+            self.later = np.stack([np.asarray(later[n], np.float32) for n in self.names])
+            if self.later.shape[1:] != self.shape:
+                raise EloInputError(f"later-event images are {self.later.shape[2]}x{self.later.shape[1]} px, "
+                                    f"the scan {self.shape[1]}x{self.shape[0]}")
+        ax, ay = geometry.aim_points()
+        self._aim = (ax, ay)
+        _, dirs = geometry.beam(None)  # the beam's direction does not depend on where it lands
+        mi = self.facets.mi
+        self._dirs = mi.Vector3f(*[mi.Float(np.ascontiguousarray(dirs[..., c], np.float32).ravel()) for c in range(3)])
+
+    # -- pieces --
+    def landing_points(self, heights) -> np.ndarray:
+        """(H, W, 3) landing points of the beams on ``heights``."""
+        points, _ = self.geometry.beam(heights)
+        return points
+
+    def _landing_dr(self, h, x, y):
+        """Landing point (Dr.Jit) of aim point (x, y) at height h."""
+        mi = self.facets.mi
+        if self.geometry.projection == "perspective":
+            t = 1.0 - h * (1.0 / self.geometry.work_distance_mm)
+            return mi.Point3f(t * x, t * y, h)
+        return mi.Point3f(x, y, h)
+
+    def _sharp(self, g, visible, derivatives: bool):
+        """1st event (K, H, W) of the corner heights ``g`` and, with ``derivatives``, its partials
+        (4, K, H, W) with respect to each pixel's corners: one forward-mode AD pass per corner."""
+        facets = self.facets
+        mi, dr = facets.mi, facets.dr
+        dx, dy = pixel_size(self.shape, self.geometry.field_mm)
+        ax, ay = self._aim
+
+        def flat(a):
+            return mi.Float(np.ascontiguousarray(a, np.float32).ravel())
+
+        hs = {c: flat(corner(g, c)) for c in STENCIL}
+        offsets = {"tl": (-0.5 * dx, 0.5 * dy), "tr": (0.5 * dx, 0.5 * dy),
+                   "bl": (-0.5 * dx, -0.5 * dy), "br": (0.5 * dx, -0.5 * dy)}
+        aims = {c: (flat(ax + ox), flat(ay + oy)) for c, (ox, oy) in offsets.items()}
+        centre = (flat(ax), flat(ay))
+        vis = [flat(v) for v in visible]
+        gains = [float(v) for v in self.gains]
+
+        def evaluate(hv):
+            p = {c: self._landing_dr(hv[c], *aims[c]) for c in STENCIL}
+            along_x = (p["tr"] + p["br"]) - (p["tl"] + p["bl"])
+            along_y = (p["tl"] + p["tr"]) - (p["bl"] + p["br"])
+            n = dr.normalize(dr.cross(along_x, along_y))
+            h_c = (hv["tl"] + hv["tr"] + hv["bl"] + hv["br"]) * 0.25
+            sig = facets.signals(self._landing_dr(h_c, *centre), self._dirs, [n])[0]
+            return [v_s * v * gain for v_s, v, gain in zip(sig, vis, gains)]
+
+        k, shape = len(self.names), self.shape
+        values = evaluate(hs)
+        dr.eval(values)
+        sharp = np.stack([np.asarray(v, np.float32).reshape(shape) for v in values])
+        if not derivatives:
+            return sharp, None
+        partials = np.empty((len(STENCIL), k) + shape, np.float32)
+        for m, c in enumerate(STENCIL):
+            hv = {key: mi.Float(v) for key, v in hs.items()}
+            dr.enable_grad(hv[c])
+            out = evaluate(hv)
+            dr.forward(hv[c])
+            grads = [dr.grad(o) for o in out]
+            dr.eval(grads)
+            for kk, gr in enumerate(grads):
+                partials[m, kk] = np.asarray(gr, np.float32).reshape(shape)
+        return sharp, partials
+
+    # -- public --
+    def evaluate(self, corners, *, derivatives: bool = False, visible=None) -> Linearisation:
+        """The model images for the corner heights ``corners`` ((H + 1, W + 1) mm, see
+        :func:`corners_from_pixels`) and, with ``derivatives``, the partials.
+
+        ``visible`` (K, H, W) reuses a shadowing computed before (else it is evaluated when
+        ``shadows`` is on)."""
+        g = np.asarray(corners, float)
+        if g.shape != (self.shape[0] + 1, self.shape[1] + 1):
+            raise EloInputError(f"corner heights are {g.shape}; the scan of {self.shape[1]}x{self.shape[0]} px "
+                                f"needs {(self.shape[0] + 1, self.shape[1] + 1)}")
+        if visible is None:
+            if self.shadows:
+                h = corner_mean(g)
+                visible = visibility(self.geometry, h, self.landing_points(h))
+            else:
+                visible = np.ones((len(self.names),) + self.shape, np.float32)
+        sharp, partials = self._sharp(g, visible, derivatives)
+        images = np.stack([blur(v, self.sigma_px) for v in sharp]) + self.later
+        return Linearisation(sharp=sharp, images=images, partials=partials, visible=visible)
+
+    def images(self, heights) -> dict[str, np.ndarray]:
+        """The model images by detector name, each (H, W) float64, for pixel heights ``heights``
+        (H, W; their corners by :func:`corners_from_pixels`) or corner heights (H + 1, W + 1)."""
+        g = np.asarray(heights, float)
+        if g.shape == self.shape:
+            g = corners_from_pixels(g)
+        lin = self.evaluate(g)
+        return {n: lin.images[k].astype(np.float64) for k, n in enumerate(self.names)}
+
+    def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
+        """d images . dg: (K, H, W) for a change ``dg`` of the corner heights, shadowing held fixed."""
+        dsharp = sum(lin.partials[m] * corner(dg, c) for m, c in enumerate(STENCIL))
+        return np.stack([blur(d, self.sigma_px) for d in dsharp])
+
+    def apply_jacobian_t(self, lin: Linearisation, v) -> np.ndarray:
+        """The transpose of :meth:`apply_jacobian`: (H + 1, W + 1) for image-space weights ``v`` (K, H, W)."""
+        bv = np.stack([blur(x, self.sigma_px) for x in v])
+        return sum(corner_t(np.sum(lin.partials[m] * bv, axis=0), c) for m, c in enumerate(STENCIL))

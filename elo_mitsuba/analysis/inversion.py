@@ -1,0 +1,405 @@
+"""The height map whose modelled images match the measured ones (inverse ELO imaging).
+
+Per-pixel gradients (:mod:`.model_gradient`) assume that each pixel sees one flat facet under a
+single-ray beam, and integrating them afterwards forgets that the four images come from *one*
+surface. Here the unknowns are the heights themselves, on the scan grid, and the forward model is
+:class:`~.height_model.HeightModel` (the 1st event of the renderer's g_BSE on disc detectors,
+shadowing, the beam profile, fixed later events), differentiated by Dr.Jit:
+
+    minimise over h:   sum_px,k rho( C_k - s M_k(h) )  +  alpha/2 sum_px |L h / d|^2
+
+* C_k = I_k / F_k, the STSA-corrected measured images (object over flat plate, Eq. 15: gains and
+  the flat's eta cancel); M_k(h) = B_k(h) / B_k(flat) the same ratio of the model's images.
+* s: a scale per pixel (material contrast, beam-current drift), eliminated in closed form at every
+  step (s = sum C M / sum M^2), as in the model gradient.
+* rho: Huber's norm with threshold :data:`HUBER_K` noise levels (a pixel that no surface of the
+  model explains, e.g. a spatter particle, pulls with a bounded force); the noise level comes from
+  the starting residuals (median absolute deviation) or is given.
+* The regulariser: second differences of the heights along rows and columns, divided by the pixel
+  pitch (the change of slope from one pixel to the next), weighted by ``alpha`` in corrected-image
+  units squared. The central differences of the model leave the odd-even (checkerboard) pattern
+  of heights unseen; the regulariser fixes it. Planes cost nothing (border differences vanish).
+
+Gauss-Newton: at each step the model and its per-pixel derivatives (forward-mode AD over each
+pixel's five-height stencil) are evaluated once; the normal equations are solved matrix-free by
+conjugate gradients, preconditioned by their constant-coefficient (cosine-transform) version, which
+makes the long wavelengths, hard for plain CG, as cheap as the short ones. A step is taken only if
+it lowers the objective (halved up to :data:`LINE_SEARCH` times otherwise): the result is never
+worse, in the objective, than the start. It stops when a step lowers the objective by less than
+``tol`` (relative), after ``iterations`` steps, or when ``time_budget_s`` is spent.
+
+The start: the model gradient, integrated (:func:`start_heights`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+
+from ..constants import DETECTOR_NAMES
+from ..errors import EloInputError
+from ..grid import pixel_size
+from .height_model import HeightModel, corner_mean, corners_from_pixels, neighbour, neighbour_t
+
+#: Gauss-Newton steps at most.
+ITERATIONS = 8
+#: Conjugate-gradient iterations per Gauss-Newton step.
+CG_ITERATIONS = 40
+#: Stop when a step lowers the objective by less than this fraction.
+TOL = 1e-3
+#: Weight of the curvature regulariser per noise variance: alpha = ALPHA_PER_NOISE2 sigma^2
+#: (corrected-image units^2 per (slope change per pixel)^2). Chosen on a blurred random relief
+#: (tests/test_inversion.py): 0.3-1 % noise, beam FWHM 0-3 px: within 30 % of the best alpha's height RMSE.
+ALPHA_PER_NOISE2 = 30.0
+#: ... and never below this (noise-free images still leave the odd-even pattern to fix).
+MIN_ALPHA = 1e-6
+#: Huber threshold, in noise levels.
+HUBER_K = 2.0
+#: Step halvings tried when a full step does not lower the objective.
+LINE_SEARCH = 4
+#: A flat-plate value below this (its images' median fraction) gives the pixel no weight.
+MIN_FLAT = 1e-3
+
+
+@dataclass
+class InversionResult:
+    """What :func:`invert_heights` returns.
+
+    Attributes
+    ----------
+    height : ndarray (H, W)
+        Heights (mm) where each pixel's beam lands, package orientation.
+    start_height : ndarray (H, W)
+        The starting heights.
+    misfit : ndarray (H, W)
+        RMS over the detectors of C_k - s M_k at the solution (corrected units).
+    predicted : dict of str to ndarray
+        The modelled corrected images s M_k at the solution.
+    scale : ndarray (H, W)
+        The per-pixel scale s.
+    noise : float
+        The noise level used for Huber's norm (corrected units).
+    alpha : float
+        The regulariser's weight used.
+    history : list of dict
+        Per Gauss-Newton step: iteration, objective, rms misfit, step length, seconds.
+    stopped : str
+        Why it stopped (``converged``, ``iterations``, ``time budget``, ``no descent``).
+    """
+
+    height: np.ndarray
+    start_height: np.ndarray
+    misfit: np.ndarray
+    predicted: dict
+    scale: np.ndarray
+    noise: float
+    alpha: float
+    history: list = field(default_factory=list)
+    stopped: str = ""
+
+
+# ---- the objective ------------------------------------------------------------------------------
+def _second_differences(h):
+    return (neighbour(h, "left") + neighbour(h, "right") - 2.0 * h,
+            neighbour(h, "up") + neighbour(h, "down") - 2.0 * h)
+
+
+def _second_differences_t(vx, vy):
+    return (neighbour_t(vx, "left") + neighbour_t(vx, "right") - 2.0 * vx
+            + neighbour_t(vy, "up") + neighbour_t(vy, "down") - 2.0 * vy)
+
+
+def estimate_noise(corrected, weights) -> float:
+    """Noise level of the corrected images from their second differences along rows and columns
+    (1.4826 MAD / sqrt(6), the median over detectors and both axes): the images' own structure
+    (edges, the blurred relief) hardly enters a median of second differences."""
+    out = []
+    for c, w in zip(corrected, weights):
+        for axis in (0, 1):
+            a = np.moveaxis(c, axis, 0)
+            v = np.moveaxis(w, axis, 0)
+            d2 = a[:-2] - 2.0 * a[1:-1] + a[2:]
+            ok = (v[:-2] * v[1:-1] * v[2:]) > 0
+            if ok.any():
+                out.append(1.4826 * float(np.median(np.abs(d2[ok]))) / np.sqrt(6.0))
+    return float(np.median(out)) if out else 0.0
+
+
+def _huber(r, k):
+    a = np.abs(r)
+    return np.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k))
+
+
+def _huber_weights(r, k):
+    a = np.abs(r)
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-30))
+
+
+class _Problem:
+    """The objective at one scan: measured ratios, weights, the model and the flat's model."""
+
+    def __init__(self, model: HeightModel, corrected, weights, flat_images, alpha, dx, dy):
+        self.model = model
+        self.c = corrected            # (K, H, W)
+        self.w = weights              # (K, H, W) 0/1
+        self.bf = flat_images         # (K, H, W)
+        self.alpha = float(alpha)
+        self.dx, self.dy = dx, dy
+
+    def ratios(self, lin):
+        return lin.images / self.bf
+
+    def fit_scale(self, m):
+        smm = np.sum(self.w * m * m, axis=0)
+        scm = np.sum(self.w * self.c * m, axis=0)
+        return np.where(smm > 0, np.maximum(scm, 0.0) / np.where(smm > 0, smm, 1.0), 0.0)
+
+    def cost(self, h, lin, noise):
+        m = self.ratios(lin)
+        s = self.fit_scale(m)
+        r = self.w * (self.c - s * m)
+        lx, ly = _second_differences(h)
+        reg = 0.5 * self.alpha * (np.sum((lx / self.dx) ** 2) + np.sum((ly / self.dy) ** 2))
+        data = float(np.sum(_huber(r, HUBER_K * noise))) if noise else 0.5 * float(np.sum(r * r))
+        return data + reg, r, s, m
+
+
+def _preconditioner(shape, cx, cy, cc, alpha, dx, dy, sigma_px):
+    """The inverse of the normal equations on the corner grid with constant coefficients, diagonal
+    in the DCT-II basis: the patch's slopes transfer 2 sin(w/2) cos(w'/2), its centre height
+    cos(w/2) cos(w'/2), the beam profile exp(-(sigma w)^2 / 2) each."""
+    h, w = shape
+    wy = np.pi * np.arange(h) / h
+    wx = np.pi * np.arange(w) / w
+    gy = np.exp(-0.5 * (sigma_px[0] * wy) ** 2)
+    gx = np.exp(-0.5 * (sigma_px[1] * wx) ** 2)
+    sy, sx = np.sin(wy / 2)[:, None], np.sin(wx / 2)[None, :]
+    ky, kx = np.cos(wy / 2)[:, None], np.cos(wx / 2)[None, :]
+    blur2 = (gy[:, None] * gx[None, :]) ** 2
+    data = blur2 * (4.0 * cx * (sx * ky) ** 2 + 4.0 * cy * (sy * kx) ** 2 + cc * (kx * ky) ** 2)
+    lap = (4.0 * sy ** 2) ** 2 / dy ** 2 + (4.0 * sx ** 2) ** 2 / dx ** 2
+    eig = data + alpha * lap
+    eig = eig + 1e-9 * max(float(eig.max()), 1e-30)
+    eig[0, 0] = np.inf  # the mean height is not changed (the images hardly see it)
+
+    def apply(v):
+        from scipy.fft import dctn, idctn
+
+        return idctn(dctn(v, norm="ortho") / eig, norm="ortho")
+
+    return apply
+
+
+def _solve_step(problem: _Problem, h, lin, r, s, weights, cg_iterations):
+    """Gauss-Newton step: (J^T W J + alpha L^T L) dh = J^T W r - alpha L^T L h by preconditioned CG."""
+    model = problem.model
+    f = problem.w * weights * (s / problem.bf) ** 2  # the weight of each (k, px) in J^T W J
+    g = s / problem.bf
+    alpha = problem.alpha
+    dx, dy = problem.dx, problem.dy
+
+    def normal(v):
+        jv = model.apply_jacobian(lin, v)
+        out = model.apply_jacobian_t(lin, f * jv)
+        lx, ly = _second_differences(v)
+        return out + alpha * _second_differences_t(lx / dx ** 2, ly / dy ** 2)
+
+    lx, ly = _second_differences(h)
+    rhs = model.apply_jacobian_t(lin, problem.w * weights * g * r) \
+        - alpha * _second_differences_t(lx / dx ** 2, ly / dy ** 2)
+    tl, tr, bl, br = lin.partials  # d/d corner, STENCIL order
+    coef = [float(np.mean(np.sum(f * a ** 2, axis=0))) for a in
+            (0.5 * (tr + br - tl - bl), 0.5 * (tl + tr - bl - br), tl + tr + bl + br)]
+    precond = _preconditioner(h.shape, coef[0], coef[1], coef[2], alpha, dx, dy, model.sigma_px)
+    x = np.zeros_like(h)
+    res = rhs - 0.0
+    z = precond(res)
+    p = z.copy()
+    rz = float(np.sum(res * z))
+    r0 = np.sqrt(float(np.sum(res * res)))
+    for _ in range(int(cg_iterations)):
+        ap = normal(p)
+        pap = float(np.sum(p * ap))
+        if not pap > 0:
+            break
+        a = rz / pap
+        x += a * p
+        res -= a * ap
+        if np.sqrt(float(np.sum(res * res))) < 1e-4 * r0:
+            break
+        z = precond(res)
+        rz_new = float(np.sum(res * z))
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x - x.mean()
+
+
+# ---- start and solver ---------------------------------------------------------------------------
+def _fill_masked(a, mask, sigma=3.0):
+    """Masked values replaced by a Gaussian-weighted mean of the trusted ones nearby (normalised
+    convolution, widened until every pixel has neighbours)."""
+    from scipy.ndimage import gaussian_filter
+
+    if not mask.any():
+        return a
+    good = (~mask).astype(float)
+    if not good.any():
+        return np.zeros_like(a)
+    out = np.array(a, float)
+    s = sigma
+    todo = mask.copy()
+    while todo.any() and s < 4 * max(a.shape):
+        num = gaussian_filter(np.where(mask, 0.0, a), s, mode="nearest")
+        den = gaussian_filter(good, s, mode="nearest")
+        ok = todo & (den > 1e-6)
+        out[ok] = num[ok] / den[ok]
+        todo &= ~ok
+        s *= 2.0
+    out[todo] = 0.0
+    return out
+
+
+def start_heights(gradient, geometry) -> np.ndarray:
+    """Heights on the scan grid from a gradient result (e.g. the model gradient): masked slopes
+    filled from their neighbours, perspective slopes converted to the scan grid, DCT integration,
+    zero mean."""
+    from .integrate import integrate_dct, scan_grid_gradient
+
+    gx = _fill_masked(np.asarray(gradient.dzdx, float), np.asarray(gradient.mask, bool))
+    gy = _fill_masked(np.asarray(gradient.dzdy, float), np.asarray(gradient.mask, bool))
+    if geometry.projection == "perspective":
+        gx, gy = scan_grid_gradient(gx, gy, geometry.field_mm, geometry.work_distance_mm)
+    h = integrate_dct(gx, gy, geometry.field_mm)
+    return h - h.mean()
+
+
+def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwhm_mm: float = 0.0,
+                   later: Mapping | None = None, flat_later: Mapping | None = None, alpha: float | None = None,
+                   noise: float | None = None, iterations: int = ITERATIONS, cg_iterations: int = CG_ITERATIONS,
+                   tol: float = TOL, time_budget_s: float | None = None, shadows: bool = True,
+                   progress: Callable[[dict], None] | None = None) -> InversionResult:
+    """Four detector images -> the height map that the forward model maps onto them.
+
+    Parameters
+    ----------
+    images, flats : mapping of str to ndarray (H, W)
+        Object and flat-plate images of ``right``, ``left``, ``back``, ``front`` (same beam, field
+        and detectors; gains cancel in their ratio).
+    geometry : ScanGeometry
+        Field, beam, detectors (e.g. from the header or a calibration), material.
+    start : ndarray (H, W) or GradientResult, optional
+        Starting heights (mm), or a gradient to integrate (:func:`start_heights`); default: the
+        model gradient of the same images, integrated.
+    fwhm_mm : float
+        Beam profile FWHM (mm) of the scan (the header's ``beam_fwhm_mm``).
+    later, flat_later : mapping of str to ndarray, optional
+        Fixed images of the events >= 2 of the object and of the flat plate (units of the images).
+    alpha : float, optional
+        Weight of the curvature regulariser (module docstring); default
+        :data:`ALPHA_PER_NOISE2` times the noise variance.
+    noise : float, optional
+        Noise level of the corrected images; default: :func:`estimate_noise`.
+    iterations, cg_iterations : int
+        Gauss-Newton steps at most; CG iterations per step.
+    tol : float
+        Stop when a step lowers the objective by less than this fraction.
+    time_budget_s : float, optional
+        Stop after the step that exceeds this wall time.
+    shadows : bool
+        Model the surface's shadowing of the detectors.
+    progress : callable, optional
+        Called with each step's history entry.
+
+    Returns
+    -------
+    InversionResult
+    """
+    for name, v in (("iterations", iterations), ("cg_iterations", cg_iterations)):
+        if int(v) != v or v < 0:
+            raise EloInputError(f"{name}={v!r}: must be an integer >= 0")
+    if alpha is not None and not (np.isfinite(alpha) and alpha >= 0):
+        raise EloInputError(f"alpha={alpha!r}: must be a finite number >= 0")
+    if not (np.isfinite(tol) and tol >= 0):
+        raise EloInputError(f"tol={tol!r}: must be a finite number >= 0")
+    if noise is not None and not (np.isfinite(noise) and noise > 0):
+        raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
+    shape = tuple(geometry.shape)
+    names = tuple(geometry.detectors)
+    for what, data in (("images", images), ("flats", flats)):
+        missing = [n for n in DETECTOR_NAMES if n not in data]
+        if missing:
+            raise EloInputError(f"{what} lack the detector(s) {', '.join(missing)}")
+        for n in DETECTOR_NAMES:
+            if np.shape(data[n]) != shape:
+                raise EloInputError(f"{what}[{n!r}] is {np.shape(data[n])}, the scan geometry {shape}")
+    t0 = time.perf_counter()
+    if start is None:
+        from .model_gradient import model_gradient
+
+        start = model_gradient(images, flats, geometry)
+    h0 = start_heights(start, geometry) if hasattr(start, "dzdx") else np.array(start, float)
+    if h0.shape != shape or not np.all(np.isfinite(h0)):
+        raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")
+    g0 = corners_from_pixels(h0)
+
+    dx, dy = pixel_size(shape, geometry.field_mm)
+    img = np.stack([np.asarray(images[n], float) for n in names])
+    flt = np.stack([np.asarray(flats[n], float) for n in names])
+    floor = MIN_FLAT * np.median(flt, axis=(1, 2), keepdims=True)
+    good = np.isfinite(img) & np.isfinite(flt) & (flt > floor)
+    corrected = np.where(good, img / np.where(good, flt, 1.0), 0.0)
+    weights = good.astype(float)
+    flat_model = HeightModel(geometry, fwhm_mm=fwhm_mm, later=flat_later, shadows=False)
+    bf = flat_model.evaluate(np.zeros((shape[0] + 1, shape[1] + 1))).images.astype(float)
+    model = HeightModel(geometry, fwhm_mm=fwhm_mm, later=later, shadows=shadows)
+    if noise is None:
+        noise = max(estimate_noise(corrected, weights), 1e-6)
+    if alpha is None:
+        alpha = max(ALPHA_PER_NOISE2 * noise ** 2, MIN_ALPHA)
+    problem = _Problem(model, corrected, weights, np.maximum(bf, 1e-12), alpha, dx, dy)
+
+    h = g0.copy()  # the unknowns: corner heights
+    lin = model.evaluate(h, derivatives=True)
+    cost, r, s, m = problem.cost(h, lin, noise)
+    history = [{"iteration": 0, "objective": cost, "rms": float(np.sqrt(np.mean(r[weights > 0] ** 2))),
+                "step": 0.0, "seconds": time.perf_counter() - t0}]
+    if progress:
+        progress(history[-1])
+    stopped = "iterations"
+    for it in range(1, int(iterations) + 1):
+        hw = _huber_weights(r, HUBER_K * noise)
+        dh = _solve_step(problem, h, lin, r, s, hw, cg_iterations)
+        tau, accepted = 1.0, False
+        for _ in range(LINE_SEARCH + 1):
+            trial = h + tau * dh
+            tlin = model.evaluate(trial)
+            tcost, tr, ts, tm = problem.cost(trial, tlin, noise)
+            if tcost < cost:
+                accepted = True
+                break
+            tau *= 0.5
+        if not accepted or not np.all(np.isfinite(dh)):
+            stopped = "no descent"
+            break
+        gain = (cost - tcost) / max(abs(cost), 1e-300)
+        h = trial
+        cost, r, s, m = tcost, tr, ts, tm
+        history.append({"iteration": it, "objective": cost, "rms": float(np.sqrt(np.mean(r[weights > 0] ** 2))),
+                        "step": float(tau * np.sqrt(np.mean(dh ** 2))), "seconds": time.perf_counter() - t0})
+        if progress:
+            progress(history[-1])
+        if gain < tol:
+            stopped = "converged"
+            break
+        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+            stopped = "time budget"
+            break
+        if it < iterations:
+            lin = model.evaluate(h, derivatives=True)
+    misfit = np.sqrt(np.sum(r ** 2, axis=0) / np.maximum(np.sum(weights, axis=0), 1.0))
+    predicted = {n: (s * m[k]) for k, n in enumerate(names)}
+    return InversionResult(height=corner_mean(h), start_height=h0, misfit=misfit, predicted=predicted, scale=s,
+                           noise=float(noise), alpha=float(alpha), history=history, stopped=stopped)
