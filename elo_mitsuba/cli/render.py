@@ -80,6 +80,9 @@ def add_parser(subparsers):
                    "the triangle quadrature, so there it sets events >= 2 only")
     p.add_argument("--quality", choices=("draft", "default", "reference", "scene"), default="default",
                    help="speed/accuracy preset (default: default); 'scene' keeps the scene file's sampling settings")
+    p.add_argument("--error-channels", action="store_true",
+                   help="also write each channel's per-pixel standard error as <channel>.err (from two independent "
+                        "halves of the samples; zero for deterministic channels)")
     p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT.exr (and the preview) if they exist")
     p.add_argument("--quiet", action="store_true", help="no progress or summary output")
@@ -117,7 +120,7 @@ def run(args) -> int:
                     "use --quality scene (sampled detectors) or --events 2 in a scene that scatters twice")
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False)
-    result.write_exr(out, overwrite=args.overwrite)
+    result.write_exr(out, overwrite=args.overwrite, error_channels=args.error_channels)
     if preview is not None:
         from ..analysis.plots import preview_detectors
 
@@ -132,6 +135,8 @@ def run(args) -> int:
               file=sys.stderr)
         for note in m.get("notes", []):
             print(f"note: {note}", file=sys.stderr)
+        for line in error_lines(result, args.quality):
+            print(line, file=sys.stderr)
         shares = result.event_shares()  # what each event order adds
         if shares:
             print("event shares of the signal (mean; 99th-percentile pixel): " + ", ".join(
@@ -142,3 +147,26 @@ def run(args) -> int:
                       f"in 99% of the pixels: --events {enough} gives the same images within that, faster",
                       file=sys.stderr)
     return 0
+
+
+def error_lines(result, quality: str) -> list[str]:
+    """The error estimate of a render as text: one line per detector (its total and each event),
+    and a note when the worst total is above what the preset promises (QUALITY_ACCURACY)."""
+    from ..error_estimate import ESTIMATED, describe
+    from ..options import QUALITY_ACCURACY
+
+    summary = result.error_summary()
+    if not summary:
+        return []
+    lines = ["estimated error per pixel (two independent halves of the samples; RMS over pixels, relative):"]
+    for d in result.detectors:
+        parts = [f"{d}: {describe(summary[d])}"]
+        parts += [f"{name[len(d) + 1:]} {describe(summary[name])}" for name in summary if name.startswith(f"{d}.")]
+        lines.append("  " + "; ".join(parts))
+    totals = [(summary[d]["rms_rel"], d) for d in result.detectors if summary[d].get("status") == ESTIMATED]
+    stated = QUALITY_ACCURACY.get(quality)
+    if totals and stated is not None and max(totals)[0] > stated:
+        worst, d = max(totals)
+        lines.append(f"note: the estimated error of {d} ({100 * worst:.3g} % RMS) is above the {100 * stated:.3g} % "
+                     f"that --quality {quality} promises (its worst shipped scene): use a higher --quality or --spp")
+    return lines
