@@ -439,17 +439,23 @@ class EloScene:
         ([(spp, options or None)] per half, the status forced on every channel or None).
 
         spp >= 2: the samples split in two (same options). 1 spp with events >= 2 traced: two
-        renders of 1 spp with half the continuation paths each (the 1st event is then rendered
-        twice; with the quadrature and a single-ray beam it is deterministic). 1 spp with the 1st
-        event only: one render; its error is zero with the quadrature and a single-ray beam
-        (deterministic), else not estimated (one sample per pixel cannot be split)."""
+        renders of 1 spp with half the continuation paths each. 1 spp, 1st event only, by the
+        quadrature with a single-ray beam: with one ray per triangle (``triangle`` visibility)
+        the result is deterministic (one render, no sampling error); with the sampled visibility
+        two renders (partly occluded detectors are sampled; identical halves are reported as
+        deterministic). 1 spp of sampled detectors: one render, not estimated (one sample per
+        pixel cannot be split)."""
+        integ = self.integrator
         if spp >= 2:
             return [((spp + 1) // 2, None), (spp // 2, None)], None
-        if self.integrator.traced_events() > 1:
-            half = half_budget(self.integrator.options)
+        if integ.traced_events() > 1:
+            half = half_budget(integ.options)
             return [(1, half), (1, half)], None
-        deterministic = self.integrator.detector_sampling == "quadrature" and not self.sensor.fwhm > 0
-        return [(1, None)], (DETERMINISTIC if deterministic else NOT_ESTIMATED)
+        if integ.detector_sampling == "quadrature" and not self.sensor.fwhm > 0:
+            if integ.quadrature_visibility == "triangle":
+                return [(1, None)], DETERMINISTIC
+            return [(1, integ.options), (1, integ.options)], None
+        return [(1, None)], NOT_ESTIMATED
         return RenderResult(channels, self.metadata(spp, seed))
 
 
