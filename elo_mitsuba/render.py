@@ -456,7 +456,6 @@ class EloScene:
                 return [(1, None)], DETERMINISTIC
             return [(1, integ.options), (1, integ.options)], None
         return [(1, None)], NOT_ESTIMATED
-        return RenderResult(channels, self.metadata(spp, seed))
 
 
 def _combine(names, sums, counts, equal_halves: bool, forced_status):
