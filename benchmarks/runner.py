@@ -15,7 +15,7 @@ from .harness import ROOT, Bench
 from .report import presets_table, summary
 
 #: The order sections run and appear in RESULTS.md: ``path`` compares with what ``targets`` measured.
-ORDER = ("targets", "path", "ceiling", "accuracy", "events", "scaling", "sweep", "analysis")
+ORDER = ("targets", "presets", "path", "ceiling", "accuracy", "events", "scaling", "sweep", "analysis")
 
 DESCRIPTION = """\
 Benchmarks of the ELO forward model: speed against accuracy; ``python -m benchmarks [--quick]``.
@@ -31,6 +31,9 @@ the committed ``benchmarks/RESULTS.md`` of the checkout). Sections (``--only`` t
 * ``events``   what events 2..4 add (share of the signal vs per-pixel noise), and their cost;
 * ``targets``  1500 x 1500, athene_flat, events 1 + 2: brute force and the quality presets,
                error against the reference, time, peak memory; the CLI end to end;
+* ``presets``  draft/default/reference on every shipped scene (the chamber scenes too): time, RMS,
+               99th-percentile and worst-pixel error per event channel and total, and the accuracy
+               of the render's own error estimate;
 * ``path``     four renders of Mitsuba's built-in ``path`` integrator (one detector emitting
                each) at equal error: the speed ratio;
 * ``scaling``  time and peak memory against resolution, spp and mesh size; a flat plate as a

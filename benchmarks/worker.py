@@ -13,6 +13,8 @@ and what the job measured. Job kinds:
   emitter (the others black absorbers), max_depth = events + 1: the alternative a user has.
 * ``raw``: Mitsuba's raw ray-cast throughput on the scene: beam rays, bounce rays from the
   first hits, shadow rays from first hits and from bounce hits to points on the detectors.
+* ``presets``: the quality presets on one scene against its reference
+  (:func:`benchmarks.section_presets.measure_scene`).
 * ``skeleton``: our integrator, a ray-only skeleton of it and the same rays in one bare kernel,
   interleaved with the raw ray casts in one process (the paired ceiling).
 """
@@ -341,7 +343,13 @@ def job_skeleton(job):
     return {"times": times, "raw_rates": raw_rates, "maxrss_mb": _maxrss_mb()}
 
 
-JOBS = {"render": job_render, "path": job_path, "raw": job_raw, "skeleton": job_skeleton}
+def job_presets(job):
+    from .section_presets import measure_scene
+
+    return measure_scene(job)
+
+
+JOBS = {"render": job_render, "path": job_path, "raw": job_raw, "skeleton": job_skeleton, "presets": job_presets}
 
 
 def main(argv=None):

@@ -196,17 +196,25 @@ def parameter_table() -> str:
 #: >= 2 get ``bounce_budget`` continuation paths per window of ``bounce_filter`` mm half-width
 #: (a normal-guided average, see the elo integrator; 0 = per pixel), spread over the pixels by
 #: ``bounce_fraction`` / ``bounce_samples`` for the scene's resolution; pixels where the window
-#: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. ``scene`` keeps the scene
-#: file's own settings.
+#: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. On a scene with relief that
+#: can scatter onto itself (a scattering surface that is not one plane: an object in a chamber)
+#: events >= 2 vary along a flank whose normals agree, where the window average is biased
+#: (+9 % in e2 on the corrugated sheet in the chamber): there the presets do not filter and give
+#: every pixel ``relief_paths`` continuation paths instead. ``scene`` keeps the scene file's own
+#: settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
-              "bounce_min": 0.0},
+              "bounce_min": 0.0, "relief_paths": 4},
     "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 400,
-                "bounce_min": 2.0},
+                "bounce_min": 2.0, "relief_paths": 16},
     "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
-                  "bounce_budget": 128, "bounce_min": 0.0},
+                  "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128},
 }
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
+#: What each preset promises: the per-pixel RMS relative error of a detector's total (events
+#: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
+#: when a render's own error estimate is above it.
+QUALITY_ACCURACY = {"draft": 0.18, "default": 0.09, "reference": 0.035}  # corrugated_chamber: 17.5, 8.7, 3.3 %
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 
@@ -222,7 +230,7 @@ def filter_window_levels(half_width_mm: float, pixel_mm: float) -> int | None:
 
 
 def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm: float,
-                    traced_events: int) -> tuple[EloOptions, int]:
+                    traced_events: int, relief: bool = False) -> tuple[EloOptions, int]:
     """The options and spp of a preset for a scene.
 
     Parameters
@@ -237,6 +245,9 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         Beam profile FWHM; > 0 takes the preset's ``spp_blur`` samples.
     traced_events : int
         Events the scene can produce (1 when nothing can scatter an electron twice).
+    relief : bool
+        The scene has relief that can scatter onto itself (a scattering surface that is not one
+        plane): no bounce filter, ``relief_paths`` continuation paths per pixel.
 
     Returns
     -------
@@ -247,17 +258,39 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
     preset = QUALITY_PRESETS[quality]
     spp = int(preset["spp_blur"] if fwhm_mm > 0 else preset["spp"])
-    level = filter_window_levels(preset["bounce_filter"], pixel_mm)
-    window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y
-    per_pixel = preset["bounce_budget"] / window**2  # continuation paths per pixel
+    bounce_filter, bounce_min = float(preset["bounce_filter"]), float(preset["bounce_min"])
+    if relief and bounce_filter > 0:  # the window average is biased on relief: per-pixel paths
+        bounce_filter, bounce_min = 0.0, 0.0
+        per_pixel = float(preset["relief_paths"])
+    else:
+        level = filter_window_levels(bounce_filter, pixel_mm)
+        window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y
+        per_pixel = preset["bounce_budget"] / window**2  # continuation paths per pixel
     if traced_events > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
         # a power of two: a pixel's samples then never straddle two of Dr.Jit's thread blocks,
         # whose atomic adds into one pixel would come in varying order (last-bit differences)
         spp = 1 << math.ceil(math.log2(per_pixel / MAX_BOUNCE_SAMPLES))
     per_sample = per_pixel / spp
     bounce_samples = max(1, math.ceil(per_sample))
+    if spp > 1:
+        # every sample traces (bounce_fraction 1, up to 1/k more paths than the budget): the block
+        # pattern of bounce_fraction < 1 is one random shift per render, common to all pixels,
+        # which the error estimate's two halves see only as a whole (its estimate then scattered
+        # 0.76-1.6x in variance on athene_flat, against 0.9-1.0x with every sample tracing)
+        per_sample = float(bounce_samples)
     options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
-                           bounce_filter=preset["bounce_filter"], bounce_min=preset["bounce_min"],
+                           bounce_filter=bounce_filter, bounce_min=bounce_min,
                            bounce_samples=bounce_samples,
                            bounce_fraction=min(1.0, per_sample / bounce_samples))
     return options, spp
+
+
+def half_budget(options: EloOptions) -> EloOptions:
+    """The options of one of two independent halves of a render at 1 spp (the error estimate,
+    :mod:`elo_mitsuba.error_estimate`): half the continuation paths per sample (``bounce_fraction``
+    x ``bounce_samples``) and half the top-up (``bounce_min``); the 1st event is unchanged (with
+    the quadrature and a single-ray beam it is deterministic), so the mean of the two halves has
+    the budget of the whole."""
+    per_sample = options.bounce_fraction * options.bounce_samples / 2.0
+    k = max(1, math.ceil(per_sample))
+    return options.replace(bounce_samples=k, bounce_fraction=per_sample / k, bounce_min=options.bounce_min / 2.0)

@@ -29,7 +29,8 @@ from .errors import EloError, EloInputError
 from .budget import check_render
 from .exr import write_exr
 from .grid import ORIENTATION
-from .options import QUALITIES, EloOptions, quality_options
+from .error_estimate import DETERMINISTIC, ESTIMATED, NOT_ESTIMATED, halves_error, same_result, summarise
+from .options import QUALITIES, EloOptions, half_budget, quality_options
 from .runtime import ensure_variant
 from .scene_files import declared_parameters, explain_mitsuba_error, layout_parameters, resolve_scene_path
 
@@ -57,18 +58,41 @@ MAX_SEED = (1 << 32) - 1
 # ---- results -----------------------------------------------------------------------------------------
 @dataclass
 class RenderResult:
-    """Detector images (numpy float32, orientation of :mod:`elo_mitsuba.grid`) and the geometry that
-    produced them."""
+    """Detector images (numpy float32, orientation of :mod:`elo_mitsuba.grid`), the geometry that
+    produced them and the error estimate.
+
+    ``errors`` maps each channel with an estimated sampling error to its per-pixel standard error
+    (same units, from two independent halves of the samples, :mod:`elo_mitsuba.error_estimate`);
+    ``metadata["error_estimate"]["channels"]`` summarises every channel (``status``: estimated,
+    deterministic or not estimated; ``rms_rel``, ``p99_rel``, ``rms_abs``); see
+    :meth:`error_summary`.
+    """
 
     channels: dict[str, np.ndarray]
     metadata: dict = field(default_factory=dict)
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def error_summary(self) -> dict[str, dict]:
+        """Per channel: the summary of its error estimate (empty if the render made none)."""
+        return dict(self.metadata.get("error_estimate", {}).get("channels", {}))
 
     @property
     def detectors(self) -> list[str]:
         return [name for name in self.channels if "." not in name]
 
-    def write_exr(self, path, overwrite: bool = False) -> Path:
-        return write_exr(path, self.channels, self.metadata, overwrite=overwrite)
+    def write_exr(self, path, overwrite: bool = False, error_channels: bool = False) -> Path:
+        """Write the channels and metadata (error summary included) to an EXR; with
+        ``error_channels`` also each channel's per-pixel standard error as ``<name>.err`` (zero
+        for a deterministic channel; none where it is not estimated)."""
+        channels = dict(self.channels)
+        if error_channels:
+            summary = self.error_summary()
+            for name, img in self.channels.items():
+                if name in self.errors:
+                    channels[f"{name}.err"] = self.errors[name]
+                elif summary.get(name, {}).get("status") == DETERMINISTIC:
+                    channels[f"{name}.err"] = np.zeros_like(img)
+        return write_exr(path, channels, self.metadata, overwrite=overwrite)
 
     def event_shares(self) -> list[dict]:
         """What each scattering event adds: per event k (1-based), ``mean`` = its share of the
@@ -322,7 +346,8 @@ class EloScene:
             return int(self.sensor.sampler().sample_count())
         pixel_mm = self.sensor.field / self.sensor.resolution[0]
         options, spp = quality_options(quality, self.integrator.options, pixel_mm=pixel_mm,
-                                       fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events())
+                                       fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events(),
+                                       relief=bool(self.integrator.relief))
         self.integrator.configure(options)
         self.quality = quality
         return spp
@@ -353,41 +378,106 @@ class EloScene:
         spp = int(spp)
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
-        passes = math.ceil(spp / per_pass)
+        halves, first_status = self._halves(spp)
+        n_passes = sum(math.ceil(n / per_pass) for n, _ in halves)
         names = self.integrator.channel_names()
-        notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(), passes)
+        notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(),
+                             max(n_passes, 2 if len(halves) > 1 else 1))
         if progress is not False:
             for note in notes:
                 print(f"elo-mitsuba: note: {note}", file=sys.stderr, flush=True)
-        report = _Progress(spp, passes, progress)
+        # progress counts samples of both halves (a half of a 1-spp render counts as one)
+        work = sum(n for n, _ in halves)
+        report = _Progress(work, n_passes, progress)
         # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
-        # float32 channel-major array, so that peak memory stays near the film's own (<= 1 GB at
-        # 1500^2); several passes are summed in float64
-        channels = None
-        done = 0
+        # float32 channel-major array, so that peak memory stays near the film's own; the passes
+        # of each half are summed in float64
+        sums = []
+        done = p = 0
         t0 = time.perf_counter()
-        for p in range(passes):
-            n = min(per_pass, spp - done)
-            img = mi.render(self.scene, spp=n, seed=(seed * 65537 + p) % (1 << 32))
-            planes = _channel_planes(img, 1, len(names))  # (channels, H, W) float32; 'Y' (column 0) skipped
-            del img
-            if passes == 1:
-                channels = {name: planes[i] for i, name in enumerate(names)}
-            else:
-                if channels is None:
-                    channels = {name: np.zeros(planes.shape[1:], np.float64) for name in names}
-                for i, name in enumerate(names):
-                    channels[name] += planes[i] * (n / spp)
-            del planes
-            done += n
-            report(done, time.perf_counter() - t0)
+        saved = self.integrator.options
+        try:
+            for n_half, options in halves:
+                if options is not None:
+                    self.integrator.configure(options)
+                acc = None
+                left = n_half
+                while left > 0:
+                    n = min(per_pass, left)
+                    img = mi.render(self.scene, spp=n, seed=(seed * 65537 + p) % (1 << 32))
+                    planes = _channel_planes(img, 1, len(names))  # (channels, H, W) float32; 'Y' skipped
+                    del img
+                    if acc is None and n == n_half:
+                        acc = planes  # one pass: its own mean
+                    else:
+                        if acc is None:
+                            acc = np.zeros(planes.shape, np.float64)
+                        acc += planes * (n / n_half)
+                    del planes
+                    left -= n
+                    p += 1
+                    done += n
+                    report(done, time.perf_counter() - t0)
+                sums.append(acc)
+        finally:
+            self.integrator.configure(saved)
         report.end()
-        if passes > 1:
-            channels = {name: img.astype(np.float32) for name, img in channels.items()}
+        channels, errors, summary = _combine(names, sums, [n for n, _ in halves], halves[0][1] is not None,
+                                             first_status)
         for name, img in channels.items():
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
-        return RenderResult(channels, self.metadata(spp, seed))
+        meta = self.metadata(spp, seed)
+        meta["error_estimate"] = {
+            "method": ("two independent halves of the samples (A, B): standard error per pixel "
+                       "sqrt(w_A w_B) |A - B|; relative to max(|value|, 5 % of the channel's mean)"),
+            "channels": summary}
+        return RenderResult(channels, meta, errors)
+
+    def _halves(self, spp: int):
+        """How the render splits into two independent halves for the error estimate:
+        ([(spp, options or None)] per half, the status forced on every channel or None).
+
+        spp >= 2: the samples split in two (same options). 1 spp with events >= 2 traced: two
+        renders of 1 spp with half the continuation paths each. 1 spp, 1st event only, by the
+        quadrature with a single-ray beam: with one ray per triangle (``triangle`` visibility)
+        the result is deterministic (one render, no sampling error); with the sampled visibility
+        two renders (partly occluded detectors are sampled; identical halves are reported as
+        deterministic). 1 spp of sampled detectors: one render, not estimated (one sample per
+        pixel cannot be split)."""
+        integ = self.integrator
+        if spp >= 2:
+            return [((spp + 1) // 2, None), (spp // 2, None)], None
+        if integ.traced_events() > 1:
+            half = half_budget(integ.options)
+            return [(1, half), (1, half)], None
+        if integ.detector_sampling == "quadrature" and not self.sensor.fwhm > 0:
+            if integ.quadrature_visibility == "triangle":
+                return [(1, None)], DETERMINISTIC
+            return [(1, integ.options), (1, integ.options)], None
+        return [(1, None)], NOT_ESTIMATED
+
+
+def _combine(names, sums, counts, equal_halves: bool, forced_status):
+    """(channels float32, per-pixel errors, summary per channel) from the halves' means ``sums``
+    (one per half, (channels, H, W)) of ``counts`` samples each; ``equal_halves``: the halves
+    split the continuation paths (1 spp each, equal weight) instead of the samples."""
+    if len(sums) == 1:
+        planes = sums[0]
+        channels = {name: np.asarray(planes[i], np.float32) for i, name in enumerate(names)}
+        return channels, {}, {name: summarise(channels[name], None, forced_status) for name in names}
+    share_a = 0.5 if equal_halves else counts[0] / sum(counts)
+    a, b = sums
+    channels, errors, summary = {}, {}, {}
+    for i, name in enumerate(names):
+        mean = (share_a * np.asarray(a[i], np.float64) + (1.0 - share_a) * np.asarray(b[i], np.float64))
+        channels[name] = mean.astype(np.float32)
+        if same_result(a[i], b[i]):  # no sampling error at all: say so, not 0 from a split
+            summary[name] = summarise(channels[name], None, DETERMINISTIC)
+        else:
+            errors[name] = halves_error(a[i], b[i], share_a)
+            summary[name] = summarise(channels[name], errors[name], ESTIMATED)
+    return channels, errors, summary
 
 
 def _vector3(name: str, what: str, value) -> np.ndarray:

@@ -112,3 +112,20 @@ def test_render_reports_what_each_event_adds(tmp_path):
     assert "e1 100.00% (100.00%), e2 0.00% (0.00%), e3 0.00% (0.00%)" in r.stderr
     assert "--events 1 gives the same images" in r.stderr
     assert "exactly zero" in r.stderr
+
+
+def test_render_prints_and_stores_the_error_estimate(tmp_path):
+    """Issue 10: every channel's estimated error is printed, stored in the header and, with
+    --error-channels, written as <channel>.err; the 1st event by the quadrature is deterministic."""
+    out = tmp_path / "corr.exr"
+    r = run("render", "corrugated_chamber", "-o", out, "--resolution", 16, "-D", "field=10", "--error-channels")
+    assert r.returncode == 0, r.stderr
+    assert "estimated error per pixel" in r.stderr and "e1 deterministic (no sampling error)" in r.stderr
+    assert "e2 " in r.stderr and "% RMS" in r.stderr
+    channels, meta = read_exr(out)
+    summary = meta["error_estimate"]["channels"]
+    assert summary["right.e1"]["status"] == "deterministic" and np.all(channels["right.e1.err"] == 0)
+    assert summary["right.e2"]["status"] == "estimated" and channels["right.e2.err"].max() > 0
+    plain = tmp_path / "plain.exr"
+    assert run("render", "flat_plate", "-o", plain, "--resolution", 8, "--quiet").returncode == 0
+    assert not any(name.endswith(".err") for name in read_exr(plain)[0])

@@ -31,16 +31,24 @@ reference set the spp and how the detectors are integrated: the 1st event by the
 quadrature of Appendix A (no noise with a single-ray beam), events >= 2 traced for a fraction of
 the pixels and averaged over a window that stops at changes of the surface normal. "scene" keeps
 the scene file's settings (independent sampling, 2.4%/sqrt(spp) noise per pixel on the 1st event).
-An explicit --spp or --detector-samples wins over the preset. Measured on athene_flat, 1500 x 1500,
-events 1 + 2, 2 CPU cores (render time; per-pixel RMS error against a converged reference):
+An explicit --spp or --detector-samples wins over the preset. The presets are chosen per scene:
+where relief under the beam can scatter onto itself (an object in a chamber) events >= 2 are not
+window-averaged (that average was biased by +9 % in e2 on flanks) but traced per pixel.
+Measured on every shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel
+RMS error of a detector's total against a converged reference), each preset's WORST scene:
 
-  preset      time     1st event   events 1+2   note
-  draft       1.0 s    0.024 %     1.7 %        events >= 2 averaged over ~1 mm windows
-  default     1.3 s    0.024 %     1.1 %        the same with 4x the paths; edges topped up
-  reference   51 s     0.007 %     1.1 %        no window average: unbiased on any scene
-  (brute force, independent sampling at 7 spp: 4.2 s for 0.97 % on the 1st event)
+  preset      worst scene           total    time (128^2)   best scene (athene_flat)
+  draft       corrugated_chamber    17.5 %   0.15 s         1.3 %
+  default     corrugated_chamber     8.7 %   0.43 s         0.74 %
+  reference   corrugated_chamber     3.3 %   2.6 s          1.2 % (no window average)
 
-On relief inside a chamber (flanks) the window average of draft/default is biased: use reference.
+Every render estimates its own error from two independent halves of the samples and prints it
+per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks;
+it sees noise only, not the quadrature's deterministic error of the 1st event, < 0.05 %);
+channels without sampling error (the 1st event by the quadrature with a single-ray beam) say
+"deterministic". The estimate is stored in the EXR header (error_estimate) and, with
+--error-channels, as <channel>.err images. A render whose estimate is above its preset's worst
+figure gets a note.
 
 With a beam profile (fwhm > 0) the presets take more spp (4 / 16 / 256) to average over it.
 """
@@ -80,6 +88,9 @@ def add_parser(subparsers):
                    "the triangle quadrature, so there it sets events >= 2 only")
     p.add_argument("--quality", choices=("draft", "default", "reference", "scene"), default="default",
                    help="speed/accuracy preset (default: default); 'scene' keeps the scene file's sampling settings")
+    p.add_argument("--error-channels", action="store_true",
+                   help="also write each channel's per-pixel standard error as <channel>.err (from two independent "
+                        "halves of the samples; zero for deterministic channels)")
     p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT.exr (and the preview) if they exist")
     p.add_argument("--quiet", action="store_true", help="no progress or summary output")
@@ -117,7 +128,7 @@ def run(args) -> int:
                     "use --quality scene (sampled detectors) or --events 2 in a scene that scatters twice")
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False)
-    result.write_exr(out, overwrite=args.overwrite)
+    result.write_exr(out, overwrite=args.overwrite, error_channels=args.error_channels)
     if preview is not None:
         from ..analysis.plots import preview_detectors
 
@@ -132,6 +143,8 @@ def run(args) -> int:
               file=sys.stderr)
         for note in m.get("notes", []):
             print(f"note: {note}", file=sys.stderr)
+        for line in error_lines(result, args.quality):
+            print(line, file=sys.stderr)
         shares = result.event_shares()  # what each event order adds
         if shares:
             print("event shares of the signal (mean; 99th-percentile pixel): " + ", ".join(
@@ -142,3 +155,26 @@ def run(args) -> int:
                       f"in 99% of the pixels: --events {enough} gives the same images within that, faster",
                       file=sys.stderr)
     return 0
+
+
+def error_lines(result, quality: str) -> list[str]:
+    """The error estimate of a render as text: one line per detector (its total and each event),
+    and a note when the worst total is above what the preset promises (QUALITY_ACCURACY)."""
+    from ..error_estimate import ESTIMATED, describe
+    from ..options import QUALITY_ACCURACY
+
+    summary = result.error_summary()
+    if not summary:
+        return []
+    lines = ["estimated error per pixel (two independent halves of the samples; RMS over pixels, relative):"]
+    for d in result.detectors:
+        parts = [f"{d}: {describe(summary[d])}"]
+        parts += [f"{name[len(d) + 1:]} {describe(summary[name])}" for name in summary if name.startswith(f"{d}.")]
+        lines.append("  " + "; ".join(parts))
+    totals = [(summary[d]["rms_rel"], d) for d in result.detectors if summary[d].get("status") == ESTIMATED]
+    stated = QUALITY_ACCURACY.get(quality)
+    if totals and stated is not None and max(totals)[0] > stated:
+        worst, d = max(totals)
+        lines.append(f"note: the estimated error of {d} ({100 * worst:.3g} % RMS) is above the {100 * stated:.3g} % "
+                     f"that --quality {quality} promises (its worst shipped scene): use a higher --quality or --spp")
+    return lines

@@ -1,0 +1,91 @@
+"""The per-render error estimate: two independent halves of the samples, A and B (numpy).
+
+A render is the weighted mean ``w_a A + w_b B`` of two independent estimates with ``w_a + w_b = 1``
+(the halves' shares of the samples). For unbiased halves with variances s^2/w_a and s^2/w_b
+(s^2 the variance of the mean), ``E[(A - B)^2] = s^2 / (w_a w_b)``, so
+
+    err = sqrt(w_a w_b) |A - B|        (|A - B| / 2 for equal halves)
+
+estimates the standard error of each pixel of the mean. One pixel's estimate has one degree of
+freedom (it is itself noisy); averaged over many pixels it is accurate (tests/test_error_estimate.py,
+benchmarks section ``presets``). It measures noise only: a bias common to both halves (e.g. the
+bounce filter's on relief) is not seen, which is why the presets do not filter where it would
+be biased (:func:`elo_mitsuba.options.quality_options`).
+
+The relative error of a pixel is ``err / max(|value|, FLOOR x mean |value|)``, as in benchmarks/
+(the floor keeps dark pixels from dominating).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Relative errors are taken against max(|value|, FLOOR x the image mean of |value|), as in benchmarks/.
+FLOOR = 0.05
+#: Status of a channel's estimate: from the halves, or none because the channel has no sampling
+#: error (both halves identical: a deterministic estimator such as the 1st event by the triangle
+#: quadrature with a single-ray beam, or a channel that is exactly zero), or not estimated.
+ESTIMATED, DETERMINISTIC, NOT_ESTIMATED = "estimated", "deterministic", "not estimated"
+#: Halves closer than this, relative to the channel's largest value, are one deterministic result:
+#: float32 sums of a pixel's samples in another order differ in the last bits (measured <= 2e-6).
+ROUNDING = 1e-5
+
+
+def same_result(a: np.ndarray, b: np.ndarray) -> bool:
+    """True when the halves agree to float32 rounding (:data:`ROUNDING`): no sampling error."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    scale = max(float(np.max(np.abs(a), initial=0.0)), float(np.max(np.abs(b), initial=0.0)))
+    return float(np.max(np.abs(a - b), initial=0.0)) <= ROUNDING * scale
+
+
+def halves_error(a: np.ndarray, b: np.ndarray, share_a: float) -> np.ndarray:
+    """Per-pixel standard error of ``share_a a + (1 - share_a) b`` from the two independent halves.
+
+    Parameters
+    ----------
+    a, b : ndarray
+        The two halves' estimates of one channel (same shape).
+    share_a : float
+        The share of ``a`` in the mean, in (0, 1).
+
+    Returns
+    -------
+    ndarray, float32
+        ``sqrt(share_a (1 - share_a)) |a - b|``.
+    """
+    w = float(share_a)
+    diff = np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))
+    return (np.sqrt(w * (1.0 - w)) * diff).astype(np.float32)
+
+
+def relative(err: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """``err / max(|value|, FLOOR x mean |value|)`` per pixel (zero where the channel is zero)."""
+    value = np.abs(np.asarray(value, np.float64))
+    floor = FLOOR * float(value.mean()) if value.size else 0.0
+    denom = np.maximum(value, floor)
+    return np.divide(np.asarray(err, np.float64), denom, out=np.zeros(value.shape), where=denom > 0)
+
+
+def summarise(value: np.ndarray, err: np.ndarray | None, status: str) -> dict:
+    """The summary of one channel's estimate: ``status``, ``rms_rel`` (RMS over pixels of the
+    relative error), ``p99_rel`` (99th percentile) and ``rms_abs`` (RMS standard error, channel units);
+    the numbers are 0 for a deterministic channel and absent when not estimated."""
+    if status == DETERMINISTIC:
+        return {"status": DETERMINISTIC, "rms_rel": 0.0, "p99_rel": 0.0, "rms_abs": 0.0}
+    if status == NOT_ESTIMATED or err is None:
+        return {"status": NOT_ESTIMATED}
+    rel = relative(err, value)
+    e = np.asarray(err, np.float64)
+    return {"status": ESTIMATED, "rms_rel": float(np.sqrt(np.mean(rel * rel))),
+            "p99_rel": float(np.percentile(rel, 99)), "rms_abs": float(np.sqrt(np.mean(e * e)))}
+
+
+def describe(summary: dict) -> str:
+    """One channel's estimate as text: ``0.21 % RMS (99 %: 0.6 %)``, ``deterministic (no sampling
+    error)`` or ``not estimated``."""
+    status = summary.get("status")
+    if status == DETERMINISTIC:
+        return "deterministic (no sampling error)"
+    if status != ESTIMATED:
+        return "not estimated"
+    return f"{100 * summary['rms_rel']:.3g} % RMS (99 %: {100 * summary['p99_rel']:.3g} %)"

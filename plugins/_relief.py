@@ -1,0 +1,52 @@
+"""Relief under the beam: scattering surfaces the beam hits that are not one plane.
+
+Such a surface can scatter electrons onto itself over distances of its own relief (flank to
+flank), so events >= 2 vary on that scale, also along a flank whose normals agree: the bounce
+filter's window average is biased there (:mod:`._bounce_filter`). Surfaces the beam does not hit
+(chamber walls, merged by Mitsuba into one mesh of many planes) add events >= 2 that vary over
+tens of mm and do not count as relief.
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ._detectors import is_planar
+from ._occlusion import shape_key
+
+#: Beam rays per side of the coarse grid over the field (plus a margin of 3 beam sigmas).
+GRID = 65
+
+
+def relief_under_beam(scene, sensor, surfaces):
+    """Ids (or ``"a shape"``) of the ``surfaces`` that the beam of ``sensor`` hits on a
+    :data:`GRID` x :data:`GRID` grid over its field and that are not one plane.
+
+    Parameters
+    ----------
+    scene : mi.Scene
+    sensor : the ``elo_beam`` sensor (``field``, ``field_y``, ``wd``, ``projection``, ``sigma``)
+    surfaces : list of mi.Shape
+        The scattering surfaces (objects, walls, backscattering detector plates).
+    """
+    candidates = [s for s in surfaces if not is_planar(s)]
+    if not candidates:
+        return []
+    margin = 3.0 * float(np.ravel(getattr(sensor, "sigma", 0.0))[0])
+    u = np.linspace(-0.5, 0.5, GRID)
+    x, y = np.meshgrid(u * (float(sensor.field) + 2 * margin), u * (float(sensor.field_y) + 2 * margin))
+    x, y = x.ravel().astype(np.float32), y.ravel().astype(np.float32)
+    wd = float(sensor.wd)
+    if getattr(sensor, "projection", "perspective") == "orthographic":
+        o = mi.Point3f(mi.Float(x), mi.Float(y), wd)
+        d = mi.Vector3f(0.0, 0.0, -1.0)
+    else:
+        o = mi.Point3f(0.0, 0.0, wd)
+        d = dr.normalize(mi.Vector3f(mi.Float(x), mi.Float(y), -wd))
+    si = scene.ray_intersect(mi.Ray3f(o, d))
+    hit_ids = set()
+    for shape in candidates:  # few shapes: one comparison each, vectorised over the grid
+        mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))
+        if bool(dr.any(mask)):
+            hit_ids.add(id(shape))
+    return [s.id() or "a shape" for s in candidates if id(s) in hit_ids]
