@@ -135,16 +135,24 @@ class FacetModel:
         mirror = n * (2.0 * cos_t) + beam_dirs
         return (self._diffuse, weight, theta_deg * self._inv_width, n, mirror, cos_t > 0)
 
-    def signals(self, points, beam_dirs, normals) -> list:
+    def node_positions(self) -> np.ndarray:
+        """World positions of the rule's nodes, (K, J, 3): detector k, node j."""
+        pos = np.stack([np.asarray(a, np.float64) for a in self._pos], axis=-1)
+        return pos.reshape(len(self.names), self.n_nodes, 3)
+
+    def signals(self, points, beam_dirs, normals, visible=None) -> list:
         """N_1,d/N_0 per normal and detector: ``out[i][k]`` (Float) for the i-th of ``normals``
         (a list of unit Vector3f) at the landing ``points`` (Point3f) of beams ``beam_dirs``
-        (Vector3f, directions of travel). Several normals share the geometry of each node."""
+        (Vector3f, directions of travel). Several normals share the geometry of each node.
+        ``visible`` (optional, per detector a Float of J x width, node-major) weights each node's
+        contribution (0 where the surface hides that node from the landing point)."""
         from ..plugins.bsdf_elo_bse import world_eval
 
         dr, mi = self.dr, self.mi
         setups = [self._setup(beam_dirs, n) for n in normals]
         n_det, n_nodes = len(self.names), self.n_nodes
         width = dr.width(points)
+        lane = dr.arange(mi.UInt32, width)
         acc0 = tuple(dr.zeros(mi.Float, width) for _ in range(len(normals) * n_det))
 
         def cond(j, *acc):
@@ -161,6 +169,8 @@ class FacetModel:
                 inv_r2 = dr.rcp(dr.squared_norm(v))
                 d = v * dr.sqrt(inv_r2)
                 solid = dr.abs(dr.dot(d, nd)) * w * inv_r2  # |cos psi| dA / r^2
+                if visible is not None:
+                    solid = solid * dr.gather(mi.Float, visible[k], j * width + lane)
                 for i, setup in enumerate(setups):
                     acc[i * n_det + k] = dr.fma(world_eval(setup, d), solid, acc[i * n_det + k])
             return (j + 1, *acc)

@@ -17,11 +17,11 @@ Dr.Jit's automatic differentiation (forward mode), never by a second hand-writte
   corner checkerboard, which the solver's regulariser fixes.
 * **1st event.** N_1,d/N_0 of that facet (Eq. 5 over each disc, g_BSE of Eq. 13) by
   :class:`~.detector_model.FacetModel`, the renderer's own g_BSE code.
-* **Shadowing.** A detector whose centre the surface hides from the landing point (the ray to the
-  disc centre passes under the height field) contributes 0. Visibility is a step function of the
-  heights: it is evaluated in the value and held fixed in the derivative (its discontinuity has no
-  derivative), and it is decided for the disc centre only, so a disc that a ridge cuts in part is
-  counted whole or not at all.
+* **Shadowing.** A node of a disc's integration rule that the surface hides from the landing point
+  (the ray to it passes under the height field) contributes 0, so a disc that a ridge cuts in part
+  is counted in part (to the rule's resolution: (1, 4) nodes count quarters). Visibility is a step
+  function of the heights: it is evaluated in the value and held fixed in the derivative (its
+  discontinuity has no derivative).
 * **Beam profile.** The renderer's beam of FWHM w lands at Gaussian offsets around the aim point;
   the image is then the sharp-beam image convolved with that Gaussian on the scan grid (exact to
   the grid's sampling: the sub-beams see the surface at other scan points). With w below a pixel
@@ -144,59 +144,88 @@ def blur(image, sigma_px) -> np.ndarray:
 
 
 # ---- visibility ---------------------------------------------------------------------------------
-def visibility(geometry, heights, points) -> np.ndarray:
-    """1 where the ray from each landing point to each detector's centre clears the height field,
-    else 0: (K, H, W) float32, detectors in ``geometry.detectors`` order.
+def visibility(geometry, heights, points, targets) -> np.ndarray:
+    """1 where the ray from each landing point to each target clears the height field, else 0.
 
-    The ray is marched along its ground track in steps of :data:`SHADOW_STEP_PX` pixels, and the
-    height field (bilinear in the scan grid) is looked up where the ray is; it stops once the ray
-    is above the highest point of the surface.
+    Parameters
+    ----------
+    geometry : ScanGeometry
+        The scan (grid, field, beam): the height field is bilinear in the scan grid, and a world
+        point (x, y, z) lies over the scan point (x, y) / (1 - z / wd) of the perspective beam.
+    heights : ndarray (H, W)
+        Pixel heights (mm).
+    points : ndarray (H, W, 3)
+        Landing points.
+    targets : ndarray (K, J, 3)
+        E.g. the detectors' disc-rule nodes.
+
+    Returns
+    -------
+    ndarray (K, J, H, W) float32
+
+    The ray is marched along its ground track in steps of :data:`SHADOW_STEP_PX` pixels in one
+    symbolic Dr.Jit loop (each ray stops when blocked, outside the grid or above the highest
+    height), per target.
     """
-    from scipy.ndimage import map_coordinates
+    from ..runtime import ensure_variant
+
+    mi = ensure_variant()
+    import drjit as dr
 
     h = np.asarray(heights, float)
     shape = h.shape
-    dx, dy = pixel_size(shape, geometry.field_mm)
+    targets = np.asarray(targets, float)
+    out = np.ones(targets.shape[:2] + shape, np.float32)
     top = float(h.max())
-    px, py, pz = (points[..., c] for c in range(3))
-    wd = geometry.work_distance_mm
-    perspective = geometry.projection == "perspective"
-    x0, y0 = pixel_coordinates(shape, geometry.field_mm)
-    col0, row0 = x0[0, 0], y0[0, 0]
-    out = np.ones((len(geometry.detectors),) + shape, np.float32)
     if top - float(h.min()) <= 0.0:
-        return out  # a plane (or a single level) shadows nothing
-    for k, disc in enumerate(geometry.detectors.values()):
-        c = np.asarray(disc.center, float)
-        vx, vy, vz = c[0] - px, c[1] - py, c[2] - pz
-        ground = np.hypot(vx, vy)
-        rise = vz / np.maximum(ground, 1e-12)  # height gained per mm along the ground track
-        ux, uy = vx / np.maximum(ground, 1e-12), vy / np.maximum(ground, 1e-12)
-        step = SHADOW_STEP_PX * min(dx, dy)
-        # steps until the ray clears the top (or leaves the field), per pixel
-        need = np.where(rise > 0, (top - pz) / np.maximum(rise, 1e-12) / step, MAX_SHADOW_STEPS)
-        n_steps = int(min(MAX_SHADOW_STEPS, np.ceil(np.max(np.minimum(need, MAX_SHADOW_STEPS)))))
-        hidden = np.zeros(shape, bool)
-        active = need >= 1.0
-        for s in range(1, n_steps + 1):
-            if not active.any():
-                break
-            d = s * step
-            wx, wy, wz = px + ux * d, py + uy * d, pz + rise * d
-            # world point -> scan-grid coordinates (the landing map shrinks by t = 1 - z/wd)
-            t = (1.0 - wz / wd) if perspective else 1.0
-            col = (wx / t - col0) / dx
-            row = (row0 - wy / t) / dy
-            inside = (col >= 0) & (col <= shape[1] - 1) & (row >= 0) & (row <= shape[0] - 1)
-            sel = active & inside
-            if not sel.any():
-                break
-            zs = map_coordinates(h, [row[sel], col[sel]], order=1, mode="nearest")
-            blocked = np.zeros(shape, bool)
-            blocked[sel] = zs > wz[sel]
-            hidden |= blocked
-            active &= ~hidden & inside & (s < need)
-        out[k] = ~hidden
+        return out  # a plane shadows nothing
+    dx, dy = pixel_size(shape, geometry.field_mm)
+    x0, y0 = pixel_coordinates(shape, geometry.field_mm)
+    col0, row0 = float(x0[0, 0]), float(y0[0, 0])
+    inv_wd = 1.0 / geometry.work_distance_mm if geometry.projection == "perspective" else 0.0
+    n_rows, n_cols = shape
+    tex = mi.Float(np.ascontiguousarray(h, np.float32).ravel())
+    px, py, pz = (mi.Float(np.ascontiguousarray(points[..., c], np.float32).ravel()) for c in range(3))
+    step = SHADOW_STEP_PX * min(dx, dy)
+    Float, UInt32 = mi.Float, mi.UInt32
+
+    def height_at(row, col):
+        r0 = dr.clip(dr.floor(row), 0, n_rows - 2)
+        c0 = dr.clip(dr.floor(col), 0, n_cols - 2)
+        fr, fc = row - r0, col - c0
+        i = UInt32(r0) * n_cols + UInt32(c0)
+        z00 = dr.gather(Float, tex, i)
+        z01 = dr.gather(Float, tex, i + 1)
+        z10 = dr.gather(Float, tex, i + n_cols)
+        z11 = dr.gather(Float, tex, i + n_cols + 1)
+        return dr.lerp(dr.lerp(z00, z01, fc), dr.lerp(z10, z11, fc), fr)
+
+    for k in range(targets.shape[0]):
+        for j in range(targets.shape[1]):
+            qx, qy, qz = (float(v) for v in targets[k, j])
+            vx, vy, vz = qx - px, qy - py, qz - pz
+            ground = dr.maximum(dr.sqrt(vx * vx + vy * vy), 1e-9)
+            ux, uy, rise = vx / ground * step, vy / ground * step, vz / ground * step
+            blocked = dr.zeros(mi.Bool, dr.width(px))
+
+            def cond(s, blocked):
+                wz = pz + rise * Float(s)
+                return ~blocked & (s < MAX_SHADOW_STEPS) & (wz < top) & (rise > 0)
+
+            def body(s, blocked):
+                fs = Float(s)
+                wx, wy, wz = px + ux * fs, py + uy * fs, pz + rise * fs
+                t = 1.0 - wz * inv_wd
+                col = (wx / t - col0) * (1.0 / dx)
+                row = (row0 - wy / t) * (1.0 / dy)
+                inside = (col >= 0) & (col <= n_cols - 1) & (row >= 0) & (row <= n_rows - 1)
+                hit = inside & (height_at(row, col) > wz)
+                # leaving the grid ends the march: what lies beyond is not known (counted clear)
+                return s + dr.select(inside, 1, MAX_SHADOW_STEPS), blocked | hit
+
+            _, blocked = dr.while_loop((UInt32(1) + dr.zeros(UInt32, dr.width(px)), blocked), cond, body,
+                                       label="elo_shadow_march")
+            out[k, j] = np.asarray(dr.select(blocked, 0.0, 1.0), np.float32).reshape(shape)
     return out
 
 
@@ -213,14 +242,15 @@ class Linearisation:
         The model images: ``blur(sharp) + later``.
     partials : ndarray (4, K, H, W) or None
         d sharp / d g of each pixel's corners (:data:`STENCIL` order).
-    visible : ndarray (K, H, W)
-        The shadowing held fixed.
+    visible : ndarray (K, J, H, W) or None
+        The shadowing held fixed: 1 where the surface lets the landing point see node j of
+        detector k's disc rule (None: no shadowing modelled).
     """
 
     sharp: np.ndarray
     images: np.ndarray
     partials: np.ndarray | None
-    visible: np.ndarray
+    visible: np.ndarray | None
 
 
 class HeightModel:
@@ -298,7 +328,7 @@ class HeightModel:
                    "bl": (-0.5 * dx, -0.5 * dy), "br": (0.5 * dx, -0.5 * dy)}
         aims = {c: (flat(ax + ox), flat(ay + oy)) for c, (ox, oy) in offsets.items()}
         centre = (flat(ax), flat(ay))
-        vis = [flat(v) for v in visible]
+        vis = None if visible is None else [flat(v) for v in visible]  # (J, H, W) per detector, node-major
         gains = [float(v) for v in self.gains]
 
         def evaluate(hv):
@@ -307,8 +337,8 @@ class HeightModel:
             along_y = (p["tl"] + p["tr"]) - (p["bl"] + p["br"])
             n = dr.normalize(dr.cross(along_x, along_y))
             h_c = (hv["tl"] + hv["tr"] + hv["bl"] + hv["br"]) * 0.25
-            sig = facets.signals(self._landing_dr(h_c, *centre), self._dirs, [n])[0]
-            return [v_s * v * gain for v_s, v, gain in zip(sig, vis, gains)]
+            sig = facets.signals(self._landing_dr(h_c, *centre), self._dirs, [n], visible=vis)[0]
+            return [v_s * gain for v_s, gain in zip(sig, gains)]
 
         k, shape = len(self.names), self.shape
         values = evaluate(hs)
@@ -333,7 +363,7 @@ class HeightModel:
         """The model images for the corner heights ``corners`` ((H + 1, W + 1) mm, see
         :func:`corners_from_pixels`) and, with ``derivatives``, the partials.
 
-        ``visible`` (K, H, W) reuses a shadowing computed before (else it is evaluated when
+        ``visible`` (K, J, H, W) reuses a shadowing computed before (else it is evaluated when
         ``shadows`` is on)."""
         g = np.asarray(corners, float)
         if g.shape != (self.shape[0] + 1, self.shape[1] + 1):
@@ -342,9 +372,9 @@ class HeightModel:
         if visible is None:
             if self.shadows:
                 h = corner_mean(g)
-                visible = visibility(self.geometry, h, self.landing_points(h))
+                visible = visibility(self.geometry, h, self.landing_points(h), self.facets.node_positions())
             else:
-                visible = np.ones((len(self.names),) + self.shape, np.float32)
+                visible = None
         sharp, partials = self._sharp(g, visible, derivatives)
         images = np.stack([blur(v, self.sigma_px) for v in sharp]) + self.later
         return Linearisation(sharp=sharp, images=images, partials=partials, visible=visible)

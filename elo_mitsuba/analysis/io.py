@@ -285,3 +285,23 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
         text = _metadata_json(path, dict(metadata or {}))
         atomic_write(path, lambda tmp: tifffile.imwrite(tmp, height.astype(np.float32), description=text))
     return path
+
+
+#: Channels of an inversion EXR besides the predicted images (``model.<detector>``).
+INVERSION_CHANNELS = ("height", "mask", "misfit", "start_height", "scale")
+
+
+def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | None = None,
+                    overwrite: bool = False) -> Path:
+    """Write an :class:`~.inversion.InversionResult`: ``.exr`` with channels height (mm), mask
+    (1 = untrusted: the model does not reproduce the pixel's images), misfit, start_height, scale
+    and ``model.<detector>`` (the modelled corrected images), the scan geometry and the solver's
+    history in the header; ``.npy`` / ``.tif`` the height alone (as :func:`write_height`)."""
+    path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
+    meta = {**dict(metadata or {}), **geometry.as_dict()}
+    if path.suffix.lower() != ".exr":
+        return write_height(path, result.height, untrusted, meta, overwrite=overwrite)
+    channels = {"height": result.height, "mask": np.asarray(untrusted, np.float32), "misfit": result.misfit,
+                "start_height": result.start_height, "scale": result.scale}
+    channels.update({f"model.{n}": v for n, v in result.predicted.items()})
+    return write_exr(path, channels, meta, overwrite=overwrite)

@@ -22,6 +22,7 @@ COMMANDS = (
     "gradient",
     "calibrate",
     "reconstruct",
+    "invert",
     "reflectance_map",
     "sweep",
     "sweep_plot",
@@ -42,6 +43,7 @@ examples:
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad.exr
   elo-mitsuba calibrate flat.exr --dh 272 --dw 127 -o CALIB.json
   elo-mitsuba reconstruct grad.exr -o height.npy
+  elo-mitsuba invert --flat flat.exr melt.exr -o height.exr
   elo-mitsuba sweep examples/sweep_minimal.toml -o sweep.zarr --workers 2
 
 Run 'elo-mitsuba COMMAND --help' for each command's options.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -72,14 +73,10 @@ def positive_float(text: str) -> float:
     return v
 
 
-def add_parser(subparsers):
-    p = subparsers.add_parser(
-        "gradient", help="four detector images -> surface gradient (model fit or Eq. 26) and mask",
-        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_scan_arguments(p):
+    """The inputs of one scan (object and flat-plate images, geometry): shared by gradient and invert."""
     p.add_argument("object", nargs="?", metavar="OBJECT.exr",
                    help="object images: EXR with channels right, left, back, front")
-    p.add_argument("-o", "--output", required=True, metavar="GRAD.exr", help="gradient EXR to write")
     src = p.add_argument_group("single-channel inputs (recorded machine images)")
     for n in DETECTOR_NAMES:
         src.add_argument(f"--{n}", metavar="FILE", help=f"{n} detector image (EXR/TIFF/NPY)")
@@ -103,6 +100,15 @@ def add_parser(subparsers):
                      help="surface material for the model (default: the header's, else Ti-6Al-4V)")
     geo.add_argument("--calibration", metavar="CALIB.json",
                      help="detector centres and normals from 'elo-mitsuba calibrate' (model method)")
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "gradient", help="four detector images -> surface gradient (model fit or Eq. 26) and mask",
+        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_scan_arguments(p)
+    p.add_argument("-o", "--output", required=True, metavar="GRAD.exr", help="gradient EXR to write")
     mod = p.add_argument_group("method")
     mod.add_argument("--method", choices=("model", "eq26"), default="model",
                      help="model: per-pixel fit of the 1st-event model (default); eq26: the paper's Eq. 26")
@@ -204,30 +210,26 @@ def _report_mask(res) -> None:
               "and the mask thresholds in 'elo-mitsuba gradient --help'", file=sys.stderr)
 
 
-def run(args) -> int:
-    from ..analysis import geometry_from_metadata, surface_gradient
-    from ..analysis.gradient import MIN_CORRECTED, MIN_DENOMINATOR
-    from ..analysis.io import check_signs, load_detector_set, write_gradient
-    from ..analysis.model_gradient import ITERATIONS
-    from ..analysis.plots import preview_gradient
-    from ..analysis.stsa import MIN_SUM
-    from ..files import check_output
+@dataclass
+class Scan:
+    """One scan's images and geometry as :func:`read_scan` found them."""
 
-    if args.iterations is not None and args.iterations < 1:
-        raise EloInputError(f"--iterations {args.iterations}: need at least 1")
-    if args.height_passes not in (1, 2, 3):
-        raise EloInputError(f"--height-passes {args.height_passes}: choose 1, 2 or 3")
-    if args.method == "eq26":
-        for flag in ("calibration", "iterations", "noise", "radius", "wd", "projection", "material", "second_event"):
-            if getattr(args, flag) is not None:
-                raise EloInputError(f"--{flag.replace('_', '-')} applies to --method model only")
-        if args.height_passes != 1:
-            raise EloInputError("--height-passes applies to --method model only")
-    elif args.min_denominator is not None:
-        raise EloInputError("--min-denominator applies to --method eq26 only (the model has no denominator)")
-    out = check_output(args.output, (".exr",), overwrite=args.overwrite)
-    if args.preview:
-        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+    images: dict
+    flats: dict | None
+    header: dict
+    source: str
+    shape: tuple
+    geo: dict
+
+
+def read_scan(args, *, model_discs: bool) -> Scan:
+    """The object and flat-plate images of ``args`` (:func:`add_scan_arguments`), checked: signs,
+    one shape, the flat recorded with the object's geometry, the header's resolution. ``geo`` holds
+    field_mm, d_h, d_w and resolution; with ``model_discs`` and a header with detectors, d_h and
+    d_w are the discs' mean (the model takes the discs as they are)."""
+    from ..analysis import geometry_from_metadata
+    from ..analysis.io import check_signs, load_detector_set
+
     images, meta = load_detector_set(args.object, {n: getattr(args, n) for n in DETECTOR_NAMES}, "object images",
                                      args.event)
     if images is None:
@@ -249,7 +251,7 @@ def run(args) -> int:
                 if (args.object or args.flat) else "single-channel inputs carry no geometry")
         raise EloInputError(f"{what}: pass --field, --dh and --dw (mm)")
     shape = next(iter(images.values())).shape
-    header_discs = args.method == "model" and args.dh is None and args.dw is None and bool((header or {}).get("detectors"))
+    header_discs = model_discs and args.dh is None and args.dw is None and bool((header or {}).get("detectors"))
     if header_discs:
         # the model takes the header's discs as they are: no symmetric layout needed
         from ..analysis.scan_geometry import ScanGeometry
@@ -285,6 +287,36 @@ def run(args) -> int:
             f"{source}: header resolution {list(geo['resolution'])} (W, H) does not match the image "
             f"shape {shape[1]}x{shape[0]}"
         )
+    return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo)
+
+
+def run(args) -> int:
+    from ..analysis import surface_gradient
+    from ..analysis.gradient import MIN_CORRECTED, MIN_DENOMINATOR
+    from ..analysis.io import write_gradient
+    from ..analysis.model_gradient import ITERATIONS
+    from ..analysis.plots import preview_gradient
+    from ..analysis.stsa import MIN_SUM
+    from ..files import check_output
+
+    if args.iterations is not None and args.iterations < 1:
+        raise EloInputError(f"--iterations {args.iterations}: need at least 1")
+    if args.height_passes not in (1, 2, 3):
+        raise EloInputError(f"--height-passes {args.height_passes}: choose 1, 2 or 3")
+    if args.method == "eq26":
+        for flag in ("calibration", "iterations", "noise", "radius", "wd", "projection", "material", "second_event"):
+            if getattr(args, flag) is not None:
+                raise EloInputError(f"--{flag.replace('_', '-')} applies to --method model only")
+        if args.height_passes != 1:
+            raise EloInputError("--height-passes applies to --method model only")
+    elif args.min_denominator is not None:
+        raise EloInputError("--min-denominator applies to --method eq26 only (the model has no denominator)")
+    out = check_output(args.output, (".exr",), overwrite=args.overwrite)
+    if args.preview:
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+    scan = read_scan(args, model_discs=args.method == "model")
+    images, flats, header, shape, geo = scan.images, scan.flats, scan.header, scan.shape, scan.geo
+    source = scan.source
     kw = dict(min_corrected=MIN_CORRECTED if args.min_corrected is None else args.min_corrected,
               min_sum=MIN_SUM if args.min_sum is None else args.min_sum,
               min_denominator=MIN_DENOMINATOR if args.min_denominator is None else args.min_denominator)

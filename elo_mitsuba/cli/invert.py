@@ -1,0 +1,182 @@
+"""``elo-mitsuba invert``: four detector images -> the height map the forward model maps onto them."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from ..constants import DETECTOR_NAMES
+from ..errors import EloInputError
+from .gradient import add_scan_arguments, positive_float
+
+DESCRIPTION = """\
+Solve for the height map itself: the heights whose modelled images (the renderer's 1st event with
+g_BSE of Eq. 13 on the real disc detectors, the surface's own shadowing, the beam profile, and
+optionally fixed later events) reproduce the four STSA-corrected images best. Starts from the
+model gradient integrated (or --init), then Gauss-Newton on every height at once, so the four
+images must come from one surface; a robust (Huber) misfit and a small curvature regulariser
+(weight --alpha, default 30 x the noise variance). A step is kept only if it lowers the
+objective: the result never fits worse than its start. Stops when a step gains < --tol, after
+--iterations steps or after --time-budget seconds.
+
+Where it wins (validation/REPORT.md, topography rows): steep relief, masked and shadowed pixels
+(a per-pixel fit must drop them; here the model predicts them), beam blur. On a nearly flat,
+noisy surface (the melt plate with 1 % noise) it is as good as the model gradient + integration:
+there the noise, not the model, limits the height.
+
+Output: .exr with channels height (mm, where each pixel's beam lands; row 0 = +y edge, columns
+towards +x), mask (1 = untrusted: misfit above 4 noise levels), misfit (RMS over the detectors,
+corrected units), start_height, scale (per-pixel material/current factor) and model.<detector>
+(the modelled corrected images); the geometry and the solver's history in the header. .npy/.tif:
+the height alone.
+"""
+
+EPILOG = """\
+examples:
+  elo-mitsuba invert --flat flat.exr melt.exr -o height.exr --preview height.png
+  elo-mitsuba invert --flat flat.exr melt.exr -o height.exr --init grad.exr --iterations 20
+  elo-mitsuba invert --flat flat.exr melt.exr -o height.exr --calibration CALIB.json
+  elo-mitsuba invert --flat flat.exr obj.exr -o height.exr --second-event sim_flat.exr   # chamber
+"""
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "invert", help="four detector images -> height map by inverting the forward model",
+        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_scan_arguments(p)
+    p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|npy|tif)", help="height map to write")
+    sol = p.add_argument_group("solver")
+    sol.add_argument("--init", metavar="GRAD.exr|HEIGHT.(exr|npy)",
+                     help="start: a gradient EXR ('elo-mitsuba gradient') to integrate, or heights (mm, scan grid); "
+                          "default: the model gradient of the same images")
+    sol.add_argument("--iterations", type=int, default=None, metavar="N", help="Gauss-Newton steps at most (default 8)")
+    sol.add_argument("--tol", type=float, default=None, metavar="F",
+                     help="stop when a step lowers the objective by less than this fraction (default 1e-3)")
+    sol.add_argument("--time-budget", type=positive_float, default=None, metavar="S",
+                     help="stop after the step that passes S seconds")
+    sol.add_argument("--alpha", type=float, default=None, metavar="A",
+                     help="weight of the curvature regulariser (default 30 x noise^2)")
+    sol.add_argument("--noise", type=positive_float, default=None, metavar="SIGMA",
+                     help="noise (std) of the corrected images; default: estimated from the images")
+    sol.add_argument("--fwhm", type=float, default=None, metavar="MM",
+                     help="beam profile FWHM in mm (default: the header's beam_fwhm_mm, else 0)")
+    sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
+    sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
+                     help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
+                          "fixed in the model of the flat and of the object")
+    p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(run=run, event=None, min_corrected=None, min_sum=None)
+    return p
+
+
+def _start(path, shape, field_mm):
+    """Starting heights or gradient from --init."""
+    from pathlib import Path
+
+    from ..analysis.io import read_exr, read_gradient
+
+    suffix = Path(path).suffix.lower()
+    if not Path(path).is_file():
+        raise EloInputError(f"--init {path}: no such file")
+    if suffix == ".npy":
+        h = np.load(path, allow_pickle=False)
+    elif suffix == ".exr":
+        channels, _ = read_exr(path)
+        if "dzdx" in channels:
+            g = read_gradient(path, field_mm=field_mm)
+            from ..analysis.gradient import GradientResult
+
+            mask = g["mask"] if g["mask"] is not None else np.zeros(shape, bool)
+            if g["dzdx"].shape != tuple(shape):
+                raise EloInputError(f"--init {path}: {g['dzdx'].shape[1]}x{g['dzdx'].shape[0]} px, the images "
+                                    f"{shape[1]}x{shape[0]}")
+            return GradientResult(dzdx=g["dzdx"], dzdy=g["dzdy"], mx=None, my=None, sum_x=None, sum_y=None,
+                                  mask=mask, reasons=mask.astype(np.uint8), corrected=None)
+        if "height" not in channels:
+            raise EloInputError(f"--init {path}: needs channels dzdx, dzdy (a gradient) or height")
+        h = channels["height"]
+    else:
+        raise EloInputError(f"--init {path}: use a gradient or height .exr, or a .npy of heights")
+    h = np.asarray(h, float)
+    if h.shape != tuple(shape) or not np.all(np.isfinite(h)):
+        raise EloInputError(f"--init {path}: heights must be finite and {shape[1]}x{shape[0]} px")
+    return h - h.mean()
+
+
+def _later_from_flat(path, shape, geometry, fwhm):
+    """Later events of the flat plate from a render with events >= 2 (model units: N/N_0), used
+    for the flat and, as the chamber's slowly varying part, for the object."""
+    from ..analysis.io import read_detector_exr
+
+    total, meta = read_detector_exr(path)
+    first, _ = read_detector_exr(path, 1)
+    if int(meta.get("events", 1)) < 2:
+        raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; --second-event needs --events >= 2")
+    if next(iter(total.values())).shape != tuple(shape):
+        raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
+    return {n: np.asarray(total[n], float) - np.asarray(first[n], float) for n in DETECTOR_NAMES}
+
+
+def run(args) -> int:
+    from ..files import check_output
+
+    from ..analysis.io import HEIGHT_SUFFIXES
+
+    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
+    if args.preview:
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+    if args.iterations is not None and args.iterations < 0:
+        raise EloInputError(f"--iterations {args.iterations}: must be >= 0")
+    for flag in ("tol", "alpha", "fwhm"):
+        v = getattr(args, flag)
+        if v is not None and not (np.isfinite(v) and v >= 0):
+            raise EloInputError(f"--{flag} {v}: must be a finite number >= 0")
+    if args.no_flat:
+        raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
+
+    from ..analysis import inversion
+    from ..analysis.io import write_inversion
+    from .gradient import _model_geometry, read_scan
+
+    scan = read_scan(args, model_discs=True)
+    geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
+    fwhm = args.fwhm if args.fwhm is not None else float((scan.header or {}).get("beam_fwhm_mm", 0.0))
+    start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
+    later = _later_from_flat(args.second_event, scan.shape, geometry, fwhm) if args.second_event else None
+    t0 = time.perf_counter()
+
+    def progress(step):
+        print(f"  step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
+              f"{step['seconds']:.1f} s", file=sys.stderr, flush=True)
+
+    res = inversion.invert_heights(
+        scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=later,
+        alpha=args.alpha, noise=args.noise, shadows=not args.no_shadows,
+        iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
+        tol=inversion.TOL if args.tol is None else args.tol, time_budget_s=args.time_budget, progress=progress)
+    meta = {"method": "inversion", "beam_fwhm_mm": fwhm, "noise": res.noise, "alpha": res.alpha,
+            "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
+            "grid": "scan grid: pixel (i, j) holds the height where its beam lands",
+            "sources": {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
+                        "flat": args.flat or {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES},
+                        "init": args.init, "second_event": args.second_event},
+            "calibration": args.calibration}
+    write_inversion(out, res, geometry, untrusted=res.mask, metadata=meta, overwrite=args.overwrite)
+    h = res.height
+    print(f"wrote {out}: {scan.shape[1]}x{scan.shape[0]} px, {len(res.history) - 1} steps ({res.stopped}) in "
+          f"{time.perf_counter() - t0:.1f} s; misfit rms {res.history[0]['rms']:.4g} -> {res.history[-1]['rms']:.4g} "
+          f"(noise {res.noise:.3g}); height range {h.max() - h.min():.4g} mm; "
+          f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)")
+    if args.preview:
+        from ..analysis.plots import preview_height
+
+        preview_height(h, geometry.field_mm, args.preview, mask=res.mask if res.mask.any() else None,
+                       title="Height map (inversion)", overwrite=args.overwrite)
+        print(f"wrote {args.preview}")
+    return 0
