@@ -17,36 +17,20 @@ from elo_mitsuba.analysis.model_gradient import model_gradient
 from elo_mitsuba.analysis.scan_geometry import ScanGeometry
 from elo_mitsuba.constants import DETECTOR_NAMES
 from elo_mitsuba.grid import pixel_coordinates, pixel_size
+from elo_mitsuba.objects.hills import hills_height, hills_mesh
 
 RES = 96
 FIELD = 80.0
 
 
-def hills(x, y, amplitude=2.0):
-    """Gaussian hills and dips 3-6 mm wide, up to 6 mm high: slopes up to 1.26."""
-    out = np.zeros(np.broadcast(x, y).shape)
-    rng = np.random.default_rng(11)
-    for _ in range(14):
-        cx, cy = rng.uniform(-34, 34, 2)
-        s = rng.uniform(3, 6)
-        a = rng.uniform(1.5, 3.0) * rng.choice([-1, 1])
-        out = out + a * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s * s))
-    return amplitude * out
-
-
 @pytest.fixture(scope="module")
 def hills_scene(tmp_path_factory):
-    """The hills meshed at a third of the image pixel (so the mesh's facets are the smooth surface's)."""
-    from elo_mitsuba.heightmap import pixel_centres
-    from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh
+    """The hills (objects.hills) meshed at a third of the image pixel."""
+    from elo_mitsuba.mesh import write_mesh
     from elo_mitsuba.scene_files import write_scene
 
     d = tmp_path_factory.mktemp("hills")
-    pitch = FIELD / RES / 3
-    m = int(round((FIELD + 4) / pitch))
-    xc, yc = pixel_centres((m, m), pitch)
-    xx, yy = np.meshgrid(xc, yc)
-    write_mesh(heightmap_to_mesh(hills(xx, yy), pitch), d / "hills.ply")
+    write_mesh(hills_mesh(FIELD, RES), d / "hills.ply")
     return write_scene(d / "hills.xml", d / "hills.ply")
 
 
@@ -107,7 +91,7 @@ def test_derivatives_match_finite_differences(mi):
     geo = ScanGeometry.nominal(shape, 80, 272, 127)
     x, y = pixel_coordinates(shape, geo.field_mm)
     model = HeightModel(geo, fwhm_mm=3.0)
-    g = corners_from_pixels(hills(x, y, 0.5))
+    g = corners_from_pixels(0.25 * hills_height(x, y))
     lin = model.evaluate(g, derivatives=True)
     rng = np.random.default_rng(3)
     dg = rng.normal(size=g.shape) * 1e-3
@@ -132,7 +116,7 @@ def test_model_matches_renderer(mi, hills_scene, layout):
     nodes to 3.5 % with (2, 8) and 2.6 % with (4, 16): the rest is the renderer's 24 triangles)."""
     r = _render(hills_scene, layout, "reference")
     geo = ScanGeometry.from_metadata(r.metadata, (RES, RES))
-    truth = geo.landing_heights(hills)
+    truth = geo.landing_heights(hills_height)
     model = HeightModel(geo, fwhm_mm=0.27, nodes=(2, 8))
     got = model.images(truth)
     lin = model.evaluate(corners_from_pixels(truth))
@@ -173,7 +157,7 @@ def steep_case(hills_scene):
     fl = {n: flat.channels[n] * (1 + 0.01 * rng.standard_normal((RES, RES))) for n in DETECTOR_NAMES}
     mg = model_gradient(img, fl, geo)
     res = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
-    return geo, img, fl, mg, res, geo.landing_heights(hills)
+    return geo, img, fl, mg, res, geo.landing_heights(hills_height)
 
 
 def _rmse(h, truth):

@@ -22,6 +22,8 @@ Studies (one module each, run in this order):
                           detector samples; the settings for 1 % and 0.1 %
 ``topography``            beyond the paper: model-based gradient vs Eq. 26 on the sawtooth plate,
                           noise, blur, 2nd event, detector calibration
+``inversion``             beyond the paper: heights by inverting the forward model vs the model
+                          gradient + integration (melt plate, steep hills, masking, chamber)
 ========================  =======================================================================
 
 The package lives only in a source checkout (it is not installed with elo_mitsuba). Importing it
@@ -33,7 +35,8 @@ from __future__ import annotations
 from .report import VERDICTS, Row, StudyResult  # noqa: F401
 
 #: Study names in the order they run (module validation.study_<name>).
-STUDIES = ("checks", "stsa", "corrugated", "reflectance", "masking", "melt_plate", "convergence", "topography")
+STUDIES = ("checks", "stsa", "corrugated", "reflectance", "masking", "melt_plate", "convergence", "topography",
+           "inversion")
 
 
 def run(quick: bool = False, output_dir=None, only=None, log=print, json_path=None, figures=True):

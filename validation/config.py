@@ -32,6 +32,7 @@ DEFAULT = {
         "strategy_spp": 64, "strategy_samples": 4, "quadrature_triangles": (4, 8, 16, 64, 256),
     },
     "topography": {"res": 512, "cal_res": 1024},   # sawtooth plate; the calibration's flat
+    "inversion": {"melt_res": 512, "hills_res": 256},
 }
 
 QUICK = {
@@ -52,6 +53,7 @@ QUICK = {
         "strategy_spp": 8, "strategy_samples": 4, "quadrature_triangles": (4, 8, 16),
     },
     "topography": {"res": 160, "cal_res": 256},
+    "inversion": {"melt_res": 64, "hills_res": 64},
 }
 
 

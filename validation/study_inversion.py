@@ -1,0 +1,171 @@
+"""Inverse ELO: the height map by inverting the forward model, against the model gradient + integration.
+
+Three surfaces whose truth we know, rendered with the ATHENE beam blur (0.27 mm FWHM) and 1 %
+Gaussian noise on every object and flat pixel: the melt plate (nearly flat, micrometres of relief),
+the steep hills (:mod:`elo_mitsuba.objects.hills`, slopes up to 1.26) under zeta = 50 deg and under
+zeta = 75 deg (a third of the field shadowed or masked), and the melt plate inside the ATHENE
+chamber with its 2nd event. For each: the height RMSE (mean removed, truth at the beam's landing
+points) of Eq. 26 + integration, the model gradient + integration (the inversion's start) and the
+inversion (:mod:`elo_mitsuba.analysis.inversion`), and the time the inversion took.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .report import Row, StudyResult, verdict_from
+
+TITLE = "Inverse ELO: height maps by inverting the forward model (melt plate, steep hills, chamber)"
+NAMES = ("right", "left", "back", "front")
+
+
+def _rmse(h, truth):
+    e = (h - np.mean(h)) - (truth - np.mean(truth))
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+def _case(render, scene, flat_scene, truth_fn, *, layout="zeta25", events=1, noise=0.01, seed=7, later=False):
+    """Render, add noise, and compare the three height estimates; returns a dict of numbers."""
+    from elo_mitsuba.analysis import surface_gradient
+    from elo_mitsuba.analysis.inversion import invert_heights, start_heights
+    from elo_mitsuba.analysis.model_gradient import model_gradient
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+    obj = render(scene, layout, events)
+    flat = render(flat_scene, layout, events)
+    shape = obj.channels["right"].shape
+    geo = ScanGeometry.from_metadata(obj.metadata, shape)
+    truth = geo.landing_heights(truth_fn)
+    rng = np.random.default_rng(seed)
+    img = {n: obj.channels[n] * (1 + noise * rng.standard_normal(shape)) for n in NAMES}
+    fl = {n: flat.channels[n] * (1 + noise * rng.standard_normal(shape)) for n in NAMES}
+    fwhm = float(obj.metadata.get("beam_fwhm_mm", 0.0))
+    share = later_f = None
+    if later:  # the flat's later events, from the flat's own render (what a user simulates)
+        later_f = {n: flat.channels[n] - flat.channels[f"{n}.e1"] for n in NAMES}
+        share = {n: later_f[n] / flat.channels[n] for n in NAMES}
+    e26 = surface_gradient(img, fl, geo.field_mm, *geo.symmetric_layout())
+    mg = model_gradient(img, fl, geo, flat_second_event=share)
+    t0 = time.perf_counter()
+    inv = invert_heights(img, fl, geo, start=mg, fwhm_mm=fwhm, later=later_f, flat_later=later_f)
+    seconds = time.perf_counter() - t0
+    return {"eq26": _rmse(start_heights(e26, geo), truth), "model": _rmse(start_heights(mg, geo), truth),
+            "inv": _rmse(inv.height, truth), "seconds": seconds, "steps": len(inv.history) - 1,
+            "stopped": inv.stopped, "masked_model": float(mg.mask.mean()), "untrusted": float(inv.mask.mean()),
+            "misfit": inv.history[-1]["rms"], "noise": inv.noise, "res": shape[0], "truth": truth, "inv_h": inv.height,
+            "start_h": inv.start_height, "field": geo.field_mm}
+
+
+def _text(c, unit="µm", scale=1000.0):
+    return (f"height RMSE: Eq. 26 + integration {scale * c['eq26']:.1f} {unit}, model gradient + integration "
+            f"{scale * c['model']:.1f} {unit}, inversion {scale * c['inv']:.1f} {unit} (ratio "
+            f"{c['inv'] / c['model']:.2f}); {c['steps']} steps ({c['stopped']}) in {c['seconds']:.0f} s at {c['res']}²; "
+            f"misfit {c['misfit']:.4f} vs noise {c['noise']:.4f}; untrusted {100 * c['untrusted']:.1f} % "
+            f"(model gradient masked {100 * c['masked_model']:.1f} %)")
+
+
+def run(ctx):
+    import elo_mitsuba as em
+    from elo_mitsuba.analysis.height_model import HeightModel
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+    from elo_mitsuba.mesh import mesh_surface_height, write_mesh
+    from elo_mitsuba.objects import melt_plate as mp
+    from elo_mitsuba.objects.hills import hills_height, hills_mesh
+    from elo_mitsuba.scene_files import scenes_dir, write_scene
+
+    from .tools import check_melt_resolution
+
+    cfg = ctx.settings["inversion"]
+    st = StudyResult("inversion", TITLE)
+    res_melt, res_hills = cfg["melt_res"], cfg["hills_res"]
+    check_melt_resolution(80.0, res_melt)
+    hills_xml = ctx.tmp_dir / "hills.xml"
+    write_mesh(hills_mesh(80.0, res_hills), ctx.tmp_dir / "hills.ply", overwrite=True)
+    write_scene(hills_xml, ctx.tmp_dir / "hills.ply", overwrite=True)
+    heights = np.load(scenes_dir() / "meshes" / "melt_plate_height.npy").astype(float)
+
+    def melt_truth(x, y):
+        return mesh_surface_height(heights, mp.PIXEL_SIZE_MM, x, y)
+
+    def renderer(res):
+        def render(scene, layout, events):
+            s = em.load_scene(scene, res=res, fwhm=0.27, layout=layout)
+            return s.render(quality="default", events=events, seed=3, progress=False)
+        return render
+
+    # I1: the forward model against the renderer on the hills (reference quality)
+    r = em.load_scene(hills_xml, res=res_hills, fwhm=0.27, layout="zeta75").render(quality="reference", events=1,
+                                                                                     progress=False)
+    geo = ScanGeometry.from_metadata(r.metadata, r.channels["right"].shape)
+    truth = geo.landing_heights(hills_height)
+    model = HeightModel(geo, fwhm_mm=0.27, nodes=(2, 8))
+    got = model.images(truth)
+    rms = max(float(np.sqrt(np.mean(((got[n] - r.channels[n]) / r.channels[n].mean()) ** 2))) for n in NAMES)
+    med = max(float(np.median(np.abs(got[n] - r.channels[n]) / r.channels[n].mean())) for n in NAMES)
+    st.add(Row(
+        "I1", "The inversion's forward model (height patches, the renderer's g_BSE, disc rule (2, 8) with shadowing "
+        "per node, beam blur) reproduces the renderer's 1st event of the same surface", "—",
+        f"worst detector: median |difference| {100 * med:.2f} %, RMS {100 * rms:.2f} % of the mean signal",
+        f"hills, {res_hills}², layout zeta75 (15° detector elevation: long shadows), --quality reference, fwhm 0.27 mm",
+        verdict_from(rms <= 0.04, approx=rms > 0.01),
+        "the rest is the penumbra: the renderer's 24 triangles per disc and the model's 16 nodes each resolve a "
+        "partly hidden disc in steps; and the curvature inside a pixel",
+        {"model_median": med, "model_rms": rms}))
+
+    melt = _case(renderer(res_melt), "melt_plate", "flat_plate", melt_truth)
+    st.add(Row(
+        "I2", "Melt plate, blurred and noisy: the inversion's height RMSE <= 1/2 of the model gradient + integration",
+        "—", _text(melt), f"melt plate (shipped mesh), {res_melt}², fwhm 0.27 mm, 1 % noise, --quality default",
+        verdict_from(melt["inv"] <= 0.5 * melt["model"]),
+        "noise-limited: the micrometre relief is below what 1 % noise lets any estimator resolve; both methods "
+        "reach the same floor (the inversion's own start is already there), and the inversion does not make it worse",
+        {"eq26": melt["eq26"], "model": melt["model"], "inv": melt["inv"], "seconds": melt["seconds"]}))
+
+    steep = _case(renderer(res_hills), hills_xml, "flat_plate", hills_height, layout="zeta50")
+    st.add(Row(
+        "I3", "Steep relief (slopes up to 1.26, detectors 40° up): inversion <= 1/2 of model gradient + integration",
+        "—", _text(steep), f"hills, {res_hills}², layout zeta50, fwhm 0.27 mm, 1 % noise, --quality default",
+        verdict_from(steep["inv"] <= 0.5 * steep["model"]), "",
+        {"eq26": steep["eq26"], "model": steep["model"], "inv": steep["inv"], "seconds": steep["seconds"]}))
+
+    masked = _case(renderer(res_hills), hills_xml, "flat_plate", hills_height, layout="zeta75")
+    st.add(Row(
+        "I4", "Steep relief, masked and shadowed (detectors 15° up): inversion <= 1/2 of model gradient + integration",
+        "—", _text(masked), f"hills, {res_hills}², layout zeta75, fwhm 0.27 mm, 1 % noise, --quality default",
+        verdict_from(masked["inv"] <= 0.5 * masked["model"]),
+        "the model gradient must drop pixels with a hidden detector or a shadow and fill them by integration; the "
+        "inversion predicts them",
+        {"eq26": masked["eq26"], "model": masked["model"], "inv": masked["inv"], "seconds": masked["seconds"]}))
+
+    chamber = _case(renderer(res_melt), "melt_chamber", "athene_flat", melt_truth, events=2, later=True)
+    st.add(Row(
+        "I5", "Melt plate in the ATHENE chamber with its 2nd event (held fixed: the flat plate's, from its own "
+        "render): inversion vs model gradient (same 2nd-event share removed) + integration", "—", _text(chamber),
+        f"melt_chamber / athene_flat, {res_melt}², events 2, fwhm 0.27 mm, 1 % noise, --quality default",
+        verdict_from(chamber["inv"] <= 0.5 * chamber["model"]),
+        "noise-limited as I2; the chamber's later events are smooth over the field, and both methods take the "
+        "flat plate's",
+        {"eq26": chamber["eq26"], "model": chamber["model"], "inv": chamber["inv"], "seconds": chamber["seconds"]}))
+
+    if ctx.figures:
+        _figure(ctx, st, masked)
+    return st
+
+
+def _figure(ctx, st, case):
+    from .plotting import CMAP_ERROR, image, plt, save
+
+    field = case["field"]
+    truth = case["truth"] - case["truth"].mean()
+    fig, axes = plt.subplots(1, 3, figsize=(13.5, 4.0), constrained_layout=True)
+    image(fig, axes[0], truth, field, title="true height (hills)", label="Z / mm")
+    lim = float(np.percentile(np.abs(case["start_h"] - case["start_h"].mean() - truth), 99))
+    for ax, h, title in ((axes[1], case["start_h"], "model gradient + integration: error"),
+                         (axes[2], case["inv_h"], "inversion: error")):
+        image(fig, ax, h - h.mean() - truth, field, title=title, label="error / mm", cmap=CMAP_ERROR, vmin=-lim,
+              vmax=lim)
+    save(fig, ctx, "inversion_errors", "Steep hills under zeta = 75° (a third of the field shadowed or masked), "
+         "0.27 mm beam blur, 1 % noise: the true height and the height errors of the model gradient + integration "
+         "and of the inversion (same colour scale).", st)
