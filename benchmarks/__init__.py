@@ -14,7 +14,7 @@ Importing the package is cheap; Mitsuba is loaded when a section runs.
 from __future__ import annotations
 
 #: Section names, as ``--only`` takes them.
-SECTIONS = ("ceiling", "accuracy", "events", "targets", "presets", "path", "scaling", "sweep", "analysis")
+SECTIONS = ("ceiling", "accuracy", "events", "targets", "presets", "path", "scaling", "sweep", "analysis", "inversion")
 
 
 def main(argv=None) -> int:

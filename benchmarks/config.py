@@ -18,6 +18,7 @@ DEFAULT = {
                 "spp_list": (1, 2, 4, 8, 16, 32), "mesh_grids": (72, 160, 320, 710, 1000), "mesh_res": 512,
                 "flat_grid": 1000},
     "analysis": {"res": 1500, "rounds": 2},
+    "inversion": {"resolutions": (512, 1500)},
 }
 
 QUICK = {
@@ -31,6 +32,7 @@ QUICK = {
     "scaling": {"resolutions": (256, 512, 1024), "spp_res": 512, "spp_list": (1, 4, 16), "mesh_grids": (72, 225),
                 "mesh_res": 256, "flat_grid": 225},
     "analysis": {"res": 256, "rounds": 1},
+    "inversion": {"resolutions": (128,)},
 }
 
 

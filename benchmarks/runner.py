@@ -15,7 +15,7 @@ from .harness import ROOT, Bench
 from .report import presets_table, summary
 
 #: The order sections run and appear in RESULTS.md: ``path`` compares with what ``targets`` measured.
-ORDER = ("targets", "presets", "path", "ceiling", "accuracy", "events", "scaling", "sweep", "analysis")
+ORDER = ("targets", "presets", "path", "ceiling", "accuracy", "events", "scaling", "sweep", "analysis", "inversion")
 
 DESCRIPTION = """\
 Benchmarks of the ELO forward model: speed against accuracy; ``python -m benchmarks [--quick]``.
@@ -43,6 +43,7 @@ the committed ``benchmarks/RESULTS.md`` of the checkout). Sections (``--only`` t
                (alone: python -m benchmarks.section_sweep);
 * ``analysis`` the model-based gradient against Eq. 26 at 1500² (time, memory), its disc rule,
                calibrate and the analysis commands end to end.
+* ``inversion`` the inversion's time to converge and memory at 512² and 1500², melt plate and hills.
 
 Errors are per pixel, |x - ref| / max(ref, 5% of the image mean of ref), over all pixels: the
 RMS and the 99th percentile, worst of the four detectors. Every timed configuration runs in its

@@ -68,7 +68,11 @@ def add_parser(subparsers):
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
     sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
-                          "fixed in the model of the flat and of the object")
+                          "fixed in the model of the flat (and of the object, unless --chamber-later)")
+    sol.add_argument("--chamber-later", action="store_true",
+                     help="with --second-event: render the start surface in the ATHENE-like chamber (--quality "
+                          "reference, events 2) and hold the object's own later events fixed; halves the height "
+                          "error on the melt plate in the chamber (validation row I5), costs one render")
     p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(run=run, event=None, min_corrected=None, min_sum=None)
@@ -111,7 +115,7 @@ def _start(path, shape, field_mm):
 
 def _later_from_flat(path, shape, geometry, fwhm):
     """Later events of the flat plate from a render with events >= 2 (model units: N/N_0), used
-    for the flat and, as the chamber's slowly varying part, for the object."""
+    for the flat and, as the chamber's slowly varying part, for the object; and their share of it."""
     from ..analysis.io import read_detector_exr
 
     total, meta = read_detector_exr(path)
@@ -120,7 +124,9 @@ def _later_from_flat(path, shape, geometry, fwhm):
         raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; --second-event needs --events >= 2")
     if next(iter(total.values())).shape != tuple(shape):
         raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
-    return {n: np.asarray(total[n], float) - np.asarray(first[n], float) for n in DETECTOR_NAMES}
+    later = {n: np.asarray(total[n], float) - np.asarray(first[n], float) for n in DETECTOR_NAMES}
+    share = {n: np.where(total[n] > 0, later[n] / np.where(total[n] > 0, total[n], 1.0), 0.0) for n in DETECTOR_NAMES}
+    return later, share
 
 
 def run(args) -> int:
@@ -148,15 +154,29 @@ def run(args) -> int:
     geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
     fwhm = args.fwhm if args.fwhm is not None else float((scan.header or {}).get("beam_fwhm_mm", 0.0))
     start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
-    later = _later_from_flat(args.second_event, scan.shape, geometry, fwhm) if args.second_event else None
+    if args.chamber_later and not args.second_event:
+        raise EloInputError("--chamber-later needs --second-event SIM_FLAT.exr (the flat plate's later events)")
+    flat_later, share = _later_from_flat(args.second_event, scan.shape, geometry, fwhm) if args.second_event \
+        else (None, None)
     t0 = time.perf_counter()
+    if start is None and share is not None:  # the model gradient with the same later events removed
+        from ..analysis.model_gradient import model_gradient
+
+        start = model_gradient(scan.images, scan.flats, geometry, flat_second_event=share)
+    later = flat_later
+    if args.chamber_later:
+        from ..analysis.later_events import later_events
+
+        h0 = inversion.start_heights(start, geometry) if hasattr(start, "dzdx") else start
+        print("rendering the start surface in the chamber for its later events ...", file=sys.stderr, flush=True)
+        later = later_events(h0, geometry, fwhm_mm=fwhm)
 
     def progress(step):
         print(f"  step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
               f"{step['seconds']:.1f} s", file=sys.stderr, flush=True)
 
     res = inversion.invert_heights(
-        scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=later,
+        scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=flat_later,
         alpha=args.alpha, noise=args.noise, shadows=not args.no_shadows,
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol, time_budget_s=args.time_budget, progress=progress)
@@ -166,6 +186,8 @@ def run(args) -> int:
             "sources": {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
                         "flat": args.flat or {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES},
                         "init": args.init, "second_event": args.second_event},
+            "object_later_events": ("rendered from the start surface in the chamber" if args.chamber_later
+                                    else "the flat plate's" if args.second_event else "none"),
             "calibration": args.calibration}
     write_inversion(out, res, geometry, untrusted=res.mask, metadata=meta, overwrite=args.overwrite)
     h = res.height
