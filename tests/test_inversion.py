@@ -190,32 +190,34 @@ def test_inversion_never_worse_than_start(mi, steep_case):
     assert _rmse(again.height, truth) <= 1e-4
 
 
-def test_invert_cli(tmp_path, run_python):
-    """render -> invert end to end: the height EXR's channels, its header, one-line refusals."""
+def test_invert_cli(tmp_path, capsys, monkeypatch):
+    """render -> invert end to end (one real process), its EXR's channels and header, and one-line
+    refusals (in-process: exit 2, one line, nothing written)."""
     import subprocess
     import sys
 
+    from elo_mitsuba.cli import main
     from elo_mitsuba.exr import read_exr
 
-    def cli(*args):
-        return subprocess.run([sys.executable, "-m", "elo_mitsuba", *args], capture_output=True, text=True,
-                              cwd=tmp_path, timeout=300)
-
+    monkeypatch.chdir(tmp_path)
     for scene in ("melt_plate", "flat_plate"):
-        p = cli("render", scene, "-o", f"{scene}.exr", "--resolution", "48")
-        assert p.returncode == 0, p.stderr
-    p = cli("invert", "--flat", "flat_plate.exr", "melt_plate.exr", "-o", "h.exr", "--iterations", "2",
-            "--preview", "h.png")
+        assert main(["render", scene, "-o", f"{scene}.exr", "--resolution", "48", "--quiet"]) == 0
+    p = subprocess.run([sys.executable, "-m", "elo_mitsuba", "invert", "--flat", "flat_plate.exr", "melt_plate.exr",
+                        "-o", "h.exr", "--iterations", "2", "--preview", "h.png"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=300)
     assert p.returncode == 0, p.stderr
     channels, meta = read_exr(tmp_path / "h.exr")
     assert {"height", "mask", "misfit", "start_height", "scale", "model.right"} <= set(channels)
     assert meta["method"] == "inversion" and meta["detectors"] and len(meta["history"]) >= 1
     assert (tmp_path / "h.png").is_file()
+    capsys.readouterr()
     for args, text in ((("--no-flat",), "needs the flat-plate images"),
                        (("--init", "nope.exr"), "no such file"),
                        (("--alpha", "-1"), "--alpha"),
-                       (("--fwhm", "nan"), "--fwhm")):
-        p = cli("invert", "--flat", "flat_plate.exr", "melt_plate.exr", "-o", "h2.exr", *args)
-        assert p.returncode == 2 and text in p.stderr and "Traceback" not in p.stderr, (args, p.stderr)
-        assert len(p.stderr.strip().splitlines()) == 1
+                       (("--fwhm", "nan"), "--fwhm"),
+                       (("--iterations", "-1"), "--iterations"),
+                       (("--chamber-later",), "needs --second-event")):
+        assert main(["invert", "--flat", "flat_plate.exr", "melt_plate.exr", "-o", "h2.exr", *args]) == 2, args
+        err = capsys.readouterr().err
+        assert text in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, (args, err)
         assert not (tmp_path / "h2.exr").exists()
