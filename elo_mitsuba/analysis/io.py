@@ -138,6 +138,24 @@ def load_detector_set(exr_path=None, files: Mapping | None = None, what: str = "
     return images, meta
 
 
+def read_later_events(path, shape) -> tuple[dict, dict]:
+    """Events >= 2 per detector of a forward render with per-event channels (``--events >= 2``),
+    e.g. the flat plate in the chamber: (later events in the render's units N_d/N_0, their share
+    of each pixel's total)."""
+    total, meta = read_detector_exr(path)
+    first, _ = read_detector_exr(path, 1)
+    if int(meta.get("events", 1)) < 2:
+        raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; later events need --events >= 2")
+    if next(iter(total.values())).shape != tuple(shape):
+        raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
+    later, share = {}, {}
+    for n in DETECTOR_NAMES:
+        t = np.asarray(total[n], float)
+        later[n] = t - np.asarray(first[n], float)
+        share[n] = np.where(t > 0, later[n] / np.where(t > 0, t, 1.0), 0.0)
+    return later, share
+
+
 def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, str]) -> None:
     """Refuse detector images no gradient can come from, naming the file and what is wrong.
 

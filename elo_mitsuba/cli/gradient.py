@@ -173,23 +173,6 @@ def _model_geometry(args, header, shape, geo, source):
     return model
 
 
-def _second_event_share(path, shape):
-    """Share of events >= 2 per detector and pixel, from a forward render with per-event channels."""
-    from ..analysis.io import read_detector_exr
-
-    total, meta = read_detector_exr(path)
-    first, _ = read_detector_exr(path, 1)
-    if int(meta.get("events", 1)) < 2:
-        raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; --second-event needs --events >= 2")
-    if next(iter(total.values())).shape != tuple(shape):
-        raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
-    out = {}
-    for n in DETECTOR_NAMES:
-        t = np.asarray(total[n], float)
-        out[n] = np.where(t > 0, 1.0 - np.asarray(first[n], float) / np.where(t > 0, t, 1.0), 0.0)
-    return out
-
-
 def _same(a, b, rtol=1e-6):
     return np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=rtol, atol=0)
 
@@ -325,7 +308,9 @@ def run(args) -> int:
         model = _model_geometry(args, header, shape, geo, str(source))
         from ..analysis.model_gradient import model_gradient_refined
 
-        share = _second_event_share(args.second_event, shape) if args.second_event else None
+        from ..analysis.io import read_later_events
+
+        share = read_later_events(args.second_event, shape)[1] if args.second_event else None
         if share is not None and flats is None:
             raise EloInputError("--second-event corrects the flat-plate images; give --flat")
         res = model_gradient_refined(images, flats, model, passes=args.height_passes, noise=args.noise,

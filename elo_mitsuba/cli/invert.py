@@ -113,22 +113,6 @@ def _start(path, shape, field_mm):
     return h - h.mean()
 
 
-def _later_from_flat(path, shape, geometry, fwhm):
-    """Later events of the flat plate from a render with events >= 2 (model units: N/N_0), used
-    for the flat and, as the chamber's slowly varying part, for the object; and their share of it."""
-    from ..analysis.io import read_detector_exr
-
-    total, meta = read_detector_exr(path)
-    first, _ = read_detector_exr(path, 1)
-    if int(meta.get("events", 1)) < 2:
-        raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; --second-event needs --events >= 2")
-    if next(iter(total.values())).shape != tuple(shape):
-        raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
-    later = {n: np.asarray(total[n], float) - np.asarray(first[n], float) for n in DETECTOR_NAMES}
-    share = {n: np.where(total[n] > 0, later[n] / np.where(total[n] > 0, total[n], 1.0), 0.0) for n in DETECTOR_NAMES}
-    return later, share
-
-
 def run(args) -> int:
     from ..files import check_output
 
@@ -156,8 +140,9 @@ def run(args) -> int:
     start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
     if args.chamber_later and not args.second_event:
         raise EloInputError("--chamber-later needs --second-event SIM_FLAT.exr (the flat plate's later events)")
-    flat_later, share = _later_from_flat(args.second_event, scan.shape, geometry, fwhm) if args.second_event \
-        else (None, None)
+    from ..analysis.io import read_later_events
+
+    flat_later, share = read_later_events(args.second_event, scan.shape) if args.second_event else (None, None)
     t0 = time.perf_counter()
     if start is None and share is not None:  # the model gradient with the same later events removed
         from ..analysis.model_gradient import model_gradient
