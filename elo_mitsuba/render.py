@@ -117,7 +117,8 @@ class EloScene:
     """
 
     def __init__(self, scene, variant: str | None = None, detector_layout: str | None = None, **params):
-        self.mi = ensure_variant(variant)
+        # the scene and its parameters are checked (XML only) before Mitsuba is imported: in a new
+        # process a misspelt scene or parameter is refused in a fraction of a second
         self.path = resolve_scene_path(scene)
         values = dict(layout_parameters(detector_layout)) if detector_layout is not None else {}
         values.update(params)
@@ -128,6 +129,7 @@ class EloScene:
             raise EloInputError(
                 f"{self.path}: parameter {unknown[0]!r} is not declared by this scene (it declares: {allowed})"
             )
+        self.mi = ensure_variant(variant)
         self.params = {**declared, **{k: str(v) for k, v in values.items()}}
         try:
             self.scene = self.mi.load_file(str(self.path), **{k: str(v) for k, v in values.items()})
