@@ -30,12 +30,14 @@ _ENV_KNOBS = ("DRJIT_LIBLLVM_PATH", "ELO_MITSUBA_VARIANT")
 #: Long, self-contained subprocess runs that the tests of one module check: started when the
 #: collection ends (if that module's tests are selected), so that they overlap the rest of the
 #: suite. The suite keeps one of the two cores busy most of the time (Dr.Jit compiles a kernel on
-#: one thread; most tests are small renders), so the validation's quick run (~1 min) costs
-#: little wall time beside it. name -> (test module, a file it needs, argv after ``python`` with
+#: one thread; most tests are small renders), so the validation's quick run (~1 min) and the
+#: golden cases (~12 s) cost little wall time beside it. name -> (test module, a file it needs, argv after ``python`` with
 #: ``{out}`` for a fresh temporary folder).
 BACKGROUND = {
     "validation-quick": ("test_validation_quick.py", REPO_ROOT / "validation" / "runner.py",
                          ["-m", "validation", "--quick", "--output-dir", "{out}", "--json", "{out}/rows.json"]),
+    "golden": ("test_golden.py", REPO_ROOT / "tests" / "golden_cases.py",
+               ["tests/golden_cases.py", "--digests", "{out}/digests.json"]),
 }
 
 
