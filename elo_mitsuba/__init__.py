@@ -21,11 +21,35 @@ import os as _os
 import sys as _sys
 
 
+def _cli_process() -> bool:
+    """True when this interpreter runs the ``elo-mitsuba`` command (console script, or
+    ``python -m elo_mitsuba``, during whose import ``sys.argv[0]`` is ``-m``): no user code can set
+    a variant there, and :func:`ensure_variant` does the hooking when a command needs Mitsuba."""
+    argv0 = _sys.argv[0] if _sys.argv else ""
+    return _os.path.basename(argv0) in ("elo-mitsuba", "elo-mitsuba.exe") or (
+        argv0 == "-m" and "mitsuba" not in _sys.modules)
+
+
+if _cli_process() and "numpy" not in _sys.modules:
+    # numpy's OpenBLAS threads spin for a while after each matrix product (the bounce filter's
+    # interpolation), on the cores Dr.Jit's next kernel needs: 4-5 % of a command's CPU time on
+    # 2 cores. The command's products are small; with one thread they give the same bits.
+    _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 from ._version import __version__  # noqa: E402
 from .errors import EloEnvironmentError, EloError, EloInputError  # noqa: E402
 from .runtime import ensure_variant  # noqa: E402
 from .render import EloScene, RenderResult, load_scene, render  # noqa: E402
-from .sweeps import sweep  # noqa: E402  (Dask, xarray, Zarr are imported when it runs)
+
+
+def __getattr__(name):
+    # the sweep client (and its imports: 50 ms) only when it is used; Dask, xarray and Zarr are
+    # imported when it runs
+    if name == "sweep":
+        from .sweeps import sweep
+
+        return sweep
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _hook_mitsuba():
@@ -39,15 +63,6 @@ def _hook_mitsuba():
     runtime.import_backend()
     runtime.install_variant_callback()
     runtime.register_plugins()
-
-
-def _cli_process() -> bool:
-    """True when this interpreter runs the ``elo-mitsuba`` command (console script, or
-    ``python -m elo_mitsuba``, during whose import ``sys.argv[0]`` is ``-m``): no user code can set
-    a variant there, and :func:`ensure_variant` does the hooking when a command needs Mitsuba."""
-    argv0 = _sys.argv[0] if _sys.argv else ""
-    return _os.path.basename(argv0) in ("elo-mitsuba", "elo-mitsuba.exe") or (
-        argv0 == "-m" and "mitsuba" not in _sys.modules)
 
 
 if not _cli_process() or "mitsuba" in _sys.modules:

@@ -4,8 +4,10 @@ Per detector, the scan region on a horizontal planar surface from which nothing 
 block the view of the detector: no triangle of any other shape (or of the bounding box of a
 non-mesh shape) can cut the convex hull of that region and the detector. Shadow rays from there
 are not cast (flat plate, also inside the chamber); any other surface point casts them as usual.
-numpy and scipy, once per render; :func:`unblockable` is the kernel's test.
+numpy (scipy for hulls of many points), once per render; :func:`unblockable` is the kernel's test.
 """
+
+import itertools
 
 import drjit as dr
 import mitsuba as mi
@@ -38,16 +40,51 @@ def cover_triangles(shape):
     return c[np.array(faces)]
 
 
+#: Up to this many distinct points the hull's facet planes are found by trying every triple of
+#: points (the scenes' hulls: a scan region's 4 corners and a disc detector's 4 cover corners);
+#: above it by Qhull (scipy.spatial). Why: importing scipy.spatial costs 0.6 s, a third of a new
+#: process's scene load, for hulls of 8 points.
+BRUTE_FORCE_POINTS = 16
+
+
+def _hull_planes(points):
+    """(F, 4) planes ``n . x + c`` (unit outward ``n``; <= 0 inside) whose set is that of the
+    facets of the convex hull of ``points`` (each facet may appear more than once), or None when
+    the hull is flat or has fewer than 4 points (as Qhull refuses it)."""
+    p = np.unique(np.asarray(points, dtype=float), axis=0)
+    if len(p) > BRUTE_FORCE_POINTS:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            return ConvexHull(p).equations
+        except (QhullError, ValueError):
+            return None
+    if len(p) < 4:
+        return None
+    i, j, k = np.array(list(itertools.combinations(range(len(p)), 3))).T
+    n = np.cross(p[j] - p[i], p[k] - p[i])
+    length = np.linalg.norm(n, axis=1)
+    size = max(1.0, float(np.ptp(p, axis=0).max()))
+    eps = 1e-10 * size  # Qhull's own precision for such coordinates is ~1e-13 of the size
+    keep = length > eps * size
+    if not np.any(keep):
+        return None  # all points collinear
+    n, i = n[keep] / length[keep, None], i[keep]
+    c = -np.einsum("fk,fk->f", n, p[i])
+    d = p @ n.T + c  # (P, F): signed distances of every point from every candidate plane
+    below, above = np.all(d <= eps, axis=0), np.all(d >= -eps, axis=0)
+    if np.any(below & above):
+        return None  # every point on one plane: a flat hull
+    planes = np.concatenate([np.c_[n[below], c[below]], -np.c_[n[above], c[above]]])
+    return planes if len(planes) else None
+
+
 def _all_separated(points, tris, tol):
     """True if no triangle of ``tris`` (T, 3, 3) can intersect the convex hull of ``points``
     (conservative: separating planes are the hull's faces and the triangles' own planes)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    try:
-        hull = ConvexHull(points)
-    except (QhullError, ValueError):
+    eq = _hull_planes(points)  # n . x + c <= 0 inside
+    if eq is None:
         return False
-    eq = hull.equations  # n . x + c <= 0 inside
     lo, hi = points.min(axis=0) - tol, points.max(axis=0) + tol
     for start in range(0, len(tris), 65536):
         t = tris[start:start + 65536]

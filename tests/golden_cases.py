@@ -138,12 +138,17 @@ def load_golden() -> tuple[dict[str, dict], dict]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--update", action="store_true", help="rewrite tests/golden_cases.json")
+    parser.add_argument("--digests", metavar="FILE", help="only write the digests of this run to FILE (JSON; "
+                        "tests/test_golden.py compares them, the run started by conftest.py beside the other tests)")
     args = parser.parse_args(argv)
-    if not args.update:
+    if not args.update and not args.digests:
         parser.error("nothing to do: pass --update to regenerate the goldens")
     with tempfile.TemporaryDirectory() as tmp:
         results = run_cases(Path(tmp))
     outputs = {key: digest(arr) for key, arr in results.items()}
+    if args.digests:
+        Path(args.digests).write_text(json.dumps({"fingerprint": fingerprint(), "outputs": outputs}, indent=1) + "\n")
+        return 0
     GOLDEN.write_text(json.dumps({"fingerprint": fingerprint(), "outputs": outputs}, indent=1) + "\n")
     print(f"wrote {GOLDEN} ({len(outputs)} outputs)", file=sys.stderr)
     return 0

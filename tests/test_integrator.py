@@ -161,6 +161,48 @@ def test_occlusion_analysis_skips_only_unblockable_rays():
     assert integ2._unblockable_regions[0] == [] and all(integ2._unblockable_regions[1:])
 
 
+def test_occlusion_hull_equals_qhull():
+    """The occlusion analysis finds the facets of its small hulls by trying every triple of points
+    (no scipy import at scene load): on random scan regions, tilted detectors and triangles it
+    decides as Qhull's hull does, flat hulls included (refused, as Qhull refuses them)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    from elo_mitsuba.plugins import _occlusion as occ
+
+    def with_qhull(points, tris, tol):
+        try:
+            eq = ConvexHull(points).equations
+        except (QhullError, ValueError):
+            return False
+        saved, occ._hull_planes = occ._hull_planes, lambda p: eq
+        try:
+            return occ._all_separated(points, tris, tol)
+        finally:
+            occ._hull_planes = saved
+
+    rng = np.random.default_rng(1)
+    decided = []
+    for trial in range(600):
+        x0, y0 = rng.uniform(-50, 0, 2)
+        x1, y1 = rng.uniform(0, 50, 2)
+        rect = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]])
+        c = rng.uniform([-150, -150, 50], [150, 150, 300])
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        v = np.cross(u, rng.normal(size=3))
+        v /= np.linalg.norm(v)
+        sq = np.array([c + rng.uniform(5, 30) * (a * u + b * v) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+        pts = np.vstack([rect, sq[[0, 1, 2]], sq[[0, 2, 3]]]) if trial % 7 else np.vstack([rect, rect])  # 1 in 7 flat
+        tris = rng.uniform(-200, 300, size=(rng.integers(1, 40), 3, 3))
+        if trial % 3 == 0:
+            tris = tris * 0.05 + rng.uniform(-100, 200, 3)  # small triangles near the hull
+        tol = 1e-6 * max(1.0, float(np.ptp(pts, axis=0).max()))
+        expected = with_qhull(pts, tris, tol)
+        assert occ._all_separated(pts, tris, tol) == expected, trial
+        decided.append(expected)
+    assert 0.1 < np.mean(decided) < 0.9  # both outcomes were tested
+
+
 def test_inline_g_tables_equal_bsdf_eval():
     """The per-BSDF tables (no virtual call) give what elo_bse's eval gives, incl. the wall."""
     scene = flat_scene(mi, res=4, field=200.0, wd=150.0, wall=True, events=2)

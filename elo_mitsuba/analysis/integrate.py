@@ -28,10 +28,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import fft as sfft
-from scipy import ndimage, sparse
-from scipy.sparse.linalg import spsolve
 
+# scipy is imported inside the solvers: 'elo-mitsuba reconstruct --help' reads this module's
+# constants, and a help text or a rejected argument must not pay for importing scipy (~0.3 s)
 from ..errors import EloInputError
 from .geometry import pixel_size
 
@@ -75,6 +74,8 @@ def integrate_fft(dzdx, dzdy, field_mm, *, mirror: bool = True) -> np.ndarray:
     ndarray (H, W)
         Height in mm with zero mean.
     """
+    from scipy import fft as sfft
+
     gc, gr = _pixel_gradients(dzdx, dzdy, field_mm)
     h, w = gc.shape
     if mirror:
@@ -121,6 +122,8 @@ def integrate_dct(dzdx, dzdy, field_mm) -> np.ndarray:
     ndarray (H, W)
         Height in mm with zero mean.
     """
+    from scipy import fft as sfft
+
     gc, gr = _pixel_gradients(dzdx, dzdy, field_mm)
     h, w = gc.shape
     rhs = _divergence_rhs(gc, gr)
@@ -133,6 +136,9 @@ def integrate_dct(dzdx, dzdy, field_mm) -> np.ndarray:
 
 def _solve_direct(lap, rhs, comp):
     """Sparse LU with the first pixel of each component pinned (removes the constant null space)."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
     _, first = np.unique(comp, return_index=True)
     pin = np.zeros(rhs.size, dtype=bool)
     pin[first] = True
@@ -147,6 +153,7 @@ def _solve_pcg(lap, rhs, valid, tol):
     pixels, so the DCT inverse is a good preconditioner; the system is singular (one constant
     per component) but consistent (rhs sums to 0 over each component), which CG tolerates.
     """
+    from scipy import fft as sfft
     from scipy.sparse.linalg import LinearOperator, cg
 
     h, w = valid.shape
@@ -197,6 +204,8 @@ def integrate_masked(dzdx, dzdy, field_mm, mask=None, *, min_component_size: int
     mask_out : ndarray of bool (H, W)
         The pixels that have no height (input mask, non-finite gradients, small components).
     """
+    from scipy import ndimage, sparse
+
     dzdx = np.asarray(dzdx, dtype=float)
     dzdy = np.asarray(dzdy, dtype=float)
     bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
@@ -339,6 +348,8 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
         ``warnings``: one line per figure above :data:`MAX_INTEGRABILITY_RESIDUAL`,
         :data:`MAX_MASKED_FRACTION`, or a bowl larger than the relief.
     """
+    from scipy import ndimage
+
     dzdx, dzdy, bad = _checked_inputs(dzdx, dzdy, mask_out)
     gc, gr = _pixel_gradients(np.where(bad, 0.0, dzdx), np.where(bad, 0.0, dzdy), field_mm)
     z = np.asarray(height, dtype=float)
