@@ -163,9 +163,10 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
     -------
     ndarray (K, J, H, W) float32
 
-    The ray is marched along its ground track in steps of :data:`SHADOW_STEP_PX` pixels in one
-    symbolic Dr.Jit loop (each ray stops when blocked, outside the grid or above the highest
-    height), per target.
+    The ray is marched along its ground track in one symbolic Dr.Jit loop per target, in steps of
+    at least :data:`SHADOW_STEP_PX` pixels and, where it is high above the surface, as long as the
+    surface's steepest slope allows without meeting it (exact to the minimum step); each ray stops
+    when blocked, outside the grid or above the highest height.
     """
     from ..runtime import ensure_variant
 
@@ -200,30 +201,38 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
         z11 = dr.gather(Float, tex, i + n_cols + 1)
         return dr.lerp(dr.lerp(z00, z01, fc), dr.lerp(z10, z11, fc), fr)
 
+    # a bound on the surface's slope (bilinear cells): a ray `gap` above the surface that rises
+    # at `slope` cannot meet it within gap / (bound - slope) along the ground, so it may skip that
+    # far (and, rising faster than the bound, never meets it)
+    gx = np.abs(np.diff(h, axis=1)).max(initial=0.0) / dx
+    gy = np.abs(np.diff(h, axis=0)).max(initial=0.0) / dy
+    bound = 1.01 * float(np.hypot(gx, gy)) + 1e-6
     for k in range(targets.shape[0]):
         for j in range(targets.shape[1]):
-            qx, qy, qz = (float(v) for v in targets[k, j])
+            # opaque: one kernel for every target (literals would compile one each)
+            qx, qy, qz = (dr.opaque(Float, float(v)) for v in targets[k, j])
             vx, vy, vz = qx - px, qy - py, qz - pz
             ground = dr.maximum(dr.sqrt(vx * vx + vy * vy), 1e-9)
-            ux, uy, rise = vx / ground * step, vy / ground * step, vz / ground * step
+            ux, uy, slope = vx / ground, vy / ground, vz / ground
             blocked = dr.zeros(mi.Bool, dr.width(px))
+            catchable = slope < bound
 
-            def cond(s, blocked):
-                wz = pz + rise * Float(s)
-                return ~blocked & (s < MAX_SHADOW_STEPS) & (wz < top) & (rise > 0)
+            def cond(d, blocked):
+                return ~blocked & (d < MAX_SHADOW_STEPS * step) & (pz + slope * d < top) & catchable
 
-            def body(s, blocked):
-                fs = Float(s)
-                wx, wy, wz = px + ux * fs, py + uy * fs, pz + rise * fs
+            def body(d, blocked):
+                wx, wy, wz = px + ux * d, py + uy * d, pz + slope * d
                 t = 1.0 - wz * inv_wd
                 col = (wx / t - col0) * (1.0 / dx)
                 row = (row0 - wy / t) * (1.0 / dy)
                 inside = (col >= 0) & (col <= n_cols - 1) & (row >= 0) & (row <= n_rows - 1)
-                hit = inside & (height_at(row, col) > wz)
+                gap = wz - height_at(row, col)
+                hit = inside & (gap < 0)
+                skip = dr.maximum(step, gap / (bound - slope))
                 # leaving the grid ends the march: what lies beyond is not known (counted clear)
-                return s + dr.select(inside, 1, MAX_SHADOW_STEPS), blocked | hit
+                return dr.select(inside, d + skip, MAX_SHADOW_STEPS * step), blocked | hit
 
-            _, blocked = dr.while_loop((UInt32(1) + dr.zeros(UInt32, dr.width(px)), blocked), cond, body,
+            _, blocked = dr.while_loop((dr.full(Float, step, dr.width(px)), blocked), cond, body,
                                        label="elo_shadow_march")
             out[k, j] = np.asarray(dr.select(blocked, 0.0, 1.0), np.float32).reshape(shape)
     return out
