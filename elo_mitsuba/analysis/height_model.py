@@ -5,8 +5,10 @@ Dr.Jit's automatic differentiation (forward mode), never by a second hand-writte
 
 * **Surface.** The unknowns are the heights at the pixels' *corners*, ``g`` of shape (H + 1, W + 1);
   each pixel is the bilinear patch over its four corners, and the beam of pixel (i, j) lands at
-  the patch's centre, at the mean height of the corners, ``h = corner_mean(g)`` (the height map
-  the package reports: the scan-grid convention of :func:`~.integrate.scan_grid_gradient`).
+  the patch's centre, at the mean height of the corners, ``corner_mean(g)``. The height map the
+  package reports (the scan-grid convention of :func:`~.integrate.scan_grid_gradient`) is the
+  cubic interpolation of the corners at the pixel centres (:func:`pixels_from_corners`), which a
+  curved surface's own height follows to fourth order.
   The landing point is P = (t x, t y, h) with t = 1 - h / wd for the perspective beam (x, y the
   aim point on z = 0), (x, y, h) for the orthographic one; each corner's point likewise, and the
   facet normal is the patch's normal at its centre, (P_tr + P_br - P_tl - P_bl) x (P_tl + P_tr -
@@ -114,12 +116,42 @@ def corner_mean(g) -> np.ndarray:
     return 0.25 * sum(corner(g, c) for c in STENCIL)
 
 
+def _midpoints(a, axis):
+    """Values midway between neighbours along ``axis`` (n + 1 of them, the two ends outside), by the
+    cubic through four neighbours, (-a_-1 + 9 a_0 + 9 a_1 - a_2) / 16: exact for cubics, so a
+    smooth surface's curvature does not bias it (the mean of two neighbours is off by h'' d^2 / 8);
+    linear extrapolation beyond the border (odd reflection), exact on planes."""
+    a = np.moveaxis(np.asarray(a, float), axis, 0)
+    if a.shape[0] < 3:
+        pad = np.concatenate([2 * a[:1] - a[1:2], a, 2 * a[-1:] - a[-2:-1]])
+        return np.moveaxis(0.5 * (pad[:-1] + pad[1:]), 0, axis)
+    pad = np.concatenate([2 * a[:1] - a[2:3], 2 * a[:1] - a[1:2], a, 2 * a[-1:] - a[-2:-1], 2 * a[-1:] - a[-3:-2]])
+    mid = (-pad[:-3] + 9 * pad[1:-2] + 9 * pad[2:-1] - pad[3:]) / 16.0
+    return np.moveaxis(mid, 0, axis)
+
+
 def corners_from_pixels(h) -> np.ndarray:
-    """Corner heights (H + 1, W + 1) of pixel heights (H, W): the mean of the four pixels around
-    each inner corner, extrapolated linearly at the border (a plane maps onto itself)."""
-    h = np.asarray(h, float)
-    pad = np.pad(h, 1, mode="reflect", reflect_type="odd")  # odd reflection = linear extrapolation
-    return 0.25 * (pad[:-1, :-1] + pad[:-1, 1:] + pad[1:, :-1] + pad[1:, 1:])
+    """Corner heights (H + 1, W + 1) interpolated from pixel heights (H, W) (cubic, :func:`_midpoints`)."""
+    return _midpoints(_midpoints(h, 0), 1)
+
+
+def pixels_from_corners(g) -> np.ndarray:
+    """Pixel-centre heights (H, W) interpolated from corner heights (H + 1, W + 1), the same cubic rule:
+    the height map the inversion reports (its bilinear patches' own centres, :func:`corner_mean`, lie
+    h'' d^2 / 8 below a curved surface)."""
+    g = np.asarray(g, float)
+
+    def inner(a, axis):
+        a = np.moveaxis(a, axis, 0)
+        n = a.shape[0] - 1  # pixels along this axis
+        if n < 3:
+            mid = 0.5 * (a[:-1] + a[1:])
+        else:
+            pad = np.concatenate([2 * a[:1] - a[1:2], a, 2 * a[-1:] - a[-2:-1]])
+            mid = (-pad[:-3] + 9 * pad[1:-2] + 9 * pad[2:-1] - pad[3:]) / 16.0
+        return np.moveaxis(mid, 0, axis)
+
+    return inner(inner(g, 0), 1)
 
 
 def blur_sigma_px(fwhm_mm: float, shape, field_mm) -> tuple[float, float]:

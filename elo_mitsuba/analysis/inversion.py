@@ -16,7 +16,8 @@ shadowing, the beam profile, fixed later events), differentiated by Dr.Jit:
 * rho: Huber's norm with threshold :data:`HUBER_K` noise levels (a pixel that no surface of the
   model explains, e.g. a spatter particle, pulls with a bounded force); the noise level comes from
   the images' second differences (:func:`estimate_noise`) or is given.
-* g: the heights at the pixels' corners (:mod:`.height_model`); the result is their mean per pixel.
+* g: the heights at the pixels' corners (:mod:`.height_model`); the result is their cubic
+  interpolation at the pixel centres (:func:`~.height_model.pixels_from_corners`).
 * The regulariser: second differences of g along rows and columns, divided by the pixel pitch
   (the change of slope from one pixel to the next), weighted by ``alpha`` in corrected-image units
   squared (default :data:`ALPHA_PER_NOISE2` noise variances). The images do not see the corner
@@ -44,7 +45,7 @@ import numpy as np
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
-from .height_model import HeightModel, corner_mean, corners_from_pixels, neighbour, neighbour_t
+from .height_model import HeightModel, corners_from_pixels, neighbour, neighbour_t, pixels_from_corners
 
 #: Disc rule of the model: its 16 nodes also resolve a disc's partial shadowing (the RMS
 #: difference to the renderer on a shadowed relief: 7.0 % with (1, 4), 3.5 % with (2, 8); tests/).
@@ -448,6 +449,6 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     misfit = np.sqrt(np.sum(r ** 2, axis=0) / np.maximum(np.sum(weights, axis=0), 1.0))
     predicted = {n: (s * m[k]) for k, n in enumerate(names)}
     mask = (misfit > max(MISFIT_SIGMAS * noise, MIN_MISFIT)) | (np.sum(weights, axis=0) < 3)
-    # a kept start is returned as given (its corners' means smooth it by [1 2 1] / 4)
-    return InversionResult(height=h0.copy() if kept else corner_mean(h), start_height=h0, misfit=misfit, predicted=predicted, scale=s, mask=mask,
+    # a kept start is returned as given
+    return InversionResult(height=h0.copy() if kept else pixels_from_corners(h), start_height=h0, misfit=misfit, predicted=predicted, scale=s, mask=mask,
                            noise=float(noise), alpha=float(alpha), history=history, stopped=stopped)
