@@ -51,7 +51,10 @@ class Disc:
         if not (np.isfinite(r) and r > 0):
             raise EloInputError(f"detector radius {self.radius!r} mm: must be finite and > 0")
         object.__setattr__(self, "center", tuple(float(v) for v in c))
-        object.__setattr__(self, "normal", tuple(float(v) for v in n / length))
+        # a unit normal is kept as given: normalising it again can change its last bit, and a disc
+        # read back from CALIB.json must equal the one written
+        unit = n if abs(length - 1.0) <= 1e-12 else n / length
+        object.__setattr__(self, "normal", tuple(float(v) for v in unit))
         object.__setattr__(self, "radius", r)
 
     def as_dict(self) -> dict:
