@@ -89,3 +89,71 @@ def describe(summary: dict) -> str:
     if status != ESTIMATED:
         return "not estimated"
     return f"{100 * summary['rms_rel']:.3g} % RMS (99 %: {100 * summary['p99_rel']:.3g} %)"
+
+
+#: Elements per block of :func:`combine_halves`: a block's float64 temporaries stay in the cache.
+BLOCK = 1 << 16
+
+
+def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float, scratch: np.ndarray | None = None):
+    """The mean of two halves of one channel, its per-pixel error and summary, in place.
+
+    The same numbers as ``share_a a + (1 - share_a) b`` (float64, stored as float32),
+    :func:`same_result`, :func:`halves_error` and :func:`summarise` (to rounding in the summary),
+    in a few blocked passes: a new process pays for every fresh page it touches (about 2 s/GB on
+    the machines of benchmarks/RESULTS.md), and the whole-image float64 temporaries of those
+    functions cost more than the arithmetic at 1500^2 x 12 channels.
+
+    Parameters
+    ----------
+    a, b : ndarray (H, W)
+        The halves' estimates. A float32 ``a`` is overwritten by the mean and a float32 ``b`` by
+        the error (other dtypes get new float32 arrays).
+    share_a : float
+        The share of ``a`` in the mean, in (0, 1).
+    scratch : ndarray, float64, optional
+        At least H x W elements, reused between calls (the per-pixel relative errors).
+
+    Returns
+    -------
+    mean : ndarray, float32
+    err : ndarray, float32, or None when the halves agree (:data:`DETERMINISTIC`)
+    summary : dict, as :func:`summarise`
+    """
+    w = float(share_a)
+    mean = a if a.dtype == np.float32 else np.empty(a.shape, np.float32)
+    err = b if b.dtype == np.float32 else np.empty(b.shape, np.float32)
+    fa, fb, fm, fe = a.reshape(-1), b.reshape(-1), mean.reshape(-1), err.reshape(-1)
+    n = fa.size
+    top_a = top_b = top_d = 0.0
+    sum_abs = sum_err2 = 0.0
+    k = np.sqrt(w * (1.0 - w))
+    for s in range(0, n, BLOCK):
+        x, y = fa[s:s + BLOCK].astype(np.float64), fb[s:s + BLOCK].astype(np.float64)
+        m = w * x + (1.0 - w) * y
+        d = np.abs(x - y)
+        if d.size:
+            top_a, top_b = max(top_a, float(np.max(np.abs(x)))), max(top_b, float(np.max(np.abs(y))))
+            top_d = max(top_d, float(np.max(d)))
+        fm[s:s + BLOCK] = m
+        e = (k * d).astype(np.float32)
+        fe[s:s + BLOCK] = e
+        e = e.astype(np.float64)
+        sum_abs += float(np.sum(np.abs(fm[s:s + BLOCK], dtype=np.float64)))
+        sum_err2 += float(np.dot(e, e))
+    if top_d <= ROUNDING * max(top_a, top_b):  # no sampling error at all: not 0 from a split
+        return mean, None, summarise(mean, None, DETERMINISTIC)
+    floor = FLOOR * sum_abs / n if n else 0.0
+    rel = scratch[:n] if scratch is not None and scratch.size >= n else np.empty(n, np.float64)
+    sum_rel2 = 0.0
+    for s in range(0, n, BLOCK):
+        v = np.abs(fm[s:s + BLOCK].astype(np.float64))
+        denom = np.maximum(v, floor)
+        r = rel[s:s + BLOCK]
+        r[...] = 0.0
+        np.divide(fe[s:s + BLOCK], denom, out=r, where=denom > 0)
+        sum_rel2 += float(np.dot(r, r))
+    summary = {"status": ESTIMATED, "rms_rel": float(np.sqrt(sum_rel2 / n)),
+               "p99_rel": float(np.percentile(rel, 99, overwrite_input=True)),
+               "rms_abs": float(np.sqrt(sum_err2 / n))}
+    return mean, err, summary

@@ -29,7 +29,7 @@ from .errors import EloError, EloInputError
 from .budget import check_render
 from .exr import write_exr
 from .grid import ORIENTATION
-from .error_estimate import DETERMINISTIC, ESTIMATED, NOT_ESTIMATED, halves_error, same_result, summarise
+from .error_estimate import DETERMINISTIC, NOT_ESTIMATED, combine_halves, summarise
 from .options import QUALITIES, EloOptions, half_budget, quality_options
 from .runtime import ensure_variant
 from .scene_files import declared_parameters, explain_mitsuba_error, layout_parameters, resolve_scene_path
@@ -368,7 +368,6 @@ class EloScene:
         per 10 % once the render has run for :data:`PROGRESS_AFTER_S`; True always, False never
         (no notes either).
         """
-        mi = self.mi
         seed = _whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
         if spp is not None:
             spp = _whole_number("spp", spp, 1, None)
@@ -406,9 +405,8 @@ class EloScene:
                 left = n_half
                 while left > 0:
                     n = min(per_pass, left)
-                    img = mi.render(self.scene, spp=n, seed=(seed * 65537 + p) % (1 << 32))
-                    planes = _channel_planes(img, 1, len(names))  # (channels, H, W) float32; 'Y' skipped
-                    del img
+                    # (channels, H, W) float32, straight from the film's storage
+                    planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n)
                     if acc is None and n == n_half:
                         acc = planes  # one pass: its own mean
                     else:
@@ -471,14 +469,11 @@ def _combine(names, sums, counts, equal_halves: bool, forced_status):
     share_a = 0.5 if equal_halves else counts[0] / sum(counts)
     a, b = sums
     channels, errors, summary = {}, {}, {}
+    scratch = np.empty(a[0].size, np.float64)  # reused by every channel
     for i, name in enumerate(names):
-        mean = (share_a * np.asarray(a[i], np.float64) + (1.0 - share_a) * np.asarray(b[i], np.float64))
-        channels[name] = mean.astype(np.float32)
-        if same_result(a[i], b[i]):  # no sampling error at all: say so, not 0 from a split
-            summary[name] = summarise(channels[name], None, DETERMINISTIC)
-        else:
-            errors[name] = halves_error(a[i], b[i], share_a)
-            summary[name] = summarise(channels[name], errors[name], ESTIMATED)
+        channels[name], err, summary[name] = combine_halves(a[i], b[i], share_a, scratch)
+        if err is not None:
+            errors[name] = err
     return channels, errors, summary
 
 
@@ -504,37 +499,6 @@ def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
         bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
         raise EloInputError(f"{name}={value!r}; must be a whole number {bound}")
     return int(number)
-
-
-#: Pixels per block of :func:`_channel_planes`: a block's channels (512 x 19 floats) stay in the
-#: cache while they are read channel by channel.
-PLANE_BLOCK = 512
-
-
-def _channel_planes(img, first: int = 1, count: int | None = None) -> np.ndarray:
-    """Channels ``first`` .. ``first + count - 1`` of a developed film (Dr.Jit tensor, H x W x C)
-    as a numpy array (count, H, W), each channel contiguous.
-
-    One Dr.Jit kernel moves the values, block of pixels by block (reads stay in the cache), into
-    a Dr.Jit buffer in channel-major order, of which ``np.asarray`` is a view on the CPU (on a GPU
-    one transfer). Why not numpy: a new process pays about 2 s/GB to touch fresh pages, and a
-    numpy output (108 MB at 1500^2) is always fresh, while Dr.Jit takes the buffer from its cache
-    of the render's freed blocks (peak memory of the CLI render 875 -> 780 MB). The values are
-    moved, not computed: bit for bit those of the film.
-    """
-    import drjit as dr
-
-    h, w, c = (int(n) for n in img.shape)
-    count = c - first if count is None else count
-    pixels, block = h * w, PLANE_BLOCK
-    flat = img.array
-    i = dr.arange(dr.uint32_array_t(type(flat)), count * ((pixels + block - 1) // block) * block)
-    rem = i % (block * count)
-    channel, pixel = rem // block, (i // (block * count)) * block + rem % block
-    inside = pixel < pixels
-    out = dr.empty(type(flat), count * pixels)
-    dr.scatter(out, dr.gather(type(flat), flat, pixel * c + channel + first, inside), channel * pixels + pixel, inside)
-    return np.asarray(out).reshape(count, h, w)
 
 
 class _Progress:

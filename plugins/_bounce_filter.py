@@ -9,7 +9,6 @@ vary slowly (walls far away), after checking the error against a reference (benc
 
 import math
 
-import mitsuba as mi
 import numpy as np
 
 from elo_mitsuba.options import filter_window_levels
@@ -32,11 +31,30 @@ def _interpolation(n_fine, n_coarse, tile):
     return i0, a
 
 
-def filter_bounces(image, col, bounce_names, field_mm, half_width_mm, angle_deg, paths=None):
-    """Replace the event >= 2 channels of the developed film ``image`` (TensorXf, H x W x C,
-    in place) by their normal-guided window average.
+def _pyramid(plane, hp, wp, top, scratch):
+    """Sum pyramid of one plane (H, W), zero-padded to (hp, wp) in ``scratch``: levels 0 .. top,
+    level j holding tiles of 2^j pixels (level 0 is ``scratch`` itself)."""
+    h, w = plane.shape
+    scratch[:h, :w] = plane
+    levels = [scratch]
+    for _ in range(top):
+        x = levels[-1]
+        levels.append(x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2])
+    return levels
 
-    ``col`` maps channel names to film columns (it must hold :data:`GUIDE_CHANNELS`);
+
+def _window(tiles):
+    """Sum over the 3 x 3 tiles around each tile (zero outside)."""
+    nt, ns = tiles.shape
+    pad = np.pad(tiles, 1)
+    return sum(pad[i:i + nt, j:j + ns] for i in range(3) for j in range(3))
+
+
+def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_deg, paths=None):
+    """Replace the event >= 2 channels of the film's ``planes`` (float32, C x H x W, in place,
+    :mod:`elo_mitsuba.film`) by their normal-guided window average.
+
+    ``index`` maps channel names to planes (it must hold :data:`GUIDE_CHANNELS`);
     ``bounce_names`` are the channels to filter (``<id>.e<k>``, k >= 2). Multi-scale and cheap: a
     sum pyramid of tiles of 2^j pixels (one pass over the image); the window of a tile is the
     3 x 3 tiles around it (2^j about the filter half-width at the top level); it counts as
@@ -45,58 +63,61 @@ def filter_bounces(image, col, bounce_names, field_mm, half_width_mm, angle_deg,
     interpolation of the window means; the others go on to tiles half as large (three scales at
     most); what is left keeps its own value. ``paths`` (H, W) is multiplied by the number of
     pixels each value now averages.
+
+    Memory: the decisions come from the guide channels alone, then the channels are filtered one
+    at a time in one padded scratch plane, so a render touches little fresh memory (a new
+    process pays for every fresh page).
     """
-    h, w = int(image.shape[0]), int(image.shape[1])
+    h, w = int(planes.shape[1]), int(planes.shape[2])
     if not field_mm:
         return
     top = filter_window_levels(half_width_mm, field_mm / w)
     if top is None:
         return
-    bounce_cols = [col[name] for name in bounce_names]
-    n_later = len(bounce_cols)
+    bounce = [index[name] for name in bounce_names]
     size = 1 << top
     hp, wp = -(-h // size) * size, -(-w // size) * size
-    data = np.zeros((hp, wp, 4 + n_later), np.float32)  # normal, pixel count, events >= 2
-    for i, g in enumerate(GUIDE_CHANNELS):
-        data[:h, :w, i] = np.array(image[..., col[g]])
-    data[:h, :w, 3] = 1.0
-    later = np.empty((n_later, h, w), np.float32)
-    for i, c in enumerate(bounce_cols):
-        later[i] = np.array(image[..., c])
-        data[:h, :w, 4 + i] = later[i]
-    normal = data[:h, :w, :3]
+    scratch = np.zeros((hp, wp), np.float32)
+    guide = [planes[index[g]] for g in GUIDE_CHANNELS]
     # pixels whose beam hit a scattering surface (their film normal is a unit vector)
-    undecided = np.einsum("ijk,ijk->ij", normal, normal) > 0.25
-    pyramid = [data]
-    for _ in range(top):
-        x = pyramid[-1]
-        pyramid.append(x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2])
+    undecided = (guide[0] * guide[0] + guide[1] * guide[1] + guide[2] * guide[2]) > 0.25
+    normal_levels = []
+    for k in range(3):
+        normal_levels.append([t.copy() for t in _pyramid(guide[k], hp, wp, top, scratch)[top - min(top, 3):]])
+    del guide
+    ones = np.ones((h, w), np.float32)
+    count_levels = [t.copy() for t in _pyramid(ones, hp, wp, top, scratch)[top - min(top, 3):]]
+    del ones
+    first = top - min(top, 3)  # lowest level used (three scales at most)
     cos2 = math.cos(math.radians(angle_deg)) ** 2
-    for level in range(top, max(top - 3, 0) - 1, -1):  # three scales at most
+    steps = []  # (level, pixels taken, interpolation, window pixel count)
+    for level in range(top, first - 1, -1):
         if not np.any(undecided):
             break
-        tiles = pyramid[level]
-        nt, ns = tiles.shape[:2]
-        pad = np.pad(tiles, ((1, 1), (1, 1), (0, 0)))
-        win = sum(pad[i:i + nt, j:j + ns] for i in range(3) for j in range(3))
-        count = np.maximum(win[..., 3:4], 1.0)
-        n_mean = win[..., :3] / count
+        win_count = _window(count_levels[level - first])
+        count = np.maximum(win_count, 1.0)
+        n_mean = np.stack([_window(n[level - first]) for n in normal_levels], axis=-1) / count[..., None]
         # homogeneous: every pixel of the window valid (|n| = 1) and the normals agree
         homogeneous = np.einsum("ijk,ijk->ij", n_mean, n_mean) > cos2
         hh = np.pad(homogeneous, ((0, 1), (0, 1)), mode="edge")
         ok = hh[:-1, :-1] & hh[1:, :-1] & hh[:-1, 1:] & hh[1:, 1:]
         tile = 1 << level
+        nt, ns = ok.shape
         iy, ay = _interpolation(h, nt, tile)
         ix, ax = _interpolation(w, ns, tile)
         take = undecided & ok[iy][:, ix]
         if not np.any(take):
             continue
-        means = np.ascontiguousarray((win[..., 4:] / count).transpose(2, 0, 1))
-        for c in range(n_later):
-            smooth = ay @ means[c] @ ax.T  # window centres -> pixel centres
-            np.copyto(later[c], smooth, where=take)
+        steps.append((level, take, ay, ax, count))
         if paths is not None:  # continuation paths behind each pixel's value now
-            np.copyto(paths, paths * win[..., 3][iy][:, ix], where=take)
+            np.copyto(paths, paths * win_count[iy][:, ix], where=take)
         undecided &= ~take
-    for i, c in enumerate(bounce_cols):
-        image[..., c] = mi.Float(later[i].ravel())
+    del normal_levels, count_levels
+    if not steps:
+        return
+    for c in bounce:
+        levels = _pyramid(planes[c], hp, wp, top, scratch)
+        for level, take, ay, ax, count in steps:
+            means = _window(levels[level]) / count
+            smooth = ay @ means @ ax.T  # window centres -> pixel centres
+            np.copyto(planes[c], smooth, where=take)

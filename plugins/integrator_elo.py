@@ -81,6 +81,7 @@ import mitsuba as mi
 import numpy as np
 
 from elo_mitsuba.errors import EloInputError
+from elo_mitsuba.film import film_tensor, raw_planes
 from elo_mitsuba.options import EloOptions, parameter_table
 from elo_mitsuba.physics.solid_angle import vos_denominator
 
@@ -206,44 +207,79 @@ class EloIntegrator(mi.SamplingIntegrator):
 
     # ---- rendering: one pass, then the bounce filter and the top-up -----------------------------
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Mitsuba's render: the developed film (H x W x C), 'Y' = the sum over detectors, then
+        the channels of :meth:`channel_names`. :meth:`render_planes` is the same render without
+        the interleaved copy."""
         if self._in_render:
             # the base class's render dispatches back to this override once: render plainly
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
+        if not develop:  # the film keeps its raw samples: nothing of ours applies
+            self._in_render = True
+            try:
+                self.prepare_scene(scene, scene.sensors()[sensor] if isinstance(sensor, int) else sensor)
+                return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
+            finally:
+                self._in_render = False
+        planes, buffer = self.render_planes(scene, sensor, seed, spp)
+        total = None
+        for name, _ in self.detectors:
+            plane = planes[self.channel_names().index(name)]
+            total = plane.copy() if total is None else total + plane
+        h, w = planes.shape[1:]
+        return film_tensor(buffer, planes.shape[0], h, w, first=total)
+
+    def render_planes(self, scene, sensor=0, seed=0, spp=0):
+        """Render and return the channels of :meth:`channel_names` as planes.
+
+        Returns
+        -------
+        planes : ndarray, float32, (channels, H, W)
+            A writable view of ``buffer`` (:func:`elo_mitsuba.film.raw_planes`).
+        buffer : Dr.Jit array
+            The buffer behind ``planes`` (it may hold hidden channels after them).
+        """
         self._in_render = True
         try:
-            return self._render(scene, sensor, seed, spp, develop, evaluate)
+            with dr.suspend_grad():
+                return self._render_planes(scene, sensor, seed, spp)
         finally:
             self._in_render = False
 
-    def _render(self, scene, sensor, seed, spp, develop, evaluate):
+    def _render_planes(self, scene, sensor, seed, spp):
         sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         self.prepare_scene(scene, sensor_obj)
         # the block selection of bounce_fraction: a fresh uniform shift per seed (unbiased)
         seed_value = int(np.array(seed, dtype=np.uint64).ravel()[0]) if not isinstance(seed, int) else seed
         self._block_offset = dr.opaque(mi.Float, float(np.random.default_rng([seed_value, 7]).random()))
-        image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-        if not develop:
-            return image
-        n_public = 1 + len(self.channel_names())
-        col = {name: i for i, name in enumerate(["Y"] + self.aov_names())}
+        aovs = self.aov_names()
+        planes, buffer = self._pass_planes(scene, sensor, sensor_obj, seed, spp, aovs)
+        index = {name: i for i, name in enumerate(aovs)}
         if self.count_rays:
-            self.ray_counts = {"intersections": float(np.mean(np.array(image[..., col[COUNT_CHANNELS[0]]]))),
-                               "shadow_rays": float(np.mean(np.array(image[..., col[COUNT_CHANNELS[1]]])))}
+            self.ray_counts = {"intersections": float(np.mean(planes[index[COUNT_CHANNELS[0]]])),
+                               "shadow_rays": float(np.mean(planes[index[COUNT_CHANNELS[1]]]))}
         if self.traced_events() > 1 and (self.bounce_filter > 0 or self.bounce_min > 0):
             n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
             rate = self.bounce_fraction * self.bounce_samples * n_spp  # paths per pixel, expected
-            paths = np.full(tuple(image.shape[:2]), rate, np.float32)
+            paths = np.full(planes.shape[1:], rate, np.float32)
             if self.bounce_filter > 0:
-                filter_bounces(image, col, self._bounce_channels(), getattr(sensor_obj, "field", None),
+                filter_bounces(planes, index, self._bounce_channels(), getattr(sensor_obj, "field", None),
                                self.bounce_filter, self.bounce_filter_angle, paths)
             if self.bounce_min > 0:
-                self._top_up(image, col, scene, sensor, seed_value, paths)
-            self._totals(image, col)
-        if image.shape[2] > n_public:  # drop the hidden channels
-            image = image[..., :n_public]
-        return image
+                self._top_up(planes, index, scene, sensor, sensor_obj, seed_value, paths)
+            self._totals(planes, index)
+        sensor_obj.sampler().seed(0, 1)  # as mi.render: the sampler's state no longer depends on the render
+        return planes[:len(self.channel_names())], buffer
 
-    def _top_up(self, image, col, scene, sensor, seed, paths):
+    def _pass_planes(self, scene, sensor, sensor_obj, seed, spp, names):
+        """One render pass of the base class; the film channels ``names`` (of :meth:`aov_names`)
+        as planes, developed straight from the film's raw storage."""
+        mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, False, True)
+        raw = sensor_obj.film().develop(raw=True)  # R, G, B, weight (, alpha), then the AOVs
+        aovs = self.aov_names()
+        first = int(raw.shape[2]) - len(aovs)
+        return raw_planes(raw, [first + aovs.index(n) for n in names], weight_column=first - 1)
+
+    def _top_up(self, planes, index, scene, sensor, sensor_obj, seed, paths):
         """bounce_min: pixels whose events >= 2 rest on fewer continuation paths than that (e.g.
         where the filter must stop at edges) get a second pass of bounce paths only; the two
         estimates are averaged with their path counts as weights."""
@@ -257,34 +293,26 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._top_up_pass = (mi.Bool(need.ravel()), dr.opaque(mi.UInt32, spp2))
         # same film channels as the main pass (hidden ones included) so the columns agree
         self.options = saved.replace(bounce_samples=k, bounce_fraction=1.0)
+        names = self._bounce_channels()
         try:
-            extra = mi.SamplingIntegrator.render(self, scene, sensor, seed + 0x5EED, spp2, True, True)
+            extra, _ = self._pass_planes(scene, sensor, sensor_obj, seed + 0x5EED, spp2, names)
         finally:
             self._top_up_pass = None
             self.options = saved
         n2 = float(k * spp2)
         w1 = np.where(need, paths / (paths + n2), 1.0).astype(np.float32)
-        for name in self._bounce_channels():
-            c = col[name]
-            mixed = np.array(image[..., c]) * w1 + np.array(extra[..., c]) * (1.0 - w1)
-            image[..., c] = mi.Float(mixed.ravel())
+        for i, name in enumerate(names):
+            c = index[name]
+            planes[c] = planes[c] * w1 + extra[i] * (1.0 - w1)
         paths[need] += n2
 
-    def _totals(self, image, col):
-        """Each detector's total and the film's sum channel from the event channels (in place)."""
-        totals = []
+    def _totals(self, planes, index):
+        """Each detector's total from its event channels (in place)."""
         for d, _ in self.detectors:
-            total = image[..., col[f"{d}.e1"]]
+            total = planes[index[f"{d}.e1"]]
             for e in range(2, self.events + 1):
-                total = total + image[..., col[f"{d}.e{e}"]]
-            totals.append(total)
-        y = totals[0]
-        for total in totals[1:]:
-            y = y + total
-        dr.eval(y, *totals)  # read everything first: the writes below then need no copy
-        for (d, _), total in zip(self.detectors, totals):
-            image[..., col[d]] = total.array
-        image[..., 0] = y.array
+                total = total + planes[index[f"{d}.e{e}"]]
+            planes[index[d]] = total
 
     # ---- the estimator --------------------------------------------------------------------------
     def sample(self, scene, sampler, ray, medium=None, active=True):
