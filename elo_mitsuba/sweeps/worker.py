@@ -39,11 +39,13 @@ _LOCK = threading.Lock()  # dask may run a worker with several threads; Dr.Jit s
 
 def set_up(threads: int | None = None) -> int:
     """Worker set-up: the Dr.Jit thread pool size (so that workers sharing a machine do not
-    oversubscribe its cores) and the variant with our plugins. Returns the thread count."""
+    oversubscribe its cores), freed memory kept for reuse (:func:`~elo_mitsuba.runtime.keep_freed_memory`)
+    and the variant with our plugins. Returns the thread count."""
     import drjit as dr
 
-    from ..runtime import ensure_variant
+    from ..runtime import ensure_variant, keep_freed_memory
 
+    keep_freed_memory()
     if threads:
         dr.set_thread_count(int(threads))
     ensure_variant()
