@@ -12,7 +12,7 @@ from elo_mitsuba.analysis.detector_model import model_images
 from elo_mitsuba.analysis.height_model import (
     STENCIL, HeightModel, blur, corner, corner_mean, corner_t, corners_from_pixels, neighbour, neighbour_t,
 )
-from elo_mitsuba.analysis.inversion import invert_heights, start_heights
+from elo_mitsuba.analysis.inversion import NODES, invert_heights, start_heights
 from elo_mitsuba.analysis.model_gradient import model_gradient
 from elo_mitsuba.analysis.scan_geometry import ScanGeometry
 from elo_mitsuba.constants import DETECTOR_NAMES
@@ -180,8 +180,6 @@ def test_inversion_beats_gradient_integration(mi, steep_case):
 def test_inversion_never_worse_than_start(mi, steep_case):
     """The objective never rises along the history; started at the true heights of the solver's own
     noise-free model images, it stays there (only the regulariser pulls, by < 1 um)."""
-    from elo_mitsuba.analysis.inversion import NODES
-
     geo, img, fl, mg, res, truth = steep_case
     obj = [h["objective"] for h in res.history]
     assert all(b <= a for a, b in zip(obj, obj[1:]))
@@ -190,6 +188,22 @@ def test_inversion_never_worse_than_start(mi, steep_case):
     again = invert_heights(exact, flat, geo, start=truth, iterations=3)
     print(again.stopped, _rmse(again.height, truth))
     assert _rmse(again.height, truth) <= 1e-3
+
+
+def test_a_start_that_fits_to_the_noise_is_kept(mi, steep_case):
+    """Morozov's discrepancy principle at the start: noisy (1 %) model images of the true heights,
+    started at the truth, fit to the noise already, so the truth comes back untouched; without the
+    rule (discrepancy=0) the steps fit the noise and move the heights away from the truth."""
+    geo, _, _, _, _, truth = steep_case
+    exact = HeightModel(geo, nodes=NODES).images(truth)
+    flat = HeightModel(geo, shadows=False, nodes=NODES).images(np.zeros(geo.shape))
+    rng = np.random.default_rng(3)
+    noisy = {n: exact[n] * (1 + 0.01 * rng.standard_normal(geo.shape)) for n in DETECTOR_NAMES}
+    kept = invert_heights(noisy, flat, geo, start=truth, iterations=3)
+    assert kept.stopped.startswith("fits to the noise"), kept.stopped
+    assert np.array_equal(kept.height, truth)
+    moved = invert_heights(noisy, flat, geo, start=truth, iterations=3, discrepancy=0.0)
+    assert len(moved.history) > 1 and _rmse(moved.height, truth) > 1e-4, (moved.stopped, _rmse(moved.height, truth))
 
 
 def test_invert_cli(tmp_path, capsys, monkeypatch):
@@ -217,6 +231,7 @@ def test_invert_cli(tmp_path, capsys, monkeypatch):
                        (("--init", "nope.exr"), "no such file"),
                        (("--alpha", "-1"), "--alpha"),
                        (("--fwhm", "nan"), "--fwhm"),
+                       (("--discrepancy", "-0.5"), "--discrepancy"),
                        (("--iterations", "-1"), "--iterations"),
                        (("--chamber-later",), "needs --second-event")):
         assert main(["invert", "--flat", "flat_plate.exr", "melt_plate.exr", "-o", "h2.exr", *args]) == 2, args

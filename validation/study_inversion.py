@@ -129,9 +129,11 @@ def run(ctx):
         "I2", "Melt plate, blurred and noisy: the inversion's height RMSE <= 1/2 of the model gradient + integration",
         "—", _text(melt), f"melt plate (shipped mesh), {res_melt}², fwhm 0.27 mm, 1 % noise, --quality default",
         verdict_from(melt["inv"] <= 0.5 * melt["model"]),
-        "noise-limited: at 1 % noise per pixel neither method resolves the micrometre relief better (a 3-30x "
-        f"larger regulariser does not help either); the inversion lowers its objective, not the truth error, and "
-        f"ends {100 * (melt['inv'] / melt['model'] - 1):+.0f} % from its start",
+        "noise-limited: the start's modelled images already reproduce the measured ones to within the noise "
+        "(its residual is below the truth's own, noise x sqrt(3/4)), so the images hold nothing more to fit and the "
+        "inversion keeps it (Morozov's discrepancy principle; without it, ten steps fitted the noise and raised the "
+        f"error to 4.3 um); the beam blur itself accounts for only ~1 um of the relief. Ends "
+        f"{100 * (melt['inv'] / melt['model'] - 1):+.0f} % from its start",
         {"eq26": melt["eq26"], "model": melt["model"], "inv": melt["inv"], "seconds": melt["seconds"]}))
 
     steep = _case(renderer(res_hills), hills_xml, "flat_plate", hills_height, layout="zeta50")
@@ -162,7 +164,9 @@ def run(ctx):
         "converged 2nd event: a measurement has no Monte Carlo noise)",
         verdict_from(chamber["inv"] <= 0.5 * chamber["model"], approx=chamber["inv"] > 0.5 * chamber["model"]),
         "the chamber's 2nd event depends on the object in its details (10 % RMS per pixel between the melt "
-        "plate's and the flat's); the rendered estimate carries its own Monte Carlo noise",
+        "plate's and the flat's); the rendered estimate carries its own Monte Carlo noise, which the noise level "
+        "of the discrepancy check does not include: the start is refined although it fits about as well as the "
+        f"truth would, and ends {100 * (chamber['inv'] / chamber['model'] - 1):+.0f} % from it",
         {"eq26": chamber["eq26"], "model": chamber["model"], "inv": chamber["inv"], "flat_later": chamber["flat_later"],
          "seconds": chamber["seconds"]}))
 
