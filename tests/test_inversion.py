@@ -206,6 +206,34 @@ def test_a_start_that_fits_to_the_noise_is_kept(mi, steep_case):
     assert len(moved.history) > 1 and _rmse(moved.height, truth) > 1e-4, (moved.stopped, _rmse(moved.height, truth))
 
 
+def test_monte_carlo_error_of_held_fixed_events_counts_in_the_discrepancy(mi, steep_case):
+    """What the truth would leave includes the Monte Carlo error of later events held fixed from a
+    render: images of the truth with 1 % noise, told a noise level of half that, do not fit at the
+    start (the solver steps); with a later-event error of 2 % of the object's images, more than the
+    noise left out, they do, and the truth is kept. The variance term itself against the formula
+    C^2 (e / I)^2."""
+    from elo_mitsuba.analysis.inversion import _held_fixed_variance
+
+    geo, _, _, _, _, truth = steep_case
+    exact = HeightModel(geo, nodes=NODES).images(truth)
+    flat = HeightModel(geo, shadows=False, nodes=NODES).images(np.zeros(geo.shape))
+    rng = np.random.default_rng(3)
+    noisy = {n: exact[n] * (1 + 0.01 * rng.standard_normal(geo.shape)) for n in DETECTOR_NAMES}
+    told = 0.005 * np.sqrt(2.0)  # half the corrected noise (object and flat each 1 %: the ratio sqrt(2) %)
+    stepped = invert_heights(noisy, flat, geo, start=truth, iterations=1, noise=told)
+    assert len(stepped.history) == 2, stepped.stopped
+    err = {n: 0.02 * np.abs(noisy[n]) for n in DETECTOR_NAMES}
+    kept = invert_heights(noisy, flat, geo, start=truth, iterations=1, noise=told, later_error=err)
+    assert kept.stopped.startswith("fits to the noise"), kept.stopped
+    names = list(DETECTOR_NAMES)
+    img = np.stack([noisy[n] for n in names])
+    flt = np.stack([flat[n] for n in names])
+    c = img / flt
+    w = np.ones_like(c)
+    var = _held_fixed_variance(c, img, flt, w, names, err, None)
+    assert var == pytest.approx(np.mean((c * 0.02) ** 2), rel=1e-12)
+
+
 def test_invert_cli(tmp_path, capsys, monkeypatch):
     """render -> invert end to end (one real process), its EXR's channels and header, and one-line
     refusals (in-process: exit 2, one line, nothing written)."""

@@ -68,6 +68,8 @@ TOL = 5e-3
 #: error from 3.9 to 4.3 um (validation row I2). Not applied between steps: on the steep hills the
 #: first step already reaches 0.78 noise levels while the next five still lower the height error
 #: from 8.7 to 4.9 um (row I3); there the regulariser, not the misfit, separates relief from noise.
+#: With later events held fixed from renders, their Monte Carlo error (``later_error``,
+#: ``flat_later_error``) is part of what the truth would leave.
 DISCREPANCY = 1.0
 #: Weight of the curvature regulariser per noise variance: alpha = ALPHA_PER_NOISE2 sigma^2
 #: (corrected-image units^2 per (slope change per pixel)^2). Chosen on model images of a random
@@ -323,8 +325,23 @@ def start_heights(gradient, geometry) -> np.ndarray:
     return h - h.mean()
 
 
+def _held_fixed_variance(corrected, img, flt, weights, names, later_error, flat_later_error) -> float:
+    """Mean variance, in corrected units, that the Monte Carlo errors of the held-fixed later events
+    give the model's ratio (object over flat): C^2 ((e_o / I)^2 + (e_f / F)^2) over the weighted
+    data, with the measured images standing in for the model's."""
+    total = np.zeros_like(corrected)
+    for errors, base in ((later_error, img), (flat_later_error, flt)):
+        if errors is None:
+            continue
+        e = np.stack([np.asarray(errors[n], float) if n in errors else np.zeros(base.shape[1:]) for n in names])
+        total += np.where(weights > 0, (corrected * e / np.where(base > 0, base, 1.0)) ** 2, 0.0)
+    return float(np.sum(total) / max(np.sum(weights), 1.0))
+
+
 def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwhm_mm: float = 0.0,
-                   later: Mapping | None = None, flat_later: Mapping | None = None, alpha: float | None = None,
+                   later: Mapping | None = None, flat_later: Mapping | None = None,
+                   later_error: Mapping | None = None, flat_later_error: Mapping | None = None,
+                   alpha: float | None = None,
                    noise: float | None = None, iterations: int = ITERATIONS, cg_iterations: int = CG_ITERATIONS,
                    tol: float = TOL, discrepancy: float = DISCREPANCY, time_budget_s: float | None = None,
                    shadows: bool = True,
@@ -345,6 +362,10 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         Beam profile FWHM (mm) of the scan (the header's ``beam_fwhm_mm``).
     later, flat_later : mapping of str to ndarray, optional
         Fixed images of the events >= 2 of the object and of the flat plate (units of the images).
+    later_error, flat_later_error : mapping of str to ndarray, optional
+        Standard errors of ``later`` and ``flat_later`` (a render's own estimate,
+        :mod:`elo_mitsuba.error_estimate`): the Monte Carlo error of the held-fixed events, which
+        the true surface's residual carries too (:data:`DISCREPANCY`).
     alpha : float, optional
         Weight of the curvature regulariser (module docstring); default
         :data:`ALPHA_PER_NOISE2` times the noise variance.
@@ -428,8 +449,10 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                 "step": 0.0, "seconds": time.perf_counter() - t0}]
     if progress:
         progress(history[-1])
-    # the residual RMS of the true surface: the noise, less the datum per pixel the scale takes
-    enough = discrepancy * noise * np.sqrt(1.0 - 1.0 / len(names))
+    # the residual RMS of the true surface: the noise, less the datum per pixel the scale takes,
+    # and the Monte Carlo error of the held-fixed later events in the model's ratio
+    model_var = _held_fixed_variance(corrected, img, flt, weights, names, later_error, flat_later_error)
+    enough = discrepancy * np.sqrt(noise ** 2 * (1.0 - 1.0 / len(names)) + model_var)
     stopped = "iterations"
     if history[-1]["rms"] <= enough:
         stopped, iterations = "fits to the noise at the start", 0

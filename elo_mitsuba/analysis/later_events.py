@@ -25,7 +25,7 @@ PAD_HALF_MM = 100.0
 
 
 def later_events(heights, geometry, *, fwhm_mm: float = 0.0, events: int = 2, quality: str = "reference",
-                 seed: int = 0) -> dict[str, np.ndarray]:
+                 seed: int = 0, with_errors: bool = False):
     """Events >= 2 per detector (H, W) of the surface ``heights`` (mm, scan grid) in the ATHENE-like
     chamber, rendered with the detectors and beam of ``geometry``.
 
@@ -59,4 +59,21 @@ def later_events(heights, geometry, *, fwhm_mm: float = 0.0, events: int = 2, qu
         for name, disc in geometry.detectors.items():
             s.set_detector(name, center=disc.center, normal=disc.normal, radius=disc.radius)
         r = s.render(quality=quality, events=int(events), seed=seed, progress=False)
-    return {n: np.asarray(r.channels[n], float) - np.asarray(r.channels[f"{n}.e1"], float) for n in DETECTOR_NAMES}
+    later = {n: np.asarray(r.channels[n], float) - np.asarray(r.channels[f"{n}.e1"], float) for n in DETECTOR_NAMES}
+    if not with_errors:
+        return later
+    return later, later_errors(r, DETECTOR_NAMES, int(events))
+
+
+def later_errors(result, names, events: int) -> dict[str, np.ndarray]:
+    """Per detector the standard error of its events >= 2 in ``result`` (a RenderResult): the
+    events' estimated errors in quadrature (zero for a channel without sampling error)."""
+    out = {}
+    for n in names:
+        var = np.zeros(result.channels[n].shape)
+        for k in range(2, events + 1):
+            e = result.errors.get(f"{n}.e{k}")
+            if e is not None:
+                var += np.asarray(e, float) ** 2
+        out[n] = np.sqrt(var)
+    return out

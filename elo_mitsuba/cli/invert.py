@@ -153,13 +153,13 @@ def run(args) -> int:
         from ..analysis.model_gradient import model_gradient
 
         start = model_gradient(scan.images, scan.flats, geometry, flat_second_event=share)
-    later = flat_later
+    later, later_error = flat_later, None
     if args.chamber_later:
         from ..analysis.later_events import later_events
 
         h0 = inversion.start_heights(start, geometry) if hasattr(start, "dzdx") else start
         print("rendering the start surface in the chamber for its later events ...", file=sys.stderr, flush=True)
-        later = later_events(h0, geometry, fwhm_mm=fwhm)
+        later, later_error = later_events(h0, geometry, fwhm_mm=fwhm, with_errors=True)
 
     def progress(step):
         print(f"  step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
@@ -167,7 +167,7 @@ def run(args) -> int:
 
     res = inversion.invert_heights(
         scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=flat_later,
-        alpha=args.alpha, noise=args.noise, shadows=not args.no_shadows,
+        later_error=later_error, alpha=args.alpha, noise=args.noise, shadows=not args.no_shadows,
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
