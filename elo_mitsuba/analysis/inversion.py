@@ -69,8 +69,12 @@ TOL = 5e-3
 #: first step already reaches 0.78 noise levels while the next five still lower the height error
 #: from 8.7 to 4.9 um (row I3); there the regulariser, not the misfit, separates relief from noise.
 #: With later events held fixed from renders, their Monte Carlo error (``later_error``,
-#: ``flat_later_error``) is part of what the truth would leave.
-DISCREPANCY = 1.0
+#: ``flat_later_error``) is part of what the truth would leave. The factor is 5 % above 1, as the
+#: principle wants it (tau > 1): neither the noise level (its estimate from second differences
+#: was 0.6 % high on the melt plate) nor the model (its own accuracy, :data:`MIN_NOISE`) is exact;
+#: at exactly 1 the melt plate at 1500^2, whose start leaves 0.01236 against 0.01232, was refined
+#: from 1.6 to 2.0 um.
+DISCREPANCY = 1.05
 #: Weight of the curvature regulariser per noise variance: alpha = ALPHA_PER_NOISE2 sigma^2
 #: (corrected-image units^2 per (slope change per pixel)^2). Chosen on model images of a random
 #: relief (0.3-1 % noise, beam FWHM 0-3 px) and checked on renders: a tenth to ten times it moves

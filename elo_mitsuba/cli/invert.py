@@ -61,7 +61,7 @@ def add_parser(subparsers):
                      help="stop when a step lowers the objective by less than this fraction (default 5e-3)")
     sol.add_argument("--discrepancy", type=float, default=None, metavar="F",
                      help="keep the start when its misfit RMS is <= F x the noise x sqrt(3/4), what the true "
-                          "surface would leave (Morozov's discrepancy principle; default 1, 0 = off)")
+                          "surface would leave (Morozov's discrepancy principle; default 1.05, 0 = off)")
     sol.add_argument("--time-budget", type=positive_float, default=None, metavar="S",
                      help="stop after the step that passes S seconds")
     sol.add_argument("--alpha", type=float, default=None, metavar="A",
