@@ -152,7 +152,8 @@ def run(ctx):
         "—", _text(masked), f"hills, {res_hills}², layout zeta75, fwhm 0.27 mm, 1 % noise, --quality default",
         verdict_from(masked["inv"] <= 0.5 * masked["model"]),
         "the model gradient must drop pixels with a hidden detector or a shadow and fill them by integration; the "
-        "inversion predicts them",
+        "inversion predicts them. At full resolution alone it stalled far above the noise (168 um after 10 steps); "
+        "coarse to fine (1/8 .. 1/1) reaches it",
         {"eq26": masked["eq26"], "model": masked["model"], "inv": masked["inv"], "seconds": masked["seconds"]}))
 
     chamber = _case(renderer(res_melt), "melt_chamber", "athene_flat", melt_truth, events=2, later=True,

@@ -25,7 +25,7 @@ stops when a step gains < --tol, after --iterations steps or after --time-budget
 
 Where it wins (validation/REPORT.md, rows I1-I5; 0.27 mm beam blur, 1 % noise): steep relief,
 masked and shadowed pixels (a per-pixel fit must drop them; here the model predicts them): height
-error 41 -> 4.9 um on hills with slopes to 1.26, 541 -> 168 um with a third of them shadowed. On a
+error 41 -> 4.9 um on hills with slopes to 1.26, 541 -> 82 um with a third of them shadowed. On a
 nearly flat, noisy surface (the melt plate) the noise, not the model, limits the height: the
 integrated model gradient (3.9 um) already fits the images to their noise and is returned as it is.
 
@@ -56,7 +56,11 @@ def add_parser(subparsers):
     sol.add_argument("--init", metavar="GRAD.exr|HEIGHT.(exr|npy)",
                      help="start: a gradient EXR ('elo-mitsuba gradient') to integrate, or heights (mm, scan grid); "
                           "default: the model gradient of the same images")
-    sol.add_argument("--iterations", type=int, default=None, metavar="N", help="Gauss-Newton steps at most (default 10)")
+    sol.add_argument("--iterations", type=int, default=None, metavar="N",
+                     help="Gauss-Newton steps at most, per scale (default 10)")
+    sol.add_argument("--scales", type=int, default=None, metavar="K",
+                     help="when full resolution alone does not fit the images to their noise, solve coarse to "
+                          "fine over K scales (each half the resolution; default 4, 1 = full resolution only)")
     sol.add_argument("--tol", type=float, default=None, metavar="F",
                      help="stop when a step lowers the objective by less than this fraction (default 5e-3)")
     sol.add_argument("--discrepancy", type=float, default=None, metavar="F",
@@ -128,6 +132,8 @@ def run(args) -> int:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
     if args.iterations is not None and args.iterations < 0:
         raise EloInputError(f"--iterations {args.iterations}: must be >= 0")
+    if args.scales is not None and args.scales < 1:
+        raise EloInputError(f"--scales {args.scales}: must be >= 1")
     for flag in ("tol", "alpha", "fwhm", "discrepancy"):
         v = getattr(args, flag)
         if v is not None and not (np.isfinite(v) and v >= 0):
@@ -162,12 +168,14 @@ def run(args) -> int:
         later, later_error = later_events(h0, geometry, fwhm_mm=fwhm, with_errors=True)
 
     def progress(step):
-        print(f"  step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
+        at = f"scale 1/{step['scale']} " if step.get("scale", 1) > 1 else ""
+        print(f"  {at}step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
               f"{step['seconds']:.1f} s", file=sys.stderr, flush=True)
 
     res = inversion.invert_heights(
         scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=flat_later,
-        later_error=later_error, alpha=args.alpha, noise=args.noise, shadows=not args.no_shadows,
+        later_error=later_error, alpha=args.alpha,
+        scales=inversion.SCALES if args.scales is None else args.scales, noise=args.noise, shadows=not args.no_shadows,
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
