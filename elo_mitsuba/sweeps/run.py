@@ -185,7 +185,8 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
         The ``.zarr`` store. An existing store of the same spec is resumed (points done are
         skipped, failed ones retried); one of another spec is refused unless ``overwrite``.
     workers : int, optional
-        Local Dask worker processes (default 1; 0 = in this process, without Dask). The local
+        Local Dask worker processes (default 1; 0 = in this process, without Dask, which then keeps
+        freed memory for reuse as a worker does, :func:`~elo_mitsuba.runtime.keep_freed_memory`). The local
         cluster starts its workers by importing the main module: call this under
         ``if __name__ == "__main__":`` in a script.
     scheduler : str, optional
