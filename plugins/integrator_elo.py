@@ -226,6 +226,9 @@ class EloIntegrator(mi.SamplingIntegrator):
             plane = planes[self.channel_names().index(name)]
             total = plane.copy() if total is None else total + plane
         h, w = planes.shape[1:]
+        if dr.backend_v(buffer) != dr.JitBackend.LLVM:
+            # on a GPU the planes are a host copy that the filter and totals changed
+            buffer = type(buffer)(np.ascontiguousarray(planes).ravel())
         return film_tensor(buffer, planes.shape[0], h, w, first=total)
 
     def render_planes(self, scene, sensor=0, seed=0, spp=0):
