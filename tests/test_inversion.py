@@ -279,6 +279,26 @@ def test_coarse_to_fine_where_full_resolution_does_not_fit(mi):
     assert "coarse" not in default.stopped and np.array_equal(default.height, alone.height)
 
 
+def test_later_event_errors_from_a_render_with_error_channels(tmp_path):
+    """A flat-plate render in the chamber written with --error-channels carries the standard
+    errors of its events >= 2 (the render's own estimate) for the discrepancy check; without
+    them there is nothing to read."""
+    from elo_mitsuba.analysis.io import read_later_errors
+    from elo_mitsuba.cli import main
+    from elo_mitsuba.exr import read_exr
+
+    base = ["render", "athene_flat", "--resolution", "16", "--events", "2", "--quiet"]
+    assert main([*base, "-o", str(tmp_path / "e.exr"), "--error-channels"]) == 0
+    assert main([*base, "-o", str(tmp_path / "plain.exr")]) == 0
+    errs = read_later_errors(tmp_path / "e.exr")
+    channels, _ = read_exr(tmp_path / "e.exr")
+    assert sorted(errs) == sorted(DETECTOR_NAMES)
+    for n in DETECTOR_NAMES:
+        np.testing.assert_array_equal(errs[n], np.abs(channels[f"{n}.e2.err"].astype(float)))
+        assert errs[n].max() > 0
+    assert read_later_errors(tmp_path / "plain.exr") is None
+
+
 def test_invert_cli(tmp_path, capsys, monkeypatch):
     """render -> invert end to end (one real process), its EXR's channels and header, and one-line
     refusals (in-process: exit 2, one line, nothing written)."""

@@ -156,6 +156,21 @@ def read_later_events(path, shape) -> tuple[dict, dict]:
     return later, share
 
 
+def read_later_errors(path) -> dict | None:
+    """Standard errors of the events >= 2 per detector of a render written with
+    ``--error-channels`` (channels ``<id>.e<k>.err``, k >= 2, added in quadrature: their
+    correlation left out), or None when the file has no such channels."""
+    channels, meta = read_exr(path)
+    events = int(meta.get("events", 1))
+    out = {}
+    for n in DETECTOR_NAMES:
+        errs = [channels.get(f"{n}.e{k}.err") for k in range(2, events + 1)]
+        if not errs or any(e is None for e in errs):
+            return None
+        out[n] = np.sqrt(sum(np.asarray(e, float) ** 2 for e in errs))
+    return out
+
+
 def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, str]) -> None:
     """Refuse detector images no gradient can come from, naming the file and what is wrong.
 

@@ -77,7 +77,8 @@ def add_parser(subparsers):
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
     sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
-                          "fixed in the model of the flat (and of the object, unless --chamber-later)")
+                          "fixed in the model of the flat (and of the object, unless --chamber-later); written "
+                          "with --error-channels, their Monte Carlo error counts in --discrepancy")
     sol.add_argument("--chamber-later", action="store_true",
                      help="with --second-event: render the start surface in the ATHENE-like chamber (--quality "
                           "reference, events 2) and hold the object's own later events fixed; halves the height "
@@ -154,12 +155,17 @@ def run(args) -> int:
     from ..analysis.io import read_later_events
 
     flat_later, share = read_later_events(args.second_event, scan.shape) if args.second_event else (None, None)
+    flat_later_error = None
+    if args.second_event:
+        from ..analysis.io import read_later_errors
+
+        flat_later_error = read_later_errors(args.second_event)
     t0 = time.perf_counter()
     if start is None and share is not None:  # the model gradient with the same later events removed
         from ..analysis.model_gradient import model_gradient
 
         start = model_gradient(scan.images, scan.flats, geometry, flat_second_event=share)
-    later, later_error = flat_later, None
+    later, later_error = flat_later, flat_later_error
     if args.chamber_later:
         from ..analysis.later_events import later_events
 
@@ -174,7 +180,7 @@ def run(args) -> int:
 
     res = inversion.invert_heights(
         scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=flat_later,
-        later_error=later_error, alpha=args.alpha,
+        later_error=later_error, flat_later_error=flat_later_error, alpha=args.alpha,
         scales=inversion.SCALES if args.scales is None else args.scales, noise=args.noise, shadows=not args.no_shadows,
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
