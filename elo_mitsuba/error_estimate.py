@@ -157,3 +157,23 @@ def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float, scratch: np.nda
                "p99_rel": float(np.percentile(rel, 99, overwrite_input=True)),
                "rms_abs": float(np.sqrt(sum_err2 / n))}
     return mean, err, summary
+
+
+def later_events_error(errors, names, events: int) -> dict | None:
+    """Per detector the standard error of its events >= 2 together, from the per-channel errors
+    ``errors`` (``<id>.e<k>`` -> ndarray, k >= 2; a channel without an entry has none): their
+    errors added in quadrature, their correlation left out. None when no such channel has an
+    error (nothing was estimated)."""
+    out, found = {}, False
+    for n in names:
+        var = None
+        for k in range(2, int(events) + 1):
+            e = errors.get(f"{n}.e{k}")
+            if e is not None:
+                found = True
+                var = np.asarray(e, float) ** 2 if var is None else var + np.asarray(e, float) ** 2
+        out[n] = var
+    if not found:
+        return None
+    shape = next(v.shape for v in out.values() if v is not None)
+    return {n: np.zeros(shape) if v is None else np.sqrt(v) for n, v in out.items()}

@@ -52,14 +52,15 @@ def _case(render, scene, flat_scene, truth_fn, *, layout="zeta25", events=1, noi
     t0 = time.perf_counter()
     extra = {}
     if later:
-        from elo_mitsuba.analysis.later_events import later_errors, later_events
+        from elo_mitsuba.analysis.later_events import later_events
+        from elo_mitsuba.error_estimate import later_events_error
 
         # the flat's later events for the object too, then the object's own: its start surface
         # rendered in the chamber
         first = invert_heights(img, fl, geo, start=mg, fwhm_mm=fwhm, later=later_f, flat_later=later_f)
         extra["flat_later"] = _rmse(first.height, truth)
         later_o, err_o = later_events(start_heights(mg, geo), geo, fwhm_mm=fwhm, quality="reference", with_errors=True)
-        extra["model_errors"] = (err_o, later_errors(flat, NAMES, events))
+        extra["model_errors"] = (err_o, later_events_error(flat.errors, NAMES, events))
     errs = extra.pop("model_errors", (None, None))
     inv = invert_heights(img, fl, geo, start=mg, fwhm_mm=fwhm, later=later_o or later_f, flat_later=later_f,
                          later_error=errs[0], flat_later_error=errs[1])

@@ -526,7 +526,6 @@ def _solve_scale(data, geometry, h0, start_height, *, fwhm_mm, alpha, noise, ite
     names = tuple(geometry.detectors)
     images, flats, later, flat_later = data.images, data.flats, data.later, data.flat_later
     later_error, flat_later_error = data.later_error, data.flat_later_error
-    time_budget_s = budget
     g0 = corners_from_pixels(h0)
 
     dx, dy = pixel_size(shape, geometry.field_mm)
@@ -592,7 +591,7 @@ def _solve_scale(data, geometry, h0, start_height, *, fwhm_mm, alpha, noise, ite
         if gain < tol:
             stopped = "converged"
             break
-        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+        if budget is not None and time.perf_counter() - t0 > budget:
             stopped = "time budget"
             break
         if it < iterations:

@@ -158,17 +158,13 @@ def read_later_events(path, shape) -> tuple[dict, dict]:
 
 def read_later_errors(path) -> dict | None:
     """Standard errors of the events >= 2 per detector of a render written with
-    ``--error-channels`` (channels ``<id>.e<k>.err``, k >= 2, added in quadrature: their
-    correlation left out), or None when the file has no such channels."""
+    ``--error-channels`` (channels ``<id>.e<k>.err``, k >= 2,
+    :func:`~elo_mitsuba.error_estimate.later_events_error`), or None when it has none."""
+    from ..error_estimate import later_events_error
+
     channels, meta = read_exr(path)
-    events = int(meta.get("events", 1))
-    out = {}
-    for n in DETECTOR_NAMES:
-        errs = [channels.get(f"{n}.e{k}.err") for k in range(2, events + 1)]
-        if not errs or any(e is None for e in errs):
-            return None
-        out[n] = np.sqrt(sum(np.asarray(e, float) ** 2 for e in errs))
-    return out
+    errors = {name[:-len(".err")]: v for name, v in channels.items() if name.endswith(".err")}
+    return later_events_error(errors, DETECTOR_NAMES, int(meta.get("events", 1)))
 
 
 def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, str]) -> None:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
+from ..error_estimate import later_events_error
 from ..errors import EloInputError
 from ..grid import pixel_size
 
@@ -62,18 +63,4 @@ def later_events(heights, geometry, *, fwhm_mm: float = 0.0, events: int = 2, qu
     later = {n: np.asarray(r.channels[n], float) - np.asarray(r.channels[f"{n}.e1"], float) for n in DETECTOR_NAMES}
     if not with_errors:
         return later
-    return later, later_errors(r, DETECTOR_NAMES, int(events))
-
-
-def later_errors(result, names, events: int) -> dict[str, np.ndarray]:
-    """Per detector the standard error of its events >= 2 in ``result`` (a RenderResult): the
-    events' estimated errors in quadrature (zero for a channel without sampling error)."""
-    out = {}
-    for n in names:
-        var = np.zeros(result.channels[n].shape)
-        for k in range(2, events + 1):
-            e = result.errors.get(f"{n}.e{k}")
-            if e is not None:
-                var += np.asarray(e, float) ** 2
-        out[n] = np.sqrt(var)
-    return out
+    return later, later_events_error(r.errors, DETECTOR_NAMES, int(events))
