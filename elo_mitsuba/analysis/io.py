@@ -323,14 +323,20 @@ INVERSION_CHANNELS = ("height", "mask", "misfit", "start_height", "scale")
 def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | None = None,
                     overwrite: bool = False) -> Path:
     """Write an :class:`~.inversion.InversionResult`: ``.exr`` with channels height (mm), mask
-    (1 = untrusted: the model does not reproduce the pixel's images), misfit, start_height, scale
-    and ``model.<detector>`` (the modelled corrected images), the scan geometry and the solver's
-    history in the header; ``.npy`` / ``.tif`` the height alone (as :func:`write_height`)."""
+    (1 = untrusted: the model does not reproduce the pixel's images), misfit, start_height, scale,
+    height_error (mm, the standard error the noise leaves, when computed) and ``model.<detector>``
+    (the modelled corrected images), the scan geometry, the solver's history and
+    ``height_error_rms_mm`` in the header; ``.npy`` / ``.tif`` the height alone (as
+    :func:`write_height`)."""
     path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
     meta = {**dict(metadata or {}), **geometry.as_dict()}
+    if result.height_error is not None:
+        meta["height_error_rms_mm"] = result.height_error_rms
     if path.suffix.lower() != ".exr":
         return write_height(path, result.height, untrusted, meta, overwrite=overwrite)
     channels = {"height": result.height, "mask": np.asarray(untrusted, np.float32), "misfit": result.misfit,
                 "start_height": result.start_height, "scale": result.scale}
+    if result.height_error is not None:
+        channels["height_error"] = result.height_error
     channels.update({f"model.{n}": v for n, v in result.predicted.items()})
     return write_exr(path, channels, meta, overwrite=overwrite)

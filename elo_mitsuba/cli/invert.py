@@ -32,8 +32,10 @@ integrated model gradient (3.9 um) already fits the images to their noise and is
 Output: .exr with channels height (mm, where each pixel's beam lands; row 0 = +y edge, columns
 towards +x), mask (1 = untrusted: misfit above 4 noise levels), misfit (RMS over the detectors,
 corrected units), start_height, scale (per-pixel material/current factor) and model.<detector>
-(the modelled corrected images); the geometry and the solver's history in the header. .npy/.tif:
-the height alone.
+(the modelled corrected images), height_error (mm: the standard error that the images' noise
+leaves in each height, relative to the mean, from --uncertainty-probes noise draws propagated
+through the solution; model and regulariser bias not included); the geometry, the solver's history
+and height_error_rms_mm in the header. .npy/.tif: the height alone.
 """
 
 EPILOG = """\
@@ -74,6 +76,10 @@ def add_parser(subparsers):
                      help="noise (std) of the corrected images; default: estimated from the images")
     sol.add_argument("--fwhm", type=float, default=None, metavar="MM",
                      help="beam profile FWHM in mm (default: the header's beam_fwhm_mm, else 0)")
+    sol.add_argument("--uncertainty-probes", type=int, default=None, metavar="N",
+                     help="noise draws propagated through the solution for the height_error channel (the "
+                          "standard error the images' noise leaves in each height; each costs about one step; "
+                          "default 8, 0 = skip)")
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
     sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
@@ -133,6 +139,8 @@ def run(args) -> int:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
     if args.iterations is not None and args.iterations < 0:
         raise EloInputError(f"--iterations {args.iterations}: must be >= 0")
+    if args.uncertainty_probes is not None and args.uncertainty_probes < 0:
+        raise EloInputError(f"--uncertainty-probes {args.uncertainty_probes}: must be >= 0")
     if args.scales is not None and args.scales < 1:
         raise EloInputError(f"--scales {args.scales}: must be >= 1")
     for flag in ("tol", "alpha", "fwhm", "discrepancy"):
@@ -185,7 +193,8 @@ def run(args) -> int:
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
-        time_budget_s=args.time_budget, progress=progress)
+        time_budget_s=args.time_budget, progress=progress,
+        uncertainty_probes=inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
     meta = {"method": "inversion", "beam_fwhm_mm": fwhm, "noise": res.noise, "alpha": res.alpha,
             "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
             "grid": "scan grid: pixel (i, j) holds the height where its beam lands",
@@ -201,6 +210,9 @@ def run(args) -> int:
           f"{time.perf_counter() - t0:.1f} s; misfit rms {res.history[0]['rms']:.4g} -> {res.history[-1]['rms']:.4g} "
           f"(noise {res.noise:.3g}); height range {h.max() - h.min():.4g} mm; "
           f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)")
+    if res.height_error is not None:
+        print(f"height error from the noise alone: {1000 * res.height_error_rms:.3g} um RMS "
+              f"({1000 * float(res.height_error.max()):.3g} um at most; channel height_error)")
     if args.preview:
         from ..analysis.plots import preview_height
 
