@@ -28,6 +28,9 @@ masked and shadowed pixels (a per-pixel fit must drop them; here the model predi
 error 41 -> 4.9 um on hills with slopes to 1.26, 541 -> 82 um with a third of them shadowed. On a
 nearly flat, noisy surface (the melt plate) the noise, not the model, limits the height: the
 integrated model gradient (3.9 um) already fits the images to their noise and is returned as it is.
+How much of the height the noise leaves uncertain is written with it (height_error, below; on the
+melt plate 4.3 um RMS, and half of it is the flat's noise: a noise-free flat, simulated or averaged
+from many recordings, gains more than any solver can).
 
 Output: .exr with channels height (mm, where each pixel's beam lands; row 0 = +y edge, columns
 towards +x), mask (1 = untrusted: misfit above 4 noise levels), misfit (RMS over the detectors,
@@ -79,7 +82,7 @@ def add_parser(subparsers):
     sol.add_argument("--uncertainty-probes", type=int, default=None, metavar="N",
                      help="noise draws propagated through the solution for the height_error channel (the "
                           "standard error the images' noise leaves in each height; each costs about one step; "
-                          "default 8, 0 = skip)")
+                          "default 4, 0 = skip)")
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
     sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
