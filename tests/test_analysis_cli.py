@@ -187,3 +187,51 @@ def test_help_texts_teach(capsys):
         assert exc.value.code == 0
         text = capsys.readouterr().out
         assert all(w in text for w in words), cmd
+
+
+def test_several_flats_are_averaged(scene, tmp_path, capsys):
+    """Repeated --flat: the mean of the recordings divides the object, so the flat's share of the
+    noise falls as 1/N: with 1 % on the object and on each flat, the Eq. 26 gradient's noise
+    with 4 flats is sqrt((1 + 1/4) / 2) = 0.79 of that with one."""
+    from elo_mitsuba.analysis import mean_flat
+
+    d, _, _ = scene
+    obj, m = read_exr(d / "obj.exr")
+    flat, _ = read_exr(d / "flat.exr")
+    obj, flat = ({n: c[n] for n in DETECTOR_NAMES} for c in (obj, flat))
+    rng = np.random.default_rng(5)
+    noisy = {n: v * (1 + 0.01 * rng.standard_normal(v.shape)) for n, v in obj.items()}
+    write_exr(tmp_path / "obj.exr", noisy, m)
+    flats = []
+    for i in range(4):
+        f = {n: v * (1 + 0.01 * rng.standard_normal(v.shape)) for n, v in flat.items()}
+        write_exr(tmp_path / f"flat{i}.exr", f, m)
+        flats.append(f)
+    clean = surface_gradient(obj, flat, FIELD, DH, DW)
+    errors = {}
+    for n_flats in (1, 4):
+        out = tmp_path / f"g{n_flats}.exr"
+        args = sum((["--flat", str(tmp_path / f"flat{i}.exr")] for i in range(n_flats)), [])
+        assert main(["gradient", "--method", "eq26", *args, str(tmp_path / "obj.exr"), "-o", str(out)]) == 0
+        ch, hdr = read_exr(out)
+        # what was applied is the mean of the recordings, and the header names every one
+        lib = surface_gradient(noisy, mean_flat(flats[:n_flats]), FIELD, DH, DW)
+        np.testing.assert_allclose(ch["dzdx"], lib.dzdx, rtol=1e-5, atol=1e-6)
+        src = hdr["sources"]["flat"]
+        assert (src if n_flats > 1 else [src]) == [str(tmp_path / f"flat{i}.exr") for i in range(n_flats)]
+        good = ~(lib.mask | clean.mask)
+        errors[n_flats] = np.sqrt(np.mean(np.r_[(lib.dzdx - clean.dzdx)[good], (lib.dzdy - clean.dzdy)[good]] ** 2))
+    capsys.readouterr()
+    assert errors[4] / errors[1] == pytest.approx(np.sqrt(1.25 / 2), rel=0.04)  # seeds 5-8: 0.780-0.801
+    # recordings that do not describe the object's scan, or each other, are refused in one line
+    write_exr(tmp_path / "flat80.exr", flat, {**m, "field_mm": [80.0, 80.0]})
+    small = {n: v[:-2] for n, v in flat.items()}
+    np.save(tmp_path / "r.npy", flat["right"])
+    for extra, expected in ((["--flat", str(tmp_path / "flat80.exr")], "flat80.exr: flat-plate field_mm"),
+                            (["--flat-right", str(tmp_path / "r.npy")], "missing left, back, front")):
+        assert main(["gradient", "--method", "eq26", "--flat", str(tmp_path / "flat0.exr"), *extra,
+                     str(tmp_path / "obj.exr"), "-o", str(tmp_path / "bad.exr")]) == 2
+        err = capsys.readouterr().err
+        assert expected in err and err.count("\n") == 1, err
+    with pytest.raises(Exception, match=r"recordings differ in shape \(1: 48x40, 2: 48x38 px\)"):
+        mean_flat([flat, small])

@@ -339,11 +339,14 @@ def test_invert_cli(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for scene in ("melt_plate", "flat_plate"):
         assert main(["render", scene, "-o", f"{scene}.exr", "--resolution", "48", "--quiet"]) == 0
-    p = subprocess.run([sys.executable, "-m", "elo_mitsuba", "invert", "--flat", "flat_plate.exr", "melt_plate.exr",
-                        "-o", "h.exr", "--iterations", "2", "--preview", "h.png"], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=300)
+    assert main(["render", "flat_plate", "-o", "flat2.exr", "--resolution", "48", "--seed", "1", "--quiet"]) == 0
+    p = subprocess.run([sys.executable, "-m", "elo_mitsuba", "invert", "--flat", "flat_plate.exr", "--flat", "flat2.exr",
+                        "melt_plate.exr", "-o", "h.exr", "--iterations", "2", "--preview", "h.png"], capture_output=True,
+                       text=True, cwd=tmp_path, timeout=300)
     assert p.returncode == 0, p.stderr
+    assert "flat plate: the mean of 2 recordings" in p.stdout
     channels, meta = read_exr(tmp_path / "h.exr")
+    assert meta["sources"]["flat"] == ["flat_plate.exr", "flat2.exr"]
     assert {"height", "mask", "misfit", "start_height", "scale", "model.right", "height_error"} <= set(channels)
     assert meta["method"] == "inversion" and meta["detectors"] and len(meta["history"]) >= 1
     err = channels["height_error"].astype(float)

@@ -144,8 +144,9 @@ class FacetModel:
         """N_1,d/N_0 per normal and detector: ``out[i][k]`` (Float) for the i-th of ``normals``
         (a list of unit Vector3f) at the landing ``points`` (Point3f) of beams ``beam_dirs``
         (Vector3f, directions of travel). Several normals share the geometry of each node.
-        ``visible`` (optional, per detector a Float of J x width, node-major) weights each node's
-        contribution (0 where the surface hides that node from the landing point)."""
+        ``visible`` (optional, per detector a Bool of J x width, node-major) keeps each node's
+        contribution where it is True (False where the surface hides that node from the landing
+        point)."""
         from ..plugins.bsdf_elo_bse import world_eval
 
         dr, mi = self.dr, self.mi
@@ -170,7 +171,7 @@ class FacetModel:
                 d = v * dr.sqrt(inv_r2)
                 solid = dr.abs(dr.dot(d, nd)) * w * inv_r2  # |cos psi| dA / r^2
                 if visible is not None:
-                    solid = solid * dr.gather(mi.Float, visible[k], j * width + lane)
+                    solid = dr.select(dr.gather(mi.Bool, visible[k], j * width + lane), solid, 0.0)
                 for i, setup in enumerate(setups):
                     acc[i * n_det + k] = dr.fma(world_eval(setup, d), solid, acc[i * n_det + k])
             return (j + 1, *acc)

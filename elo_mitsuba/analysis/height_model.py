@@ -177,7 +177,7 @@ def blur(image, sigma_px) -> np.ndarray:
 
 # ---- visibility ---------------------------------------------------------------------------------
 def visibility(geometry, heights, points, targets) -> np.ndarray:
-    """1 where the ray from each landing point to each target clears the height field, else 0.
+    """True where the ray from each landing point to each target clears the height field.
 
     Parameters
     ----------
@@ -193,7 +193,8 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
 
     Returns
     -------
-    ndarray (K, J, H, W) float32
+    ndarray (K, J, H, W) bool
+        (a byte per node and pixel: at 1500^2 with 4 discs of 16 nodes, 144 MB)
 
     The ray is marched along its ground track in one symbolic Dr.Jit loop per target, in steps of
     at least :data:`SHADOW_STEP_PX` pixels and, where it is high above the surface, as long as the
@@ -208,7 +209,7 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
     h = np.asarray(heights, float)
     shape = h.shape
     targets = np.asarray(targets, float)
-    out = np.ones(targets.shape[:2] + shape, np.float32)
+    out = np.ones(targets.shape[:2] + shape, bool)
     top = float(h.max())
     if top - float(h.min()) <= 0.0:
         return out  # a plane shadows nothing
@@ -266,7 +267,7 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
 
             _, blocked = dr.while_loop((dr.full(Float, step, dr.width(px)), blocked), cond, body,
                                        label="elo_shadow_march")
-            out[k, j] = np.asarray(dr.select(blocked, 0.0, 1.0), np.float32).reshape(shape)
+            out[k, j] = ~np.asarray(blocked, bool).reshape(shape)
     return out
 
 
@@ -283,8 +284,8 @@ class Linearisation:
         The model images: ``blur(sharp) + later``.
     partials : ndarray (4, K, H, W) or None
         d sharp / d g of each pixel's corners (:data:`STENCIL` order).
-    visible : ndarray (K, J, H, W) or None
-        The shadowing held fixed: 1 where the surface lets the landing point see node j of
+    visible : ndarray of bool (K, J, H, W) or None
+        The shadowing held fixed: True where the surface lets the landing point see node j of
         detector k's disc rule (None: no shadowing modelled).
     """
 
@@ -369,7 +370,8 @@ class HeightModel:
                    "bl": (-0.5 * dx, -0.5 * dy), "br": (0.5 * dx, -0.5 * dy)}
         aims = {c: (flat(ax + ox), flat(ay + oy)) for c, (ox, oy) in offsets.items()}
         centre = (flat(ax), flat(ay))
-        vis = None if visible is None else [flat(v) for v in visible]  # (J, H, W) per detector, node-major
+        # (J, H, W) per detector, node-major
+        vis = None if visible is None else [mi.Bool(np.ascontiguousarray(v, bool).ravel()) for v in visible]
         gains = [float(v) for v in self.gains]
 
         def evaluate(hv):

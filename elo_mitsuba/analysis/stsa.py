@@ -11,7 +11,7 @@ Untrusted pixels hold 0 in the returned images, never NaN or Inf.
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -36,6 +36,39 @@ def check_images(images: Mapping, what: str = "images", names=DETECTOR_NAMES) ->
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
         raise EloInputError(f"{what}: detector images must be 2-D and of one shape, got {sorted(shapes)}")
     return out
+
+
+def mean_flat(recordings: Sequence[Mapping], what: str = "flat-plate images") -> dict:
+    """The mean of several recordings of the flat plate, per detector.
+
+    The flat divides every object pixel (Eq. 15), so its noise enters the corrected images as
+    much as the object's own: averaging N recordings (same detectors, beam and field) divides its
+    share of the variance by N. On the melt plate at 1 % noise the flat's noise is about half of
+    the integrated height error (validation/REPORT.md, row I6). A recording may differ from the
+    others by a constant factor (beam current): the mean is still the image of a flat plate.
+
+    Parameters
+    ----------
+    recordings : sequence of mappings of str to ndarray (H, W)
+        One mapping ``{detector: image}`` per recording, all of one shape and one unit.
+    what : str
+        How messages name them.
+
+    Returns
+    -------
+    dict of str to ndarray (H, W)
+        The mean image of each detector (float64).
+    """
+    sets = [check_images(r, f"{what} (recording {i + 1})" if len(recordings) > 1 else what)
+            for i, r in enumerate(recordings)]
+    if not sets:
+        raise EloInputError(f"{what}: no recordings given")
+    shapes = [next(iter(s.values())).shape for s in sets]
+    if len(set(shapes)) != 1:
+        raise EloInputError(f"{what}: the recordings differ in shape "
+                            f"({', '.join(f'{i + 1}: {w}x{h}' for i, (h, w) in enumerate(shapes))} px); "
+                            "record every flat with the object's resolution")
+    return {n: np.mean([s[n] for s in sets], axis=0) for n in DETECTOR_NAMES}
 
 
 def stsa_correct(images: Mapping, flats: Mapping, *, min_flat_fraction: float = MIN_FLAT_FRACTION):

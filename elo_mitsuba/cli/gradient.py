@@ -81,9 +81,12 @@ def add_scan_arguments(p):
     for n in DETECTOR_NAMES:
         src.add_argument(f"--{n}", metavar="FILE", help=f"{n} detector image (EXR/TIFF/NPY)")
     flat = p.add_argument_group("STSA correction (flat plate)")
-    flat.add_argument("--flat", metavar="FLAT.exr", help="flat-plate EXR with channels right, left, back, front")
+    flat.add_argument("--flat", metavar="FLAT.exr", action="append",
+                      help="flat-plate EXR with channels right, left, back, front; repeat it for several "
+                           "recordings: their mean is used (the flat's noise falls as 1/sqrt(N))")
     for n in DETECTOR_NAMES:
-        flat.add_argument(f"--flat-{n}", metavar="FILE", help=f"flat-plate image of the {n} detector")
+        flat.add_argument(f"--flat-{n}", metavar="FILE", action="append",
+                          help=f"flat-plate image of the {n} detector (repeatable, as --flat)")
     flat.add_argument("--no-flat", action="store_true",
                       help="the inputs are already STSA-corrected (skip the division)")
     geo = p.add_argument_group("geometry (overrides the EXR headers)")
@@ -203,6 +206,41 @@ class Scan:
     source: str
     shape: tuple
     geo: dict
+    flat_count: int = 1
+
+
+def flat_recordings(args) -> list[tuple[str, dict, dict]]:
+    """Each recording of the flat plate that ``args`` names, as (source, images, header): every
+    ``--flat`` EXR, then every set of ``--flat-<detector>`` files (the i-th of each flag)."""
+    from ..analysis.io import load_detector_set
+
+    files = {n: getattr(args, f"flat_{n}") or [] for n in DETECTOR_NAMES}
+    exrs = args.flat or []
+    count = len(exrs) + max(len(v) for v in files.values())
+    what = "flat-plate images"
+    out = []
+    for path in exrs:
+        images, header = load_detector_set(path, None, what, args.event)
+        out.append((str(path), images, header))
+    for i in range(max(len(v) for v in files.values())):
+        given = {n: v[i] for n, v in files.items() if i < len(v)}
+        label = f"{what} (set {i + 1} of --flat-<detector>)" if count > 1 else what
+        images, header = load_detector_set(None, given, label, args.event)
+        out.append((", ".join(str(given[n]) for n in DETECTOR_NAMES), images, header))
+    return out
+
+
+def flat_sources(args):
+    """The flat plate's files as the output headers record them (one entry per recording)."""
+    files = {n: getattr(args, f"flat_{n}") or [] for n in DETECTOR_NAMES}
+    sets = [{n: v[i] for n, v in files.items() if i < len(v)} for i in range(max(len(v) for v in files.values()))]
+    out = list(args.flat or []) + sets
+    return out[0] if len(out) == 1 else out
+
+
+def flat_note(scan) -> str:
+    """What the summary line says of several flat recordings."""
+    return f"; flat plate: the mean of {scan.flat_count} recordings" if scan.flat_count > 1 else ""
 
 
 def read_scan(args, *, model_discs: bool) -> Scan:
@@ -212,13 +250,15 @@ def read_scan(args, *, model_discs: bool) -> Scan:
     d_w are the discs' mean (the model takes the discs as they are)."""
     from ..analysis import geometry_from_metadata
     from ..analysis.io import check_signs, load_detector_set
+    from ..analysis.stsa import mean_flat
 
     images, meta = load_detector_set(args.object, {n: getattr(args, n) for n in DETECTOR_NAMES}, "object images",
                                      args.event)
     if images is None:
         raise EloInputError("no object images: give OBJECT.exr or --right/--left/--back/--front")
-    flats, flat_meta = load_detector_set(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES},
-                                 "flat-plate images", args.event)
+    recordings = flat_recordings(args)
+    flats = mean_flat([r[1] for r in recordings]) if recordings else None
+    flat_meta = next((r[2] for r in recordings if r[2]), {})
     if flats is None and not args.no_flat:
         raise EloInputError("no flat-plate images: give --flat FLAT.exr (or --flat-right ...), "
                             "or --no-flat if the images are already STSA-corrected")
@@ -228,7 +268,7 @@ def read_scan(args, *, model_discs: bool) -> Scan:
 
     # Geometry: explicit flags win; otherwise the object header, else the flat header.
     header = meta if meta else flat_meta
-    source = args.object or args.flat or "command line"
+    source = args.object or next((r[0] for r in recordings if r[2]), None) or "command line"
     if not header and (args.field is None or args.dh is None or args.dw is None):
         what = (f"{source} has no elo-mitsuba geometry header (not written by 'elo-mitsuba render')"
                 if (args.object or args.flat) else "single-channel inputs carry no geometry")
@@ -246,31 +286,35 @@ def read_scan(args, *, model_discs: bool) -> Scan:
                "resolution": None if res_hdr is None else (int(res_hdr[0]), int(res_hdr[1]))}
     else:
         geo = geometry_from_metadata(header, str(source), d_h=args.dh, d_w=args.dw, field_mm=args.field, shape=shape)
-    if meta and flat_meta:
-        # The flat must describe the same scan, or the division mixes two geometries.
+    # every flat must describe the object's scan, or the division mixes two geometries
+    for flat_source, _, flat_header in recordings if header else ():
+        if not flat_header:
+            continue
         if header_discs:
-            fdisc = ScanGeometry.from_metadata(flat_meta, shape, str(args.flat), field_mm=args.field)
-            fgeo = {"field_mm": fdisc.field_mm, "resolution": flat_meta.get("resolution"),
+            fdisc = ScanGeometry.from_metadata(flat_header, shape, flat_source, field_mm=args.field)
+            fgeo = {"field_mm": fdisc.field_mm, "resolution": flat_header.get("resolution"),
                     **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in fdisc.detectors.items()}}
             geo_cmp = {"field_mm": geo["field_mm"], "resolution": geo["resolution"],
                        **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in disc_geo.detectors.items()}}
         else:
-            fgeo = geometry_from_metadata(flat_meta, str(args.flat), d_h=args.dh, d_w=args.dw, field_mm=args.field,
+            fgeo = geometry_from_metadata(flat_header, flat_source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
                                           shape=shape)
             geo_cmp = geo
         for key in fgeo:
             a, b = geo_cmp.get(key), fgeo[key]
             if (a is None) != (b is None) or (a is not None and not _same(a, b)):
                 raise EloInputError(
-                    f"{args.flat}: flat-plate {key} {np.round(np.asarray(b, float), 4).tolist()} differs from the "
-                    f"object's {np.round(np.asarray(a, float), 4).tolist()}; record both with one geometry"
+                    f"{flat_source}: flat-plate {key} {np.round(np.asarray(b, float), 4).tolist()} differs from "
+                    f"the {'object' if meta else 'first flat'}'s {np.round(np.asarray(a, float), 4).tolist()}; "
+                    "record all with one geometry"
                 )
     if geo["resolution"] is not None and tuple(geo["resolution"]) != (shape[1], shape[0]):
         raise EloInputError(
             f"{source}: header resolution {list(geo['resolution'])} (W, H) does not match the image "
             f"shape {shape[1]}x{shape[0]}"
         )
-    return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo)
+    return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo,
+                flat_count=len(recordings))
 
 
 def run(args) -> int:
@@ -322,7 +366,7 @@ def run(args) -> int:
         res = surface_gradient(images, flats, geo["field_mm"], geo["d_h"], geo["d_w"], **kw)
 
     sources = {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
-               "flat": args.flat or {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES}}
+               "flat": flat_sources(args)}
     write_gradient(out, res, geo["field_mm"], geo["d_h"], geo["d_w"], thresholds=kw, stsa_corrected=not args.no_flat,
                    event=args.event, sources=sources, header=header, overwrite=args.overwrite,
                    method=args.method, model_geometry=model, calibration=args.calibration)
@@ -332,7 +376,7 @@ def run(args) -> int:
                  f"{np.median(res.dzdx_sigma[~res.mask]) if (~res.mask).any() else float('nan'):.2g}")
     print(f"wrote {out}: {shape[1]}x{shape[0]} px, field {geo['field_mm'][0]:g}x{geo['field_mm'][1]:g} mm, "
           f"d_h={geo['d_h']:g} mm, d_w={geo['d_w']:g} mm, method {args.method}, {100 * res.mask.mean():.2f} % masked"
-          + extra)
+          + extra + flat_note(scan))
     _report_mask(res)
     if args.preview:
         title = "Surface gradient (model fit)" if args.method == "model" else "Surface gradient (Eq. 26)"

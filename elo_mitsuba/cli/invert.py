@@ -155,7 +155,7 @@ def run(args) -> int:
 
     from ..analysis import inversion
     from ..analysis.io import write_inversion
-    from .gradient import _model_geometry, read_scan
+    from .gradient import _model_geometry, flat_note, flat_sources, read_scan
 
     scan = read_scan(args, model_discs=True)
     geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
@@ -202,7 +202,7 @@ def run(args) -> int:
             "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
             "grid": "scan grid: pixel (i, j) holds the height where its beam lands",
             "sources": {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
-                        "flat": args.flat or {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES},
+                        "flat": flat_sources(args),
                         "init": args.init, "second_event": args.second_event},
             "object_later_events": ("rendered from the start surface in the chamber" if args.chamber_later
                                     else "the flat plate's" if args.second_event else "none"),
@@ -212,7 +212,8 @@ def run(args) -> int:
     print(f"wrote {out}: {scan.shape[1]}x{scan.shape[0]} px, {len(res.history) - 1} steps ({res.stopped}) in "
           f"{time.perf_counter() - t0:.1f} s; misfit rms {res.history[0]['rms']:.4g} -> {res.history[-1]['rms']:.4g} "
           f"(noise {res.noise:.3g}); height range {h.max() - h.min():.4g} mm; "
-          f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)")
+          f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)"
+          + flat_note(scan))
     if res.height_error is not None:
         print(f"height error from the noise alone: {1000 * res.height_error_rms:.3g} um RMS "
               f"({1000 * float(res.height_error.max()):.3g} um at most; channel height_error)")
