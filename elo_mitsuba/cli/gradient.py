@@ -46,6 +46,7 @@ examples:
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad26.exr --method eq26      # the paper's Eq. 26
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad.exr --calibration CALIB.json
   elo-mitsuba gradient --flat flat.exr melt.exr -o grad_e1.exr --event 1      # 1st event only
+  elo-mitsuba gradient --flat flat1.exr --flat flat2.exr melt.exr -o grad.exr  # the flats' mean
   elo-mitsuba gradient --right R.tif --left L.tif --back B.tif --front F.tif \\
       --flat-right R0.tif --flat-left L0.tif --flat-back B0.tif --flat-front F0.tif \\
       --field 80 --dh 272 --dw 127 -o grad.exr

@@ -29,8 +29,9 @@ error 41 -> 4.9 um on hills with slopes to 1.26, 541 -> 82 um with a third of th
 nearly flat, noisy surface (the melt plate) the noise, not the model, limits the height: the
 integrated model gradient (3.9 um) already fits the images to their noise and is returned as it is.
 How much of the height the noise leaves uncertain is written with it (height_error, below; on the
-melt plate 4.3 um RMS, and half of it is the flat's noise: a noise-free flat, simulated or averaged
-from many recordings, gains more than any solver can).
+melt plate 4.3 um RMS, and half of it is the flat's noise: repeat --flat with several recordings
+of the flat plate and their mean is used; four take the start from 3.9 to 2.9 um, more than any
+solver gains).
 
 Output: .exr with channels height (mm, where each pixel's beam lands; row 0 = +y edge, columns
 towards +x), mask (1 = untrusted: misfit above 4 noise levels), misfit (RMS over the detectors,
@@ -46,6 +47,7 @@ examples:
   elo-mitsuba invert --flat flat.exr melt.exr -o height.exr --preview height.png
   elo-mitsuba invert --flat flat.exr melt.exr -o height.exr --init grad.exr --iterations 20
   elo-mitsuba invert --flat flat.exr melt.exr -o height.exr --calibration CALIB.json
+  elo-mitsuba invert --flat flat1.exr --flat flat2.exr --flat flat3.exr melt.exr -o height.exr  # mean flat
   elo-mitsuba invert --flat flat.exr obj.exr -o height.exr --second-event sim_flat.exr   # chamber
 """
 
