@@ -1,6 +1,8 @@
 """CLI round trip: EXR -> gradient -> height reproduces the library calls; recorded-image inputs;
 user errors exit with status 2 and one line."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -213,6 +215,14 @@ def test_several_flats_are_averaged(scene, tmp_path, capsys):
         out = tmp_path / f"g{n_flats}.exr"
         args = sum((["--flat", str(tmp_path / f"flat{i}.exr")] for i in range(n_flats)), [])
         assert main(["gradient", "--method", "eq26", *args, str(tmp_path / "obj.exr"), "-o", str(out)]) == 0
+        said = capsys.readouterr().out
+        # the flat's share of the noise variance: 1/2 with one flat, 1/5 with the mean of four
+        got = re.search(r"object ([\d.]+) %, flat plate ([\d.]+) % \((.*)\): the flat holds (\d+) %", said)
+        assert got, said
+        assert float(got[1]) == pytest.approx(1.0, rel=0.06)
+        assert float(got[2]) == pytest.approx(1.0 / np.sqrt(n_flats), rel=0.06)
+        assert got[3] == ("1 recording" if n_flats == 1 else "the mean of 4 recordings")
+        assert int(got[4]) == pytest.approx(100 / (1 + n_flats), abs=4)
         ch, hdr = read_exr(out)
         # what was applied is the mean of the recordings, and the header names every one
         lib = surface_gradient(noisy, mean_flat(flats[:n_flats]), FIELD, DH, DW)

@@ -347,6 +347,8 @@ def test_invert_cli(tmp_path, capsys, monkeypatch):
     assert "flat plate: the mean of 2 recordings" in p.stdout
     channels, meta = read_exr(tmp_path / "h.exr")
     assert meta["sources"]["flat"] == ["flat_plate.exr", "flat2.exr"]
+    assert meta["flat_recordings"] == 2 and meta["noise_object"] > 0 and meta["noise_flat"] > 0
+    assert "image noise: object" in p.stdout and "(the mean of 2 recordings)" in p.stdout
     assert {"height", "mask", "misfit", "start_height", "scale", "model.right", "height_error"} <= set(channels)
     assert meta["method"] == "inversion" and meta["detectors"] and len(meta["history"]) >= 1
     err = channels["height_error"].astype(float)
@@ -368,3 +370,27 @@ def test_invert_cli(tmp_path, capsys, monkeypatch):
         err = capsys.readouterr().err
         assert text in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, (args, err)
         assert not (tmp_path / "h2.exr").exists()
+
+
+@pytest.mark.parametrize("sigma_object, sigma_flat", [(0.01, 0.01), (0.01, 0.004), (0.003, 0.01)])
+def test_relative_noise_tells_object_and_flat_apart(sigma_object, sigma_flat):
+    """The object's and the flat's own noise, each from its images alone, and in quadrature the
+    noise of their ratio (what the inversion and the model gradient see)."""
+    from elo_mitsuba.analysis import flat_plate_images, pixel_coordinates, point_detector_images
+    from elo_mitsuba.analysis.inversion import estimate_noise, relative_noise
+
+    field, shape = (40.0, 40.0), (96, 112)
+    x, y = pixel_coordinates(shape, field)
+    z = 0.8 * np.exp(-((x - 4) ** 2 + y ** 2) / 30.0)  # relief, with its edges in the images
+    gx, gy = -2 * (x - 4) / 30.0 * z, -2 * y / 30.0 * z
+    kw = dict(model="lambert", detector_radius_mm=25.0)
+    rng = np.random.default_rng(4)
+    obj = {n: v * (1 + sigma_object * rng.standard_normal(shape))
+           for n, v in point_detector_images(gx, gy, field, 250.0, 150.0, **kw).items()}
+    flat = {n: v * (1 + sigma_flat * rng.standard_normal(shape))
+            for n, v in flat_plate_images(shape, field, 250.0, 150.0, **kw).items()}
+    so, sf = relative_noise(obj), relative_noise(flat)
+    assert so == pytest.approx(sigma_object, rel=0.05)
+    assert sf == pytest.approx(sigma_flat, rel=0.05)
+    ratio = np.stack([obj[n] / flat[n] for n in obj])
+    assert np.hypot(so, sf) == pytest.approx(estimate_noise(ratio, np.ones_like(ratio)), rel=0.05)

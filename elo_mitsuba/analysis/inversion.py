@@ -202,6 +202,25 @@ def estimate_noise(corrected, weights) -> float:
     return float(np.median(out)) if out else 0.0
 
 
+def relative_noise(images: Mapping, smoothing_px: float = 4.0) -> float:
+    """Relative noise level (std / signal) of one set of detector images, e.g. the object's or the
+    flat plate's alone: :func:`estimate_noise` of each image over its own Gaussian-smoothed
+    version (``smoothing_px``), which divides out the slowly varying level (the detectors' solid
+    angles, the material). Where the corrected images carry sigma_C^2 = sigma_object^2 +
+    sigma_flat^2, this tells the two shares apart: how much a mean of more flat recordings
+    (:func:`~.stsa.mean_flat`) would gain."""
+    from scipy.ndimage import gaussian_filter
+
+    ratios, weights = [], []
+    for n in DETECTOR_NAMES:
+        a = np.asarray(images[n], float)
+        smooth = gaussian_filter(np.where(np.isfinite(a), a, 0.0), smoothing_px, mode="nearest")
+        ok = np.isfinite(a) & (np.abs(smooth) > MIN_FLAT * np.median(np.abs(smooth)))
+        ratios.append(np.where(ok, a / np.where(ok, smooth, 1.0), 0.0))
+        weights.append(ok.astype(float))
+    return estimate_noise(np.stack(ratios), np.stack(weights))
+
+
 def _huber(r, k):
     a = np.abs(r)
     return np.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k))

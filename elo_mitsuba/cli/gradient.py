@@ -244,6 +244,32 @@ def flat_note(scan) -> str:
     return f"; flat plate: the mean of {scan.flat_count} recordings" if scan.flat_count > 1 else ""
 
 
+#: The flat's share of the noise variance from which the summary suggests more recordings of it.
+FLAT_SHARE_ADVICE = 0.1
+
+
+def noise_shares(scan) -> tuple[dict, str]:
+    """The object's and the flat's relative noise (:func:`~..analysis.inversion.relative_noise`)
+    for the header, and a line saying how much of the corrected images' noise the flat holds and
+    what more recordings of it would leave ("" without a flat)."""
+    from ..analysis.inversion import relative_noise
+
+    if scan.flats is None:
+        return {}, ""
+    so, sf = relative_noise(scan.images), relative_noise(scan.flats)
+    if not (np.isfinite(so) and np.isfinite(sf) and so + sf > 0):
+        return {}, ""
+    n = scan.flat_count
+    share = sf ** 2 / (so ** 2 + sf ** 2)
+    more = sf ** 2 / 4 / (so ** 2 + sf ** 2 / 4)
+    what = "1 recording" if n == 1 else f"the mean of {n} recordings"
+    line = (f"image noise: object {100 * so:.2g} %, flat plate {100 * sf:.2g} % ({what}): the flat holds "
+            f"{100 * share:.0f} % of the corrected images' noise variance")
+    if share >= FLAT_SHARE_ADVICE:
+        line += f"; the mean of {4 * n} flat recordings would hold {100 * more:.0f} % (repeat --flat)"
+    return {"noise_object": so, "noise_flat": sf, "flat_recordings": n}, line
+
+
 def read_scan(args, *, model_discs: bool) -> Scan:
     """The object and flat-plate images of ``args`` (:func:`add_scan_arguments`), checked: signs,
     one shape, the flat recorded with the object's geometry, the header's resolution. ``geo`` holds
@@ -378,6 +404,9 @@ def run(args) -> int:
     print(f"wrote {out}: {shape[1]}x{shape[0]} px, field {geo['field_mm'][0]:g}x{geo['field_mm'][1]:g} mm, "
           f"d_h={geo['d_h']:g} mm, d_w={geo['d_w']:g} mm, method {args.method}, {100 * res.mask.mean():.2f} % masked"
           + extra + flat_note(scan))
+    noise_line = noise_shares(scan)[1]
+    if noise_line:
+        print(noise_line)
     _report_mask(res)
     if args.preview:
         title = "Surface gradient (model fit)" if args.method == "model" else "Surface gradient (Eq. 26)"

@@ -157,7 +157,7 @@ def run(args) -> int:
 
     from ..analysis import inversion
     from ..analysis.io import write_inversion
-    from .gradient import _model_geometry, flat_note, flat_sources, read_scan
+    from .gradient import _model_geometry, flat_note, flat_sources, noise_shares, read_scan
 
     scan = read_scan(args, model_discs=True)
     geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
@@ -200,6 +200,7 @@ def run(args) -> int:
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
         time_budget_s=args.time_budget, progress=progress,
         uncertainty_probes=inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
+    shares, noise_line = noise_shares(scan)
     meta = {"method": "inversion", "beam_fwhm_mm": fwhm, "noise": res.noise, "alpha": res.alpha,
             "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
             "grid": "scan grid: pixel (i, j) holds the height where its beam lands",
@@ -208,7 +209,7 @@ def run(args) -> int:
                         "init": args.init, "second_event": args.second_event},
             "object_later_events": ("rendered from the start surface in the chamber" if args.chamber_later
                                     else "the flat plate's" if args.second_event else "none"),
-            "calibration": args.calibration}
+            "calibration": args.calibration, **shares}
     write_inversion(out, res, geometry, untrusted=res.mask, metadata=meta, overwrite=args.overwrite)
     h = res.height
     print(f"wrote {out}: {scan.shape[1]}x{scan.shape[0]} px, {len(res.history) - 1} steps ({res.stopped}) in "
@@ -216,6 +217,8 @@ def run(args) -> int:
           f"(noise {res.noise:.3g}); height range {h.max() - h.min():.4g} mm; "
           f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)"
           + flat_note(scan))
+    if noise_line:
+        print(noise_line)
     if res.height_error is not None:
         print(f"height error from the noise alone: {1000 * res.height_error_rms:.3g} um RMS "
               f"({1000 * float(res.height_error.max()):.3g} um at most; channel height_error)")
