@@ -106,6 +106,19 @@ def test_calibrate_cli(machine, tmp_path):
                  "-o", str(tmp_path / "c.json")]) == 0
     assert main(["calibrate", str(tmp_path / "flat.exr"), "--dh", "272", "-o", str(tmp_path / "d.json")]) == 2
     assert not (tmp_path / "d.json").exists()
+    # several recordings of one set-up: their mean (here one recording twice: the same fit), others refused
+    assert main(["calibrate", str(tmp_path / "flat.exr"), str(tmp_path / "flat.exr"), "--dh", "272", "--dw", "127",
+                 "-o", str(tmp_path / "c2.json")]) == 0
+    one, two = (json.loads((tmp_path / f).read_text()) for f in ("c.json", "c2.json"))
+    assert two["source"]["input"] == [str(tmp_path / "flat.exr")] * 2
+    assert two["detectors"]["right"]["center"] == pytest.approx(one["detectors"]["right"]["center"])
+    channels, meta = read_exr(tmp_path / "flat.exr")
+    from elo_mitsuba.exr import write_exr
+
+    write_exr(tmp_path / "flat70.exr", channels, {**meta, "field_mm": [70.0, 70.0]})
+    assert main(["calibrate", str(tmp_path / "flat.exr"), str(tmp_path / "flat70.exr"),
+                 "-o", str(tmp_path / "e.json")]) == 2
+    assert not (tmp_path / "e.json").exists()
     assert main(["gradient", "--flat", str(tmp_path / "flat.exr"), str(tmp_path / "obj.exr"),
                  "--calibration", str(tmp_path / "c.json"), "-o", str(tmp_path / "g.exr")]) == 0
     _, meta = read_exr(tmp_path / "g.exr")

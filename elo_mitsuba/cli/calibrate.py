@@ -32,6 +32,7 @@ Use the result with 'elo-mitsuba gradient --calibration CALIB.json'.
 EPILOG = """\
 examples:
   elo-mitsuba calibrate flat.exr --dh 272 --dw 127 -o CALIB.json
+  elo-mitsuba calibrate flat1.exr flat2.exr flat3.exr -o CALIB.json     # their mean; the header's detectors
   elo-mitsuba calibrate --right R0.tif --left L0.tif --back B0.tif --front F0.tif \\
       --field 80 --dh 272 --dw 127 --radius 25 -o CALIB.json
 """
@@ -42,7 +43,9 @@ def add_parser(subparsers):
         "calibrate", help="flat-plate images -> detector centres, tilts and gains (CALIB.json)",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("flat", nargs="?", metavar="FLAT.exr", help="flat-plate EXR with channels right, left, back, front")
+    p.add_argument("flat", nargs="*", metavar="FLAT.exr",
+                   help="flat-plate EXR with channels right, left, back, front; several recordings of one set-up "
+                        "are averaged (the fit's noise falls as 1/sqrt(N))")
     p.add_argument("-o", "--output", required=True, metavar="CALIB.json", help="calibration file to write")
     src = p.add_argument_group("single-channel inputs (recorded machine images)")
     for n in DETECTOR_NAMES:
@@ -68,16 +71,27 @@ def run(args) -> int:
     from ..analysis.calibration import calibrate, write_calibration
     from ..analysis.io import load_detector_set
     from ..analysis.scan_geometry import ScanGeometry
+    from ..analysis.stsa import mean_flat
     from ..files import check_output
     from ..grid import field_xy
 
     out = check_output(args.output, (".json",), overwrite=args.overwrite, what="calibration")
-    flats, header = load_detector_set(args.flat, {n: getattr(args, n) for n in DETECTOR_NAMES}, "flat-plate images",
-                                      args.event)
-    if flats is None:
+    files = {n: getattr(args, n) for n in DETECTOR_NAMES}
+    if args.flat and any(files.values()):
+        raise EloInputError("flat-plate images: give FLAT.exr files or the four single files, not both")
+    sets = [load_detector_set(f, None, "flat-plate images", args.event) for f in args.flat] or \
+        [load_detector_set(None, files, "flat-plate images", args.event)]
+    if sets[0][0] is None:
         raise EloInputError("no flat-plate images: give FLAT.exr or --right/--left/--back/--front")
+    header = sets[0][1]
+    for path, (_, other) in zip(args.flat[1:], sets[1:]):
+        for key in ("field_mm", "resolution", "detectors", "work_distance_mm", "projection"):
+            if other.get(key) != header.get(key):
+                raise EloInputError(f"{path}: header {key} {other.get(key)!r} differs from {args.flat[0]}'s "
+                                    f"{header.get(key)!r}; average only recordings of one set-up")
+    flats = mean_flat([images for images, _ in sets])
     shape = next(iter(flats.values())).shape
-    source = args.flat or "command line"
+    source = str(args.flat[0]) if args.flat else "command line"  # the header's file
     if (args.dh is None) != (args.dw is None):
         raise EloInputError("give both --dh and --dw (the nominal layout), or neither (the header's detectors)")
     if args.dh is not None or not header.get("detectors"):
@@ -93,7 +107,7 @@ def run(args) -> int:
                 raise EloInputError(f"--{flag} applies with --dh/--dw (the nominal layout); {source} records it")
         nominal = ScanGeometry.from_metadata(header, shape, str(source), field_mm=args.field, material=args.material)
     cal = calibrate(flats, nominal, fit_offset=args.fit_offset, fit_tilt=not args.no_tilt)
-    cal.source["input"] = str(source)
+    cal.source["input"] = [str(f) for f in args.flat] if len(args.flat) > 1 else source
     write_calibration(out, cal, overwrite=args.overwrite)
     for name, fit in cal.detectors.items():
         nom = np.asarray(nominal.detectors[name].center)
