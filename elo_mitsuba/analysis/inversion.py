@@ -524,12 +524,14 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")
     data = _ScaleData(images, flats, later, flat_later, later_error, flat_later_error)
     budget = None if time_budget_s is None else float(time_budget_s)
-    settings = dict(fwhm_mm=fwhm_mm, alpha=alpha, cg_iterations=cg_iterations, tol=tol, discrepancy=discrepancy,
-                    shadows=shadows, nodes=nodes, progress=progress)
+    model_settings = dict(fwhm_mm=fwhm_mm, alpha=alpha, shadows=shadows, nodes=nodes)
+    settings = dict(cg_iterations=cg_iterations, tol=tol, discrepancy=discrepancy, progress=progress,
+                    iterations=iterations, budget=budget, t0=t0)
     # at full resolution first; if that does not reproduce the images to within their noise, coarse
-    # to fine from the same start, kept if it fits better (the discrepancy principle decides)
-    single = _solve_scale(data, geometry, h0, h0, noise=noise, iterations=iterations, budget=budget, t0=t0,
-                          **settings)
+    # to fine from the same start, kept if it fits better (the discrepancy principle decides); both
+    # full-resolution solves share one set-up
+    full = _set_up(data, geometry, noise=noise, **model_settings)
+    single = _solve_scale(full, h0, h0, **settings)
     factors = scale_factors(shape, scales)
     if not factors or single.history[-1]["rms"] <= single.discrepancy_level or (
             budget is not None and time.perf_counter() - t0 > budget):
@@ -539,12 +541,11 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         coarse = dataclasses.replace(geometry, shape=(shape[0] // f, shape[1] // f))
         start_c = block_mean(h0, f) if h is None else upsample(h, previous // f, coarse.shape)
         previous = f
-        res = _solve_scale(data.coarse(f), coarse, start_c, start_c, noise=None if noise is None else noise / f,
-                           iterations=iterations, budget=budget, t0=t0, scale=f, **settings)
+        res = _solve_scale(_set_up(data.coarse(f), coarse, noise=None if noise is None else noise / f,
+                                   **model_settings), start_c, start_c, scale=f, **settings)
         h, res._linearised = res.height, None
         done.append(f"1/{f}: {len(res.history) - 1} steps")
-    fine = _solve_scale(data, geometry, upsample(h, previous, shape), h0, noise=noise, iterations=iterations,
-                        budget=budget, t0=t0, **settings)
+    fine = _solve_scale(full, upsample(h, previous, shape), h0, **settings)
     if fine.history[-1]["objective"] >= single.history[-1]["objective"]:
         single.stopped += f" (coarse to fine ended higher: {', '.join(done)})"
         return _with_uncertainty(single, uncertainty_probes, cg_iterations)
@@ -607,16 +608,22 @@ def upsample(h, f: int, shape) -> np.ndarray:
                            mode="nearest")
 
 
-def _solve_scale(data, geometry, h0, start_height, *, fwhm_mm, alpha, noise, iterations, cg_iterations, tol,
-                 discrepancy, budget, shadows, nodes, progress, t0, scale=1) -> InversionResult:
-    """Gauss-Newton at one scale from the pixel heights ``h0``; ``start_height`` is what the result
-    reports as its start."""
+@dataclass
+class _Setup:
+    """The objective at one scale, as the solves from different starts share it: the problem, the
+    noise level and the variance the held-fixed later events add to what the truth would leave."""
+
+    problem: _Problem
+    noise: float
+    model_var: float
+    names: tuple
+
+
+def _set_up(data, geometry, *, fwhm_mm, alpha, noise, shadows, nodes) -> _Setup:
+    """Corrected images, weights, the flat's and the object's models at one scale."""
     shape = tuple(geometry.shape)
     names = tuple(geometry.detectors)
     images, flats, later, flat_later = data.images, data.flats, data.later, data.flat_later
-    later_error, flat_later_error = data.later_error, data.flat_later_error
-    g0 = corners_from_pixels(h0)
-
     dx, dy = pixel_size(shape, geometry.field_mm)
     img = np.stack([np.asarray(images[n], float) for n in names])
     flt = np.stack([np.asarray(flats[n], float) for n in names])
@@ -632,7 +639,19 @@ def _solve_scale(data, geometry, h0, start_height, *, fwhm_mm, alpha, noise, ite
     if alpha is None:
         alpha = max(ALPHA_PER_NOISE2 * noise ** 2, MIN_ALPHA)
     problem = _Problem(model, corrected, weights, np.maximum(bf, 1e-12), alpha, dx, dy)
+    # the residual RMS of the true surface: the noise, less the datum per pixel the scale takes,
+    # and the Monte Carlo error of the held-fixed later events in the model's ratio
+    model_var = _held_fixed_variance(corrected, img, flt, weights, names, data.later_error, data.flat_later_error)
+    return _Setup(problem, float(noise), model_var, names)
 
+
+def _solve_scale(setup: _Setup, h0, start_height, *, iterations, cg_iterations, tol, discrepancy, budget,
+                 progress, t0, scale=1) -> InversionResult:
+    """Gauss-Newton at one scale (:func:`_set_up`) from the pixel heights ``h0``; ``start_height``
+    is what the result reports as its start."""
+    problem, noise, model_var, names = setup.problem, setup.noise, setup.model_var, setup.names
+    model, weights, alpha = problem.model, problem.w, problem.alpha
+    g0 = corners_from_pixels(h0)
     h = g0.copy()  # the unknowns: corner heights
     k = HUBER_K * noise
     lin = model.evaluate(h)  # derivatives only if a step is taken
@@ -644,9 +663,6 @@ def _solve_scale(data, geometry, h0, start_height, *, fwhm_mm, alpha, noise, ite
                 "step": 0.0, "seconds": time.perf_counter() - t0, "scale": scale}]
     if progress:
         progress(history[-1])
-    # the residual RMS of the true surface: the noise, less the datum per pixel the scale takes,
-    # and the Monte Carlo error of the held-fixed later events in the model's ratio
-    model_var = _held_fixed_variance(corrected, img, flt, weights, names, later_error, flat_later_error)
     enough = discrepancy * np.sqrt(noise ** 2 * (1.0 - 1.0 / len(names)) + model_var)
     stopped = "iterations"
     if history[-1]["rms"] <= enough:
