@@ -356,6 +356,16 @@ def test_invert_cli(tmp_path, capsys, monkeypatch):
     assert meta["height_error_rms_mm"] == pytest.approx(np.sqrt(np.mean(err ** 2)), rel=1e-5)
     assert "height error from the noise alone" in p.stdout
     assert (tmp_path / "h.png").is_file()
+    assert "gives no beam profile" not in p.stderr  # the render's header has it
+    # images without a beam profile in their header: the single-ray model is said, not assumed silently
+    channels, meta = read_exr(tmp_path / "melt_plate.exr")
+    from elo_mitsuba.exr import write_exr
+
+    write_exr(tmp_path / "nobeam.exr", channels, {k: v for k, v in meta.items() if k != "beam_fwhm_mm"})
+    capsys.readouterr()
+    assert main(["invert", "--flat", "flat_plate.exr", "nobeam.exr", "-o", "h3.exr", "--iterations", "0",
+                 "--uncertainty-probes", "0"]) == 0
+    assert "nobeam.exr gives no beam profile" in capsys.readouterr().err
     capsys.readouterr()
     for args, text in ((("--no-flat",), "needs the flat-plate images"),
                        (("--init", "nope.exr"), "no such file"),
