@@ -39,7 +39,8 @@ corrected units), start_height, scale (per-pixel material/current factor) and mo
 (the modelled corrected images), height_error (mm: the standard error that the images' noise
 leaves in each height, relative to the mean, from --uncertainty-probes noise draws propagated
 through the solution; model and regulariser bias not included); the geometry, the solver's history
-and height_error_rms_mm in the header. .npy/.tif: the height alone.
+and height_error_rms_mm in the header, with the object's and the flat's own relative noise
+(noise_object, noise_flat; the summary line says the flat's share). .npy/.tif: the height alone.
 """
 
 EPILOG = """\
