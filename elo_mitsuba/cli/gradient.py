@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -207,36 +207,46 @@ class Scan:
     source: str
     shape: tuple
     geo: dict
-    flat_count: int = 1
+    flat_files: list = field(default_factory=list)
+
+    @property
+    def flat_count(self) -> int:
+        return len(self.flat_files)
+
+    def flat_provenance(self):
+        """The flat plate's files as the output headers record them: one entry, or one per recording."""
+        return self.flat_files[0] if len(self.flat_files) == 1 else list(self.flat_files)
 
 
-def flat_recordings(args) -> list[tuple[str, dict, dict]]:
-    """Each recording of the flat plate that ``args`` names, as (source, images, header): every
-    ``--flat`` EXR, then every set of ``--flat-<detector>`` files (the i-th of each flag)."""
+@dataclass
+class FlatRecording:
+    """One recording of the flat plate: how messages name it, its files, images and header."""
+
+    label: str
+    files: str | dict
+    images: dict
+    header: dict
+
+
+def flat_recordings(args) -> list[FlatRecording]:
+    """Each recording of the flat plate that ``args`` names: every ``--flat`` EXR, then every set
+    of ``--flat-<detector>`` files (the i-th of each flag)."""
     from ..analysis.io import load_detector_set
 
     files = {n: getattr(args, f"flat_{n}") or [] for n in DETECTOR_NAMES}
     exrs = args.flat or []
-    count = len(exrs) + max(len(v) for v in files.values())
+    sets = max(len(v) for v in files.values())
     what = "flat-plate images"
     out = []
     for path in exrs:
         images, header = load_detector_set(path, None, what, args.event)
-        out.append((str(path), images, header))
-    for i in range(max(len(v) for v in files.values())):
+        out.append(FlatRecording(str(path), path, images, header))
+    for i in range(sets):
         given = {n: v[i] for n, v in files.items() if i < len(v)}
-        label = f"{what} (set {i + 1} of --flat-<detector>)" if count > 1 else what
+        label = f"{what} (set {i + 1} of --flat-<detector>)" if len(exrs) + sets > 1 else what
         images, header = load_detector_set(None, given, label, args.event)
-        out.append((", ".join(str(given[n]) for n in DETECTOR_NAMES), images, header))
+        out.append(FlatRecording(", ".join(str(given[n]) for n in DETECTOR_NAMES), given, images, header))
     return out
-
-
-def flat_sources(args):
-    """The flat plate's files as the output headers record them (one entry per recording)."""
-    files = {n: getattr(args, f"flat_{n}") or [] for n in DETECTOR_NAMES}
-    sets = [{n: v[i] for n, v in files.items() if i < len(v)} for i in range(max(len(v) for v in files.values()))]
-    out = list(args.flat or []) + sets
-    return out[0] if len(out) == 1 else out
 
 
 def flat_note(scan) -> str:
@@ -284,8 +294,8 @@ def read_scan(args, *, model_discs: bool) -> Scan:
     if images is None:
         raise EloInputError("no object images: give OBJECT.exr or --right/--left/--back/--front")
     recordings = flat_recordings(args)
-    flats = mean_flat([r[1] for r in recordings]) if recordings else None
-    flat_meta = next((r[2] for r in recordings if r[2]), {})
+    flats = mean_flat([r.images for r in recordings]) if recordings else None
+    flat_meta = next((r.header for r in recordings if r.header), {})
     if flats is None and not args.no_flat:
         raise EloInputError("no flat-plate images: give --flat FLAT.exr (or --flat-right ...), "
                             "or --no-flat if the images are already STSA-corrected")
@@ -295,7 +305,7 @@ def read_scan(args, *, model_discs: bool) -> Scan:
 
     # Geometry: explicit flags win; otherwise the object header, else the flat header.
     header = meta if meta else flat_meta
-    source = args.object or next((r[0] for r in recordings if r[2]), None) or "command line"
+    source = args.object or next((r.label for r in recordings if r.header), None) or "command line"
     if not header and (args.field is None or args.dh is None or args.dw is None):
         what = (f"{source} has no elo-mitsuba geometry header (not written by 'elo-mitsuba render')"
                 if (args.object or args.flat) else "single-channel inputs carry no geometry")
@@ -314,19 +324,20 @@ def read_scan(args, *, model_discs: bool) -> Scan:
     else:
         geo = geometry_from_metadata(header, str(source), d_h=args.dh, d_w=args.dw, field_mm=args.field, shape=shape)
     # every flat must describe the object's scan, or the division mixes two geometries
-    for flat_source, _, flat_header in recordings if header else ():
+    geo_cmp = geo if not header_discs else {
+        "field_mm": geo["field_mm"], "resolution": geo["resolution"],
+        **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in disc_geo.detectors.items()}}
+    for rec in recordings if header else ():
+        flat_source, flat_header = rec.label, rec.header
         if not flat_header:
             continue
         if header_discs:
             fdisc = ScanGeometry.from_metadata(flat_header, shape, flat_source, field_mm=args.field)
             fgeo = {"field_mm": fdisc.field_mm, "resolution": flat_header.get("resolution"),
                     **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in fdisc.detectors.items()}}
-            geo_cmp = {"field_mm": geo["field_mm"], "resolution": geo["resolution"],
-                       **{f"{n} detector": np.r_[d.center, d.normal, d.radius] for n, d in disc_geo.detectors.items()}}
         else:
             fgeo = geometry_from_metadata(flat_header, flat_source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
                                           shape=shape)
-            geo_cmp = geo
         for key in fgeo:
             a, b = geo_cmp.get(key), fgeo[key]
             if (a is None) != (b is None) or (a is not None and not _same(a, b)):
@@ -341,7 +352,7 @@ def read_scan(args, *, model_discs: bool) -> Scan:
             f"shape {shape[1]}x{shape[0]}"
         )
     return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo,
-                flat_count=len(recordings))
+                flat_files=[r.files for r in recordings])
 
 
 def run(args) -> int:
@@ -393,7 +404,7 @@ def run(args) -> int:
         res = surface_gradient(images, flats, geo["field_mm"], geo["d_h"], geo["d_w"], **kw)
 
     sources = {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
-               "flat": flat_sources(args)}
+               "flat": scan.flat_provenance()}
     write_gradient(out, res, geo["field_mm"], geo["d_h"], geo["d_w"], thresholds=kw, stsa_corrected=not args.no_flat,
                    event=args.event, sources=sources, header=header, overwrite=args.overwrite,
                    method=args.method, model_geometry=model, calibration=args.calibration)

@@ -158,7 +158,7 @@ def run(args) -> int:
 
     from ..analysis import inversion
     from ..analysis.io import write_inversion
-    from .gradient import _model_geometry, flat_note, flat_sources, noise_shares, read_scan
+    from .gradient import _model_geometry, flat_note, noise_shares, read_scan
 
     scan = read_scan(args, model_discs=True)
     geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
@@ -210,7 +210,7 @@ def run(args) -> int:
             "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
             "grid": "scan grid: pixel (i, j) holds the height where its beam lands",
             "sources": {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
-                        "flat": flat_sources(args),
+                        "flat": scan.flat_provenance(),
                         "init": args.init, "second_event": args.second_event},
             "object_later_events": ("rendered from the start surface in the chamber" if args.chamber_later
                                     else "the flat plate's" if args.second_event else "none"),
