@@ -211,6 +211,9 @@ QUALITY_PRESETS = {
                   "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128},
 }
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
+#: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
+PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "bounce_min", "bounce_samples",
+                 "bounce_fraction")
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.

@@ -30,7 +30,7 @@ from .budget import check_render
 from .exr import write_exr
 from .grid import ORIENTATION
 from .error_estimate import DETERMINISTIC, NOT_ESTIMATED, combine_halves, summarise
-from .options import QUALITIES, EloOptions, half_budget, quality_options
+from .options import PRESET_FIELDS, QUALITIES, EloOptions, half_budget, quality_options
 from .runtime import ensure_variant
 from .scene_files import declared_parameters, explain_mitsuba_error, layout_parameters, resolve_scene_path
 
@@ -168,6 +168,14 @@ class EloScene:
         if not hasattr(self.sensor, "beam_target"):
             raise EloInputError(f"{self.path}: the sensor must be <sensor type=\"elo_beam\">")
         self.integrator.prepare_scene(self.scene)
+        # the scene file's spp, read once: Mitsuba's render(spp=n) sets the sensor's sampler to n,
+        # so the sampler cannot be asked again after a render (each render would halve it)
+        self.scene_spp = int(self.sensor.sampler().sample_count())
+        #: the scene file's integrator options, to which ``quality="scene"`` returns the presets' fields
+        self._scene_options = self.integrator.options
+        #: the quality every render applies unless told another: a preset's name, ``"scene"``, or
+        #: ``"custom"`` once configure() changed a field a preset sets (then the options stay as set)
+        self.quality = "scene"
         self.mi_params = self.mi.traverse(self.scene)
         self._check_detectors()
 
@@ -226,7 +234,7 @@ class EloScene:
             "beam_aim_offset_mm": list(s.aim_offset_mm),
             "events": self.integrator.events,
             "detector_samples": self.integrator.detector_samples,
-            "quality": getattr(self, "quality", "scene"),
+            "quality": self.quality,
             "integrator_options": self.integrator.options.as_dict(),
             "notes": list(getattr(self.integrator, "notes", [])) + self._material_notes(),
             "spp": int(spp),
@@ -279,6 +287,8 @@ class EloScene:
             except EloError:
                 self.integrator.configure(saved)
                 raise
+        if set(PRESET_FIELDS).intersection(changes):
+            self.quality = "custom"  # a preset re-applied at the next render would undo the change
         return self.integrator.options
 
     def set_events(self, events: int):
@@ -339,13 +349,17 @@ class EloScene:
 
     def set_quality(self, quality: str) -> int:
         """Apply a quality preset (:data:`~elo_mitsuba.options.QUALITY_PRESETS`) to the integrator for this scene's
-        resolution, events and beam; returns its spp (``scene``: the scene file's sampler count,
-        options untouched)."""
-        if quality not in QUALITIES:
+        resolution, events and beam, for this and every later render; returns its spp (``scene``:
+        the scene file's sampler count and its settings of the fields a preset sets; ``custom``:
+        the options as they are, the scene file's spp)."""
+        if quality not in QUALITIES + ("custom",):
             raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
-        if quality == "scene":
+        if quality in ("scene", "custom"):
+            if quality == "scene":
+                own = {f: getattr(self._scene_options, f) for f in PRESET_FIELDS}
+                self.integrator.configure(self.integrator.options.replace(**own))
             self.quality = quality
-            return int(self.sensor.sampler().sample_count())
+            return self.scene_spp
         pixel_mm = self.sensor.field / self.sensor.resolution[0]
         options, spp = quality_options(quality, self.integrator.options, pixel_mm=pixel_mm,
                                        fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events(),
@@ -359,9 +373,11 @@ class EloScene:
                progress: bool | None = None, quality: str | None = None) -> RenderResult:
         """Render all detector channels; returns numpy images and metadata.
 
-        ``spp`` defaults to the quality preset's (``quality``, see
-        :data:`~elo_mitsuba.options.QUALITY_PRESETS`), or
-        without one to the scene's sampler. Large jobs run as several passes of one compiled
+        ``quality`` (a preset of :data:`~elo_mitsuba.options.QUALITY_PRESETS`, or ``"scene"``)
+        applies to this and later renders; without it the scene's current quality
+        (:meth:`set_quality`; ``"scene"`` when loaded) is applied again. ``spp`` defaults to the
+        quality's (``scene``: the scene file's sampler count). A render depends on the scene's
+        state and its arguments only, never on earlier renders. Large jobs run as several passes of one compiled
         kernel. Before any work, a render that cannot fit in memory is refused and a long one
         gets a note (:func:`elo_mitsuba.budget.check_render`). ``progress``: None (default) shows
         progress on stderr for multi-pass renders, as a bar on a terminal and otherwise as a line
@@ -373,10 +389,10 @@ class EloScene:
             spp = _whole_number("spp", spp, 1, None)
         if events is not None:
             self.set_events(events)
-        preset_spp = self.set_quality(quality) if quality is not None else None
-        if spp is None:
-            spp = preset_spp if preset_spp is not None else self.sensor.sampler().sample_count()
-        spp = int(spp)
+        # the quality is applied at every render, so that the result depends on the scene's state
+        # (events, resolution, beam) and the arguments, never on what was rendered before
+        preset_spp = self.set_quality(quality if quality is not None else self.quality)
+        spp = int(preset_spp if spp is None else spp)
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
         halves, first_status = self._halves(spp)

@@ -242,11 +242,16 @@ class EloIntegrator(mi.SamplingIntegrator):
             The buffer behind ``planes`` (it may hold hidden channels after them).
         """
         self._in_render = True
+        sampler = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).sampler()
+        scene_spp = sampler.sample_count()
         try:
             with dr.suspend_grad():
                 return self._render_planes(scene, sensor, seed, spp)
         finally:
             self._in_render = False
+            # the base class's render(spp=n) leaves the sampler at n; the scene's own count must
+            # survive for the next render that relies on it (render(), mi.render without spp)
+            sampler.set_sample_count(scene_spp)
 
     def _render_planes(self, scene, sensor, seed, spp):
         sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor

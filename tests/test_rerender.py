@@ -1,0 +1,65 @@
+"""Load once, render many times: a render depends on the scene's state and its arguments only.
+
+Issue 23: repeated ``render()`` calls without ``spp`` halved the samples each time (Mitsuba's
+``render(spp=n)`` leaves the sensor's sampler at n), and a sweep point with ``quality="scene"``
+kept the integrator options of the preset its worker had rendered before. Each test renders on a
+scene that has already rendered other things and compares, bit for bit, with a fresh scene (same
+process, same Dr.Jit thread count).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import elo_mitsuba as em
+
+
+def _same(a, b):
+    assert sorted(a.channels) == sorted(b.channels)
+    for name in a.channels:
+        assert np.array_equal(a.channels[name], b.channels[name]), name
+    assert a.metadata["spp"] == b.metadata["spp"] and a.metadata["quality"] == b.metadata["quality"]
+    assert a.metadata["integrator_options"] == b.metadata["integrator_options"]
+
+
+def test_repeated_renders_keep_the_scene_spp():
+    scene = em.load_scene("flat_plate", res=8)
+    results = [scene.render(seed=3) for _ in range(4)]
+    assert [r.metadata["spp"] for r in results] == [16] * 4
+    for r in results[1:]:
+        _same(results[0], r)
+    assert scene.sensor.sampler().sample_count() == 16  # also for mi.render(scene) without spp
+
+
+@pytest.mark.parametrize("quality", ["draft", "default", "reference", "scene"])
+def test_a_quality_after_other_renders_equals_a_fresh_scene(quality):
+    """athene_flat with events 2: the presets' bounce filter, the top-up pass (default) and the
+    error estimate's halves (1 spp: half the continuation paths each) all run."""
+    args = dict(res=12)
+    fresh = em.load_scene("athene_flat", **args).render(events=2, quality=quality, seed=5, progress=False)
+    used = em.load_scene("athene_flat", **args)
+    for other in ("reference", "default", "scene", "draft"):
+        used.render(events=2, quality=other, spp=2, seed=1, progress=False)
+    used.render(events=1, progress=False)
+    _same(fresh, used.render(events=2, quality=quality, seed=5, progress=False))
+
+
+def test_quality_is_kept_until_changed():
+    scene = em.load_scene("flat_plate", res=8)
+    draft = scene.render(quality="draft", progress=False)
+    again = scene.render(progress=False)  # the scene's quality is now draft: applied again
+    _same(draft, again)
+    assert again.metadata["quality"] == "draft"
+    back = scene.render(quality="scene", progress=False)
+    _same(em.load_scene("flat_plate", res=8).render(progress=False), back)
+
+
+def test_configuring_a_preset_field_is_applied_not_undone():
+    scene = em.load_scene("flat_plate", res=8)
+    scene.render(quality="default", progress=False)
+    scene.configure(quadrature_triangles=24)
+    result = scene.render(progress=False)
+    assert result.metadata["quality"] == "custom"
+    assert result.metadata["integrator_options"]["quadrature_triangles"] == 24
+    assert result.metadata["spp"] == 16  # the scene file's: no preset chose one
