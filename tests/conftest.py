@@ -38,6 +38,8 @@ BACKGROUND = {
                          ["-m", "validation", "--quick", "--output-dir", "{out}", "--json", "{out}/rows.json"]),
     "golden": ("test_golden.py", REPO_ROOT / "tests" / "golden_cases.py",
                ["tests/golden_cases.py", "--digests", "{out}/digests.json"]),
+    "golden-other-isa": ("test_golden.py", REPO_ROOT / "tests" / "golden_cases.py",
+                         ["tests/golden_cases.py", "--digests", "{out}/digests.json", "--other-isa"]),
 }
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import os
 import platform
 import sys
@@ -28,6 +29,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 GOLDEN = HERE / "golden_cases.json"
+GOLDEN_ARRAYS = HERE / "golden_cases.npz"
 
 #: (case name, argv with {d} = the output folder). Small resolutions: seconds each, yet every
 #: estimator path runs (quadrature, sampled, bounce filter + top-up, splitting, beam profile,
@@ -58,8 +60,53 @@ CASES = (
 )
 
 
+def _drjit_core():
+    import ctypes
+
+    import drjit as dr
+
+    return ctypes.CDLL(str(Path(dr.__file__).parent / "libdrjit-core.so"))
+
+
+def llvm_target() -> dict:
+    """The instruction set Dr.Jit's LLVM backend compiles for: CPU name, vector width, a digest
+    of its feature string (read from Dr.Jit's core library; C++ symbols of its public API)."""
+    import ctypes
+
+    import drjit as dr
+
+    dr.eval(dr.llvm.Float(0.0) + 1.0)  # the backend chooses its target when it starts
+    lib = _drjit_core()
+    cpu, features, width = (lib._Z19jit_llvm_target_cpuv, lib._Z24jit_llvm_target_featuresv,
+                            lib._Z21jit_llvm_vector_widthv)
+    cpu.restype = features.restype = ctypes.c_char_p
+    width.restype = ctypes.c_uint32
+    return {"cpu": cpu().decode(), "vector_width": int(width()),
+            "features_sha256": hashlib.sha256(features()).hexdigest()[:16]}
+
+
+def set_llvm_target(cpu: str, features: str, vector_width: int) -> None:
+    """Make Dr.Jit compile for another instruction set (a subset of the host's), before any kernel
+    is built: how the golden test sees another machine's rounding on this one."""
+    import ctypes
+
+    import drjit as dr
+
+    dr.eval(dr.llvm.Float(0.0) + 1.0)
+    fn = _drjit_core()._Z19jit_llvm_set_targetPKcS0_j
+    fn.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    fn(cpu.encode(), features.encode(), int(vector_width))
+
+
+#: Another instruction set for the tolerance check (tests/test_golden.py), by the host's vector
+#: width: AVX-512 hosts compile for AVX2 (8 lanes), AVX2 hosts for AVX with 4 lanes.
+OTHER_ISA = {16: ("haswell", "+avx,+avx2,+fma,+f16c,+sse4.2,+sse4.1,-avx512f", 8),
+             8: ("sandybridge", "+avx,+sse4.2,+sse4.1,-avx2,-fma,-avx512f", 4)}
+
+
 def fingerprint() -> dict:
-    """What decides the floating-point results: CPU model, Mitsuba, Dr.Jit, LLVM, numpy."""
+    """What decides the floating-point results bit for bit: the instruction set Dr.Jit compiles
+    for, its thread count, Mitsuba, Dr.Jit, LLVM, numpy (the CPU's name is kept for reference)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -71,9 +118,15 @@ def fingerprint() -> dict:
                 break
     except OSError:
         cpu = platform.processor() or cpu
-    return {"cpu": cpu, "mitsuba": mi.__version__, "drjit": dr.__version__,
+    return {"cpu": cpu, "llvm_target": llvm_target(), "threads": int(dr.thread_count()),
+            "mitsuba": mi.__version__, "drjit": dr.__version__,
             "llvm": ".".join(map(str, dr.detail.llvm_version())), "numpy": np.__version__,
             "variant": os.environ.get("ELO_MITSUBA_VARIANT", "llvm_ad_mono")}
+
+
+def bit_identical_expected(recorded: dict, here: dict) -> bool:
+    """Whether two fingerprints promise bit-identical outputs (the CPU's name does not matter)."""
+    return all(recorded.get(k) == here.get(k) for k in here if k != "cpu")
 
 
 def _prepare(folder: Path) -> None:
@@ -135,22 +188,105 @@ def load_golden() -> tuple[dict[str, dict], dict]:
     return data["outputs"], data["fingerprint"]
 
 
+def load_golden_arrays() -> dict[str, np.ndarray]:
+    with np.load(GOLDEN_ARRAYS, allow_pickle=False) as z:
+        return {key: z[key] for key in z.files}
+
+
+#: Unit roundoff of float32, the precision every render and fit runs in.
+ULP32 = 2.0 ** -24
+#: Channels computed by the per-pixel fit of the corrected images (ratios to the flat plate, about
+#: 1) and of slopes of order 1: their rounding is that of quantities of size 1, whatever their own
+#: size (the noise-free residual, 4e-4, is a difference of two numbers near 1).
+FIT_CHANNELS = ("dzdx", "dzdy", "dzdx_sigma", "dzdy_sigma", "residual", "scale", "Mx", "My", "sum_rl", "sum_bf")
+#: How far an output may move on another instruction set, in float32 unit roundoffs of its
+#: reference scale (its largest magnitude; at least 1 for the fit's channels). Another vector
+#: width or FMA contraction re-associates the sums in the kernels (a pixel's samples, the
+#: quadrature's triangles, the detectors, 400-path windows of later events): for a sum of n terms
+#: of one sign the rounding error is bounded by about n u sum|x| (Higham, Accuracy and Stability
+#: of Numerical Algorithms, 2nd ed., Sec. 4.2), and these sums have tens to hundreds of terms.
+#: Measured between AVX-512 (16 lanes) and AVX2 (8 lanes) code on one machine
+#: (``golden_cases.py --other-isa``): renders at most 63, so 256 here (1.5e-5 of the channel's
+#: largest value). The fit (10 Levenberg-Marquardt steps with forward differences of step 1e-3 in
+#: float32, stopping at a step of 2e-6) and the integration of its slopes amplify that: at most
+#: 865 (a slope moved by 5.2e-5; heights by 167), so 4096 (2.4e-4 in slope). A change of the
+#: physics or the sampling moves renders by 1e-3 and more (a different seed, a 0.1 % change of a
+#: backscatter coefficient): 60x the render tolerance.
+TOLERANCE_ULPS = 256.0
+TOLERANCE_ULPS_FIT = 4096.0
+
+
+def reference_scale(key: str, golden: np.ndarray) -> tuple[float, float]:
+    """(scale, tolerance in ULP32 x scale) of output ``key`` (``case/file:channel``)."""
+    finite = golden[np.isfinite(golden)]
+    top = float(np.max(np.abs(finite), initial=0.0))
+    channel = key.rsplit(":", 1)[-1]
+    if channel in FIT_CHANNELS:
+        return max(top, 1.0), TOLERANCE_ULPS_FIT
+    if key.startswith("reconstruct"):  # heights: the integrated slopes
+        return top, TOLERANCE_ULPS_FIT
+    return top, TOLERANCE_ULPS
+
+
+def compare(golden: dict[str, np.ndarray], results: dict[str, np.ndarray]) -> tuple[list[str], dict[str, float]]:
+    """Outputs of ``results`` that are not ``golden`` within their tolerance
+    (:func:`reference_scale`; integers, hashes and shapes exactly), and each float output's
+    difference in units of ULP32 x its reference scale."""
+    problems, ulps = [], {}
+    for key in sorted(set(golden) | set(results)):
+        if key not in golden or key not in results:
+            problems.append(f"{key}: {'not written' if key in golden else 'not in the goldens'}")
+            continue
+        g, r = golden[key], results[key]
+        if g.shape != r.shape or g.dtype != r.dtype:
+            problems.append(f"{key}: {r.dtype}{list(r.shape)} instead of {g.dtype}{list(g.shape)}")
+            continue
+        if g.dtype.kind != "f":
+            if not np.array_equal(g, r):
+                problems.append(f"{key}: differs ({'a file' if g.dtype == np.uint8 else 'integers'})")
+            continue
+        if not np.array_equal(np.isfinite(g), np.isfinite(r)):
+            problems.append(f"{key}: NaN/Inf elsewhere")
+            continue
+        scale, allowed = reference_scale(key, g)
+        diff = float(np.max(np.abs(g.astype(np.float64) - r)[np.isfinite(g)], initial=0.0))
+        ulps[key] = diff / (ULP32 * scale) if scale > 0 else (0.0 if diff == 0 else math.inf)
+        if not ulps[key] <= allowed:
+            problems.append(f"{key}: moved by {diff:.3g} = {ulps[key]:.3g} x {ULP32:.3g} x {scale:.3g} "
+                            f"(allowed {allowed:g}; mean {g.mean():.6g} -> {r.mean():.6g})")
+    return problems, ulps
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--update", action="store_true", help="rewrite tests/golden_cases.json")
-    parser.add_argument("--digests", metavar="FILE", help="only write the digests of this run to FILE (JSON; "
-                        "tests/test_golden.py compares them, the run started by conftest.py beside the other tests)")
+    parser.add_argument("--update", action="store_true", help="rewrite tests/golden_cases.json and .npz")
+    parser.add_argument("--digests", metavar="FILE", help="only write the digests of this run to FILE (JSON) and "
+                        "its arrays beside it (FILE with .npz); tests/test_golden.py compares them")
+    parser.add_argument("--other-isa", action="store_true", help="compile Dr.Jit's kernels for a narrower "
+                        "instruction set than the host's (OTHER_ISA): another machine's rounding, on this one")
     args = parser.parse_args(argv)
     if not args.update and not args.digests:
         parser.error("nothing to do: pass --update to regenerate the goldens")
+    if args.update and args.other_isa:
+        parser.error("--update records the host's own instruction set; drop --other-isa")
+    if args.other_isa:
+        import elo_mitsuba
+
+        elo_mitsuba.ensure_variant()
+        width = llvm_target()["vector_width"]
+        if width not in OTHER_ISA:
+            parser.error(f"no narrower instruction set known for a vector width of {width}")
+        set_llvm_target(*OTHER_ISA[width])
     with tempfile.TemporaryDirectory() as tmp:
         results = run_cases(Path(tmp))
     outputs = {key: digest(arr) for key, arr in results.items()}
-    if args.digests:
-        Path(args.digests).write_text(json.dumps({"fingerprint": fingerprint(), "outputs": outputs}, indent=1) + "\n")
-        return 0
-    GOLDEN.write_text(json.dumps({"fingerprint": fingerprint(), "outputs": outputs}, indent=1) + "\n")
-    print(f"wrote {GOLDEN} ({len(outputs)} outputs)", file=sys.stderr)
+    record = json.dumps({"fingerprint": fingerprint(), "outputs": outputs}, indent=1) + "\n"
+    target, arrays = (Path(args.digests), Path(args.digests).with_suffix(".npz")) if args.digests else \
+        (GOLDEN, GOLDEN_ARRAYS)
+    np.savez_compressed(arrays, **results)
+    target.write_text(record)
+    if args.update:
+        print(f"wrote {GOLDEN} and {GOLDEN_ARRAYS.name} ({len(outputs)} outputs)", file=sys.stderr)
     return 0
 
 
