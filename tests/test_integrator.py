@@ -126,9 +126,11 @@ def _blocked_scene(mi, res=6, half=True):
     return scene
 
 
+@pytest.mark.slow
 def test_partial_occlusion_sampled_visibility_is_unbiased():
     """A wall hides part of the right detector: the quadrature with one sampled shadow ray per
-    detector agrees with unbiased stratified sampling; the analysis does not skip these rays."""
+    detector agrees with unbiased stratified sampling; the analysis does not skip these rays.
+    About 40 s on 2 cores: ``-m slow``."""
     scene = _blocked_scene(mi)
     q, integ = render(scene, spp=256, seed=5, detector_sampling="quadrature", quadrature_triangles=24)
     assert integ._unblockable_regions[0] == []  # right: blocked, shadow rays needed

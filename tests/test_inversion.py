@@ -249,11 +249,10 @@ def _hills_model_case(res, layout="zeta75"):
     return geo, img, fl, model_gradient(img, fl, geo), truth
 
 
-def test_coarse_to_fine_where_full_resolution_does_not_fit(mi):
-    """Hills under 15 deg detectors (a third shadowed), 256^2: at full resolution alone the misfit
-    stays far above the noise (measured 0.028, 145 um); coarse to fine (1/8 .. 1/1) fits to the
-    noise and halves the height error (83 um). At 128^2 full resolution alone fits to the noise
-    already, and coarse to fine is not run (the same result)."""
+def test_coarse_to_fine_pieces_and_where_it_is_not_needed(mi):
+    """The scale factors, block means and interpolation of coarse to fine; at 128^2 (hills under
+    15 deg detectors) full resolution alone fits to the noise already, and coarse to fine is not
+    run (the same result)."""
     from elo_mitsuba.analysis.inversion import block_mean, scale_factors, upsample
 
     assert scale_factors((256, 256), 4) == [8, 4, 2] and scale_factors((1500, 1500), 4) == [4, 2]
@@ -265,7 +264,17 @@ def test_coarse_to_fine_where_full_resolution_does_not_fit(mi):
     coarse = np.sin(np.arange(20.0))[:, None] * np.cos(np.arange(20.0))[None, :]
     fine = upsample(coarse, 3, (60, 60))  # coarse centre i sits on fine pixel 3 i + 1: interpolated exactly
     np.testing.assert_allclose(fine[1::3, 1::3], coarse, rtol=0, atol=1e-9)
+    geo, img, fl, mg, truth = _hills_model_case(128)
+    alone = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27, scales=1)
+    default = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
+    assert "coarse" not in default.stopped and np.array_equal(default.height, alone.height)
 
+
+@pytest.mark.slow
+def test_coarse_to_fine_where_full_resolution_does_not_fit(mi):
+    """Hills under 15 deg detectors (a third shadowed), 256^2: at full resolution alone the misfit
+    stays far above the noise (measured 0.028, 145 um); coarse to fine (1/8 .. 1/1) fits to the
+    noise and halves the height error (83 um). About 2 min on 2 cores: ``-m slow``."""
     geo, img, fl, mg, truth = _hills_model_case(256)
     alone = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27, scales=1)
     both = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
@@ -273,12 +282,9 @@ def test_coarse_to_fine_where_full_resolution_does_not_fit(mi):
     assert "coarse to fine" in both.stopped and both.history[-1]["rms"] <= both.discrepancy_level
     assert _rmse(both.height, truth) <= 0.7 * _rmse(alone.height, truth), (_rmse(both.height, truth),
                                                                             _rmse(alone.height, truth))
-    geo, img, fl, mg, truth = _hills_model_case(128)
-    alone = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27, scales=1)
-    default = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
-    assert "coarse" not in default.stopped and np.array_equal(default.height, alone.height)
 
 
+@pytest.mark.slow
 def test_height_error_is_the_spread_of_inversions_of_noisy_images(mi):
     """The height uncertainty (noise propagated through the linearised solution, 16 draws) against
     the spread of 8 inversions of independently noisy model images of one relief (half the hills,
