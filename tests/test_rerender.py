@@ -83,3 +83,19 @@ def test_sweep_points_with_the_scene_quality_equal_direct_renders(tmp_path):
         scene.set_detector("right", radius=r)
         direct = scene.render(quality="scene", progress=False).channels["right"]
         assert np.array_equal(ds["image_right"].sel({"right.radius": r}).values, direct), r
+
+
+def test_scene_quality_keeps_what_configure_set_before_a_preset():
+    """The sweep worker's order: configure the scene's own options, render other points with a
+    preset, then one with ``quality="scene"``: the configured options come back, not the scene
+    file's nor the preset's."""
+    def configured():
+        scene = em.load_scene("flat_plate", res=8)
+        scene.configure(detector_sampling="quadrature", quadrature_triangles=24)
+        return scene
+
+    fresh = configured().render(quality="scene", progress=False)
+    used = configured()
+    used.render(quality="draft", progress=False)
+    _same(fresh, used.render(quality="scene", progress=False))
+    assert fresh.metadata["integrator_options"]["quadrature_triangles"] == 24
