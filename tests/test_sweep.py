@@ -127,20 +127,34 @@ def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
     assert err.count("\n") == 0 and "no metric 'nonsense'" in err and "signal_mean" in err
 
 
-def test_resume_skips_done_points_and_records_failures(cluster, tmp_path, capsys):
-    """A point that fails is recorded with its one-line error and the others are kept; re-running
-    the command renders only what is not done; another spec on the same store is refused."""
+def test_resume_skips_done_points_and_records_failures(cluster, tmp_path, capsys, monkeypatch):
+    """A point that fails while rendering is recorded with its one-line error and the others are
+    kept; re-running the command renders only what is not done (here on the cluster); another
+    spec on the same store is refused. (A value that fails in any position is refused before
+    the store exists, tests/test_sweep_faults.py; the failure here is injected.)"""
+    import elo_mitsuba.sweeps.worker as worker
+    from elo_mitsuba import EloInputError
+
     sched_file, _ = cluster
     spec = _write(tmp_path / "r.toml", """\
 scene = "flat_plate"
 [vary]
-right.center = [[127, 0, 272], [150, 0, 250], [127, 0, -10]]
+right.center = [[127, 0, 272], [150, 0, 250], [127, 0, 200]]
 [render]
 resolution = 16
 spp = 1
 """)
     out = tmp_path / "r.zarr"
-    assert _cli("sweep", spec, "-o", out, "--scheduler", sched_file, "--no-progress") == 1  # one failed
+    real = worker.render_point
+
+    def flaky(spec_, point):
+        if point.index == 2:
+            raise EloInputError("detector 'right' is below what this test allows")
+        return real(spec_, point)
+
+    monkeypatch.setattr(worker, "render_point", flaky)
+    assert _cli("sweep", spec, "-o", out, "--workers", "0", "--no-progress") == 1  # one failed
+    monkeypatch.setattr(worker, "render_point", real)
     ds = xr.open_zarr(out)
     assert ds["status"].values.tolist() == [1, 1, 2]
     assert "EloInputError" in str(ds["error"].values[2]) and "below" in str(ds["error"].values[2])
@@ -154,11 +168,12 @@ spp = 1
     g["status"][1] = 0
     g["signal_mean"][1] = np.nan
     capsys.readouterr()
-    assert _cli("sweep", spec, "-o", out, "--scheduler", sched_file, "--no-progress") == 1
+    assert _cli("sweep", spec, "-o", out, "--scheduler", sched_file, "--no-progress") == 0
     line = capsys.readouterr().out
-    assert "1 already stored (resumed)" in line  # point 0 kept; 1 redone; 2 retried, fails again
+    assert "1 already stored (resumed)" in line  # point 0 kept; 1 redone; 2 retried, now rendered
     ds = xr.open_zarr(out)
-    assert ds["status"].values.tolist() == [1, 1, 2]
+    assert ds["status"].values.tolist() == [1, 1, 1]
+    assert str(ds["error"].values[2]) == ""
     assert ds["render_seconds"].values[0] == first[0] and ds["render_seconds"].values[1] != first[1]
     np.testing.assert_array_equal(ds["signal_mean"].values[:2], mean[:2])
     # a different spec on this store

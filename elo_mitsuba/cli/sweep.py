@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._args import non_negative_int, positive_int
+from ._args import non_negative_int, number, positive_int
 
 HELP = "run a design sweep (TOML spec) locally or on a Dask cluster into a Zarr store"
 
@@ -46,6 +46,11 @@ def add_parser(subparsers):
                        "workers must see OUT.zarr at the same path")
     p.add_argument("--threads", type=positive_int, metavar="N",
                    help="Dr.Jit threads per worker (default: the host's cores / its workers)")
+    p.add_argument("--worker-wait", type=number, metavar="S", default=60.0,
+                   help="stop (with what is stored kept) when no worker is connected for S seconds (default 60)")
+    p.add_argument("--yes", action="store_true",
+                   help="run a sweep whose estimate (printed when refused) is over the limits: above 4 h on this "
+                        "machine or 2 million store files")
     p.add_argument("--overwrite", action="store_true", help="replace an existing store (else it is resumed)")
     p.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
     p.set_defaults(run=run)
@@ -56,10 +61,15 @@ def run(args) -> int:
     from ..sweeps import sweep
 
     s = sweep(args.spec, args.output, workers=args.workers, scheduler=args.scheduler,
-              threads_per_worker=args.threads, overwrite=args.overwrite, progress=not args.no_progress)
+              threads_per_worker=args.threads, overwrite=args.overwrite, progress=not args.no_progress,
+              force=args.yes, worker_wait_s=args.worker_wait)
+    state = "created meanwhile by another client, resumed" if s.state == "joined" else s.state
     print(f"{s.path}: {s.done}/{s.points} points done, {s.failed} failed, {s.skipped} already stored "
-          f"({s.state}); {s.points - s.skipped} rendered in {s.seconds:.1f} s on {s.workers} worker(s)"
-          + (f", {s.rate:.2f} points/s" if s.points > s.skipped else ""))
+          f"({state}); {s.points - s.skipped - s.claimed_elsewhere} rendered in {s.seconds:.1f} s on {s.workers} worker(s)"
+          + (f", {s.rate:.2f} points/s" if s.points > s.skipped + s.claimed_elsewhere else ""))
+    if s.claimed_elsewhere:
+        print(f"{s.claimed_elsewhere} point(s) left to another client rendering this store; re-run after it ends "
+              "to check them")
     if s.failed:
         print(f"failed points: see the store's 'error' variable (xarray.open_zarr('{s.path}').error); "
               "re-run the same command to retry them")

@@ -20,6 +20,9 @@ import numpy as np
 #: applies it to STSA-corrected images (flat plate = 1); the field mean stands in for the flat
 #: (a median would be more robust but costs 10 ms per detector at 512^2, 10 % of a render).
 DARK_FRACTION = 0.02
+#: The units of a metric in the render's own units (the render metadata's ``units``: N_d/N_0, or V
+#: with ``units = "voltage"``); the store labels it with them (one source for the label).
+SIGNAL_UNITS = "signal"
 
 
 @dataclass
@@ -140,7 +143,7 @@ GRADIENT_METHODS: dict[str, Callable] = {
 
 #: The registry: name -> :class:`Metric`, in the order they are stored.
 METRICS: dict[str, Metric] = {
-    "signal_mean": Metric(_signal_mean, True, "N_d/N_0", "mean of the detector image over the scan field"),
+    "signal_mean": Metric(_signal_mean, True, SIGNAL_UNITS, "mean of the detector image over the scan field"),
     "signal_spread": Metric(_signal_spread, True, "1", "std / mean of the detector image over the field"),
     "events2_share": Metric(_events2_share, True, "1", "share of the signal from scattering events >= 2",
                             needs_events=2),

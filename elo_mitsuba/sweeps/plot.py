@@ -15,7 +15,14 @@ def _open(store):
     path = Path(store)
     if not (path / ".zgroup").is_file():
         raise EloInputError(f"{path} is not a sweep's Zarr store")
-    return xr.open_zarr(str(path))
+    try:
+        ds = xr.open_zarr(str(path))
+    except Exception as exc:  # noqa: BLE001 -- damaged metadata: one line
+        text = " ".join(str(exc).split())[:200]
+        raise EloInputError(f"{path}: cannot read the sweep store ({type(exc).__name__}: {text})") from None
+    if "status" not in ds.data_vars:
+        raise EloInputError(f"{path} is a Zarr store but not a sweep's (no status variable)")
+    return ds
 
 
 def _label(ds, dim) -> str:
@@ -49,8 +56,8 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         For per-detector metrics: one detector (default: a line per detector; a heat map shows
         the mean over detectors).
     select : dict, optional
-        ``{dim: value}`` for swept dimensions beyond the one or two plotted (nearest value for
-        numbers, exact for strings).
+        ``{dim: value}`` for swept dimensions beyond the one or two plotted (a value of the
+        sweep: numbers equal to 1e-9 relative, strings exactly).
     x : str, optional
         The dimension along the horizontal axis (default: the first one left).
     overwrite : bool
@@ -67,14 +74,23 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         allowed = [v for v in ds.data_vars if not {"y", "x"} & set(ds[v].dims) and v not in ("error", "worker")]
         raise EloInputError(f"{store}: no metric {metric!r}; metrics in this store: {', '.join(allowed)}")
     da = ds[metric].where(ds["status"] == 1)
+    swept = [d for d in da.dims if d != "detector"]
     for dim, value in (select or {}).items():
-        if dim not in da.dims:
-            raise EloInputError(f"select {dim}: not a dimension of {metric} ({', '.join(da.dims)})")
+        if dim not in swept:
+            raise EloInputError(f"--select {dim}={value}: {dim} is not swept in {store} (swept: "
+                                f"{', '.join(swept) or 'none'})")
+        vals = ds[dim].values
+        numeric = vals.dtype.kind in "iuf"
         try:
-            numeric = ds[dim].values.dtype.kind in "iuf"
-            da = da.sel({dim: float(value) if numeric else value}, method="nearest" if numeric else None)
-        except (KeyError, ValueError):
-            raise EloInputError(f"select {dim}={value}: not among {', '.join(map(str, ds[dim].values))}") from None
+            wanted = float(value) if numeric else str(value)
+        except (TypeError, ValueError):
+            wanted = None
+        hits = [i for i, v in enumerate(vals)
+                if wanted is not None and (np.isclose(float(v), wanted, rtol=1e-9, atol=0) if numeric else str(v) == wanted)]
+        if not hits:
+            raise EloInputError(f"--select {dim}={value}: not a value of the sweep; {dim} takes "
+                                f"{', '.join(f'{v:g}' if numeric else str(v) for v in vals)}")
+        da = da.isel({dim: hits[0]})
     title = metric + "".join(f", {k}={v}" for k, v in (select or {}).items())
     if "detector" in da.dims and detector is not None:
         if detector not in list(ds["detector"].values):

@@ -10,6 +10,7 @@ in this process without Dask (debugging, and the benchmark's reference).
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -22,7 +23,10 @@ from pathlib import Path
 from ..errors import EloInputError
 from . import store as zstore
 from .metrics import METRICS, applicable
-from .spec import SweepSpec, check_against_scene, check_parameters, load_spec
+from .claims import Claims
+from .cost import check as estimate_cost
+from .spec import SweepSpec, load_spec
+from .validate import check_first_point, check_points
 from .worker import run_batch, set_up
 
 #: Most points per task: small enough that a lost worker costs little and progress moves, large
@@ -41,12 +45,13 @@ class SweepSummary:
     skipped: int
     seconds: float
     workers: int
-    state: str                  # "created" or "resumed"
+    state: str                  # "created", "resumed" or "joined" (created meanwhile by another client)
+    claimed_elsewhere: int = 0  # pending points left to another client rendering the same store
 
     @property
     def rate(self) -> float:
         """Points rendered per second (skipped ones excluded)."""
-        n = self.points - self.skipped
+        n = self.points - self.skipped - self.claimed_elsewhere
         return n / self.seconds if self.seconds > 0 else float("nan")
 
 
@@ -57,31 +62,26 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def prepare(spec, output, *, overwrite: bool = False):
-    """Everything before the first render: parse and check the spec, check the output, load the
-    scene once to check names against it, create (or check for resume) the store.
+def prepare(spec, output, *, overwrite: bool = False, workers: int = 1, force: bool = False, create: bool = True):
+    """Everything before the first render: parse and check the spec, check the output, check
+    every point against the scene (:func:`.validate.check_points`, no render), estimate the cost
+    (:func:`.cost.check`: refused when unbounded unless ``force``), then create (or check for
+    resume) the store; with ``create=False`` the store is left alone (``state`` is then None).
 
     Returns
     -------
     spec : SweepSpec
     layout : dict
         What workers need besides the spec (metric names, detectors, kept channels).
-    state : str
-        ``"created"`` or ``"resumed"``.
+    state : str or None
+        ``"created"``, ``"resumed"`` or ``"joined"`` (see :func:`.store.open_or_create`).
+    path : Path
+    store_layout : dict
+        What the store is created from (for :func:`.store.open_or_create`).
     """
     spec = load_spec(spec)
     path = zstore.check_store_path(output, overwrite=overwrite)
-    from ..render import load_scene
-
-    first = spec.point(0)
-    try:  # the first point's scene: names, detectors and channels are checked against it
-        check_parameters(spec)
-        probe = load_scene(spec.scene, **first.load)
-    except EloInputError as exc:
-        raise EloInputError(f"{spec.source}: {exc}") from None
-    check_against_scene(spec, probe)
-    if spec.integrator:
-        probe.configure(**spec.integrator)
+    probe = check_first_point(spec)  # names, options, surface against the first point's scene
     dets = probe.detector_names
     events = [spec.events] + [v for a in spec.axes for m in a.members if m.key == "events" for v in m.values]
     ctx = {"events": min(events), "surface": spec.surface is not None, "detectors": dets}
@@ -110,10 +110,12 @@ def prepare(spec, output, *, overwrite: bool = False):
         "units": meta["units"],
         "geometry": geometry,
     }
+    estimate_cost(spec, probe, layout, path, workers=workers, force=force)
     del probe
-    state = zstore.open_or_create(path, spec, layout, overwrite=overwrite)
+    check_points(spec)  # every point's load-time values and detector moves, nothing rendered
+    state = zstore.open_or_create(path, spec, layout, overwrite=overwrite) if create else None
     job_layout = {"metrics": list(metrics), "detectors": dets, "channels": channels}
-    return spec, job_layout, state, path
+    return spec, job_layout, state, path, layout
 
 
 def batches(spec: SweepSpec, indices, n_workers: int, max_batch: int = MAX_BATCH) -> list[list[int]]:
@@ -172,9 +174,86 @@ class _ThreadsPlugin:
         set_up(threads)
 
 
+#: Seconds to wait for a Dask scheduler to answer (``scheduler=``) before giving up.
+CONNECT_SECONDS = 10
+#: Default seconds a sweep waits while no Dask worker is connected (at the start, or after all
+#: were lost) before it stops with one line (``worker_wait_s``, CLI ``--worker-wait``).
+WORKER_WAIT_SECONDS = 60.0
+#: Most Dr.Jit threads per worker on a cluster whose hosts this client cannot see.
+MAX_THREADS = 1024
+
+
+def _whole(name, value, lo):
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+        raise EloInputError(f"{name}={value!r}; must be a whole number >= {lo}")
+    return value
+
+
+def check_resources(workers, scheduler, threads):
+    """The cluster arguments, checked before anything starts: (workers, scheduler address or
+    file, threads). Local workers are processes with at least one Dr.Jit thread each: more of them
+    than cores, or more threads per worker than cores, only slows every render; refused."""
+    if workers is not None and scheduler is not None:
+        raise EloInputError("give either workers (a local cluster) or scheduler (a running one), not both")
+    cores = available_cores()
+    if scheduler is None:
+        workers = 1 if workers is None else workers
+        if isinstance(workers, bool) or not isinstance(workers, int):
+            raise EloInputError(f"workers={workers!r}; must be a whole number of local worker processes, 0 to {cores}")
+        if not 0 <= workers <= cores:
+            raise EloInputError(f"workers={workers}; this machine has {cores} cores: give 0 (in this process) to "
+                                f"{cores} local workers (each renders with at least one thread)")
+        limit = max(1, cores // max(workers, 1))
+        if threads is not None:
+            if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+                raise EloInputError(f"threads per worker {threads!r}; must be a whole number of Dr.Jit threads >= 1")
+            if threads > limit:
+                raise EloInputError(f"threads per worker {threads}; {max(workers, 1)} worker(s) on {cores} cores: at most {limit} "
+                                    "Dr.Jit thread(s) per worker (more only make the renders wait for each other)")
+        return workers, None, threads
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS):
+        raise EloInputError(f"threads per worker {threads!r}; must be a whole number of Dr.Jit threads in "
+                            f"[1, {MAX_THREADS}]")
+    return None, _scheduler_address(scheduler), threads
+
+
+def _scheduler_address(scheduler) -> dict:
+    """``{"address": ...}`` or ``{"scheduler_file": ...}`` from ``scheduler``, checked (a file must
+    exist and hold a scheduler's JSON; an address must be ``scheme://host:port``)."""
+    import re
+
+    if not isinstance(scheduler, (str, os.PathLike)) or not str(scheduler).strip():
+        raise EloInputError(f"scheduler {scheduler!r}: give tcp://host:port or a scheduler file (.json)")
+    text = str(scheduler).strip()
+    if text.lower().endswith(".json"):
+        try:
+            info = json.loads(Path(text).read_text())
+        except OSError as exc:
+            raise EloInputError(f"scheduler file {text}: cannot read it ({exc.strerror or exc})") from None
+        except ValueError:
+            raise EloInputError(f"scheduler file {text}: not JSON (a file written by dask scheduler "
+                                "--scheduler-file)") from None
+        if not isinstance(info, dict) or not isinstance(info.get("address"), str):
+            raise EloInputError(f"scheduler file {text}: no \"address\" (a file written by dask scheduler "
+                                "--scheduler-file)")
+        address = info["address"]
+        where = f"scheduler file {text}: address {address!r}"
+    else:
+        address, where = text, f"scheduler {text!r}"
+    m = re.fullmatch(r"(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9a-fA-F:]+\]|[A-Za-z0-9._-]+):(\d{1,5})", address)
+    if not m or not 0 < int(m.group(3)) < 65536:
+        raise EloInputError(f"{where}: not an address of the form tcp://host:port (port 1-65535)")
+    return {"scheduler_file": text} if text.lower().endswith(".json") else {"address": address}
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())[:200]
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
 def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = None,
           threads_per_worker: int | None = None, overwrite: bool = False, progress: bool | None = None,
-          max_batch: int = MAX_BATCH) -> SweepSummary:
+          max_batch: int = MAX_BATCH, force: bool = False, worker_wait_s: float = WORKER_WAIT_SECONDS) -> SweepSummary:
     """Run a design sweep into a Zarr store (see :mod:`elo_mitsuba.sweeps`).
 
     Parameters
@@ -186,62 +265,118 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
         skipped, failed ones retried); one of another spec is refused unless ``overwrite``.
     workers : int, optional
         Local Dask worker processes (default 1; 0 = in this process, without Dask, which then keeps
-        freed memory for reuse as a worker does, :func:`~elo_mitsuba.runtime.keep_freed_memory`). The local
-        cluster starts its workers by importing the main module: call this under
-        ``if __name__ == "__main__":`` in a script.
+        freed memory for reuse as a worker does, :func:`~elo_mitsuba.runtime.keep_freed_memory`);
+        at most the machine's cores. The local cluster starts its workers by importing the main
+        module: call this under ``if __name__ == "__main__":`` in a script.
     scheduler : str, optional
         Address of a running Dask scheduler (``tcp://host:port``) or a scheduler file (``.json``);
-        then ``workers`` is not used.
+        then ``workers`` is not used. It must answer within :data:`CONNECT_SECONDS`.
     threads_per_worker : int, optional
-        Dr.Jit threads per worker (default: the cores / workers on the same host).
+        Dr.Jit threads per worker (default: the cores / workers on the same host; locally at most
+        that).
     overwrite : bool
         Replace an existing store.
     progress : bool, optional
         Progress line on stderr (default: when stderr is a terminal).
+    force : bool
+        Run a sweep whose estimate is over the limits of :mod:`.cost` (CLI ``--yes``).
+    worker_wait_s : float
+        How long to wait while no worker is connected (at the start, or after all were lost)
+        before stopping with one line; the points stored so far are kept (re-run to resume).
 
     Returns
     -------
     SweepSummary
+
+    Raises
+    ------
+    EloInputError
+        Bad input (one line), before the store is created.
+    EloError
+        The cluster failed during the sweep (scheduler or every worker lost): one line; what was
+        stored is kept and a re-run resumes it.
     """
-    if workers is not None and scheduler is not None:
-        raise EloInputError("give either workers (a local cluster) or scheduler (a running one), not both")
-    workers = 1 if workers is None and scheduler is None else workers
-    if workers is not None and workers < 0:
-        raise EloInputError(f"workers={workers}; must be >= 0")
-    spec, layout, state, path = prepare(spec, output, overwrite=overwrite)
-    status = zstore.read_status(path).ravel()
-    pending = [int(i) for i in range(spec.n_points) if status[i] != zstore.STATUS_DONE]
-    skipped = spec.n_points - len(pending)
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = _Progress(len(pending), show)
-    job = {"spec": spec.to_dict(), "layout": layout}
-    t0 = time.perf_counter()
-    n_workers = 0
-    if pending and workers == 0:
-        n_workers = 1
-        set_up(threads_per_worker)
-        for batch in batches(spec, pending, 1, max_batch):
-            res = run_batch(str(path), job, batch)
-            bar.update(sum(s == zstore.STATUS_DONE for _, s, _ in res), sum(s == zstore.STATUS_FAILED for _, s, _ in res))
-    elif pending:
-        n_workers = _run_dask(spec, path, job, pending, workers, scheduler, threads_per_worker, bar, max_batch)
-    bar.close()
-    seconds = time.perf_counter() - t0
+    workers, address, threads_per_worker = check_resources(workers, scheduler, threads_per_worker)
+    if isinstance(worker_wait_s, bool) or not isinstance(worker_wait_s, (int, float)) or not worker_wait_s > 0:
+        raise EloInputError(f"worker_wait_s={worker_wait_s!r}; must be a number of seconds > 0")
+    max_batch = _whole("max_batch", max_batch, 1)
+    spec, layout, _, path, store_layout = prepare(spec, output, overwrite=overwrite, workers=workers or 1,
+                                                  force=force, create=False)
+    client = cluster = None
+    quiet = _QuietDask()
+    if workers != 0:  # the cluster answers before the store is created
+        quiet.__enter__()
+        try:
+            client, cluster = _connect(address, workers)
+        except BaseException:
+            quiet.__exit__()
+            raise
+    try:
+        state = zstore.open_or_create(path, spec, store_layout, overwrite=overwrite)
+        status = zstore.read_status(path).ravel()
+        pending = [int(i) for i in range(spec.n_points) if status[i] != zstore.STATUS_DONE]
+        claims = Claims(path)
+        try:
+            mine, others = claims.claim(pending)
+            skipped = spec.n_points - len(pending)
+            show = sys.stderr.isatty() if progress is None else progress
+            bar = _Progress(len(mine), show)
+            job = {"spec": spec.to_dict(), "layout": layout}
+            t0 = time.perf_counter()
+            n_workers = 0
+            if mine and workers == 0:
+                n_workers = 1
+                set_up(threads_per_worker)
+                for batch in batches(spec, mine, 1, max_batch):
+                    res = run_batch(str(path), job, batch)
+                    claims.heartbeat()
+                    bar.update(sum(s == zstore.STATUS_DONE for _, s, _ in res),
+                               sum(s == zstore.STATUS_FAILED for _, s, _ in res))
+            elif mine:
+                n_workers = _run_dask(client, spec, path, job, mine, threads_per_worker, bar, max_batch,
+                                      worker_wait_s, claims, address)
+            bar.close()
+            seconds = time.perf_counter() - t0
+        finally:
+            claims.release()
+    finally:
+        _disconnect(client, cluster)
+        quiet.__exit__()
     final = zstore.read_status(path).ravel()
     return SweepSummary(path=path, points=spec.n_points, done=int((final == zstore.STATUS_DONE).sum()),
                         failed=int((final == zstore.STATUS_FAILED).sum()), skipped=skipped, seconds=seconds,
-                        workers=n_workers, state=state)
+                        workers=n_workers, state=state, claimed_elsewhere=sum(others.values()))
 
 
-def _run_dask(spec, path, job, pending, workers, scheduler, threads, bar, max_batch) -> int:
-    from distributed import Client, LocalCluster, as_completed
-    from distributed.diagnostics.plugin import WorkerPlugin
+class _QuietDask:
+    """Dask's own log records (a lost scheduler's reconnection attempts, with tracebacks) kept
+    off stderr while the sweep runs: the sweep reports a fault itself, in one line."""
 
-    plugin_cls = type("EloThreadsPlugin", (_ThreadsPlugin, WorkerPlugin), {})
-    cluster = None
-    if scheduler is None:
-        cores = available_cores()
-        threads = threads or max(1, cores // workers)
+    def __init__(self):
+        self.saved = None
+
+    def __enter__(self):
+        import distributed  # noqa: F401 -- its import configures its loggers: quiet them after it
+
+        names = ["distributed", "tornado"] + [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
+        self.saved = {n: logging.getLogger(n).level for n in names}
+        for n in names:
+            logging.getLogger(n).setLevel(logging.CRITICAL)
+        return self
+
+    def __exit__(self, *exc):
+        for n, level in (self.saved or {}).items():
+            logging.getLogger(n).setLevel(level)
+        self.saved = None
+
+
+def _connect(address, workers):
+    """(client, local cluster or None): a local cluster of ``workers`` processes, or a client of
+    the running scheduler ``address`` ({"address"} or {"scheduler_file"}), which must answer
+    within :data:`CONNECT_SECONDS`."""
+    from distributed import Client, LocalCluster
+
+    if address is None:
         import dask
 
         # Dask's statistical profiler samples every worker thread's stack each 10 ms, under the GIL:
@@ -249,45 +384,100 @@ def _run_dask(spec, path, job, pending, workers, scheduler, threads, bar, max_ba
         with dask.config.set({"distributed.worker.profile.enabled": False}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                                    silence_logs=logging.ERROR)
-        client = Client(cluster)
-    else:
-        try:
-            if str(scheduler).endswith(".json"):
-                client = Client(scheduler_file=str(scheduler), timeout="30s")
-            else:
-                client = Client(str(scheduler), timeout="30s")
-        except (OSError, TimeoutError) as exc:
-            raise EloInputError(f"cannot reach the Dask scheduler {scheduler} ({exc})") from None
+        return Client(cluster), cluster
+    where = address.get("address") or f"in {address['scheduler_file']}"
     try:
-        client.wait_for_workers(1, timeout=120)
-        info = client.scheduler_info()["workers"]
-        per_host = defaultdict(int)
-        for addr in info:
-            per_host[addr.split("://")[-1].rsplit(":", 1)[0]] += 1
-        client.register_plugin(plugin_cls(threads, dict(per_host)), name="elo-mitsuba-threads")
-        n_workers = len(info)
-        tasks = batches(spec, pending, n_workers, max_batch)
-        run_id = f"{spec.digest()}-{time.time_ns()}"
-        futures = {client.submit(run_batch, str(path), job, b, key=f"elo-sweep-{run_id}-{k}", pure=False): b
-                   for k, b in enumerate(tasks)}
-        writer = None
-        for fut in as_completed(futures):
+        return Client(**address, timeout=f"{CONNECT_SECONDS}s"), None
+    except Exception as exc:  # noqa: BLE001 -- refused, unreachable, malformed: one line
+        raise EloInputError(f"cannot reach the Dask scheduler {where} within {CONNECT_SECONDS} s "
+                            f"({_one_line(exc)}); is it running, and is the address right?") from None
+
+
+def _disconnect(client, cluster):
+    for thing in (client, cluster):
+        if thing is None:
+            continue
+        try:
+            thing.close(timeout=5) if thing is client else thing.close()
+        except Exception:  # noqa: BLE001 -- a lost scheduler: nothing left to close cleanly
+            pass
+
+
+def _stored(path) -> tuple[int, int]:
+    final = zstore.read_status(path).ravel()
+    return int((final == zstore.STATUS_DONE).sum()), final.size
+
+
+def _run_dask(client, spec, path, job, pending, threads, bar, max_batch, worker_wait_s, claims, address) -> int:
+    from distributed import wait
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    from ..errors import EloError
+
+    plugin_cls = type("EloThreadsPlugin", (_ThreadsPlugin, WorkerPlugin), {})
+    where = "local Dask cluster" if address is None else \
+        f"Dask scheduler {address.get('address') or 'in ' + address['scheduler_file']}"
+
+    def stop(what):
+        done, total = _stored(path)
+        raise EloError(f"{what}: {done} of {total} points are stored, {total - done} not; "
+                       "re-run the same command to resume")
+
+    try:
+        client.wait_for_workers(1, timeout=worker_wait_s)
+    except Exception:  # noqa: BLE001 -- TimeoutError, or the scheduler went away
+        stop(f"no worker joined the {where} within {worker_wait_s:g} s")
+    info = client.scheduler_info()["workers"]
+    per_host = defaultdict(int)
+    for addr in info:
+        per_host[addr.split("://")[-1].rsplit(":", 1)[0]] += 1
+    client.register_plugin(plugin_cls(threads, dict(per_host)), name="elo-mitsuba-threads")
+    n_workers = len(info)
+    tasks = batches(spec, pending, n_workers, max_batch)
+    run_id = f"{spec.digest()}-{time.time_ns()}"
+    futures = {client.submit(run_batch, str(path), job, b, key=f"elo-sweep-{run_id}-{k}", pure=False): b
+               for k, b in enumerate(tasks)}
+    remaining = set(futures)
+    writer = None
+    no_workers_since = None
+    while remaining:
+        try:
+            finished, _ = wait(list(remaining), timeout=1.0, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            finished = set()
+        except Exception:  # noqa: BLE001 -- e.g. FuturesCancelledError: the scheduler is gone
+            finished = {f for f in remaining if f.status in ("finished", "error", "cancelled", "lost")}
+        claims.heartbeat()
+        if client.status != "running" or any(f.status in ("cancelled", "lost") for f in remaining):
+            stop(f"the {where} was lost")
+        for fut in finished:
+            remaining.discard(fut)
             try:
                 res = fut.result()
             except Exception as exc:  # noqa: BLE001 -- e.g. KilledWorker after the retries: record it
+                if type(exc).__name__ in ("CancelledError", "FutureCancelledError", "CommClosedError") \
+                        or client.status != "running":
+                    stop(f"the {where} was lost")
                 writer = writer or zstore.PointWriter(path)
                 failed = 0
                 for i in futures[fut]:
                     idx = spec.point(i).idx
                     if writer.status(idx) != zstore.STATUS_DONE:
-                        writer.write(idx, {}, zstore.STATUS_FAILED, error=f"{type(exc).__name__}: {exc}"[:240],
-                                     worker="lost")
+                        writer.write(idx, {}, zstore.STATUS_FAILED, error=_one_line(exc)[:240], worker="lost")
                         failed += 1
                 bar.update(len(futures[fut]) - failed, failed)
                 continue
             bar.update(sum(s == zstore.STATUS_DONE for _, s, _ in res), sum(s == zstore.STATUS_FAILED for _, s, _ in res))
-        return n_workers
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        if remaining and not finished:
+            try:
+                connected = len(client.nthreads())
+            except Exception:  # noqa: BLE001 -- the scheduler does not answer
+                stop(f"the {where} was lost")
+            if connected:
+                no_workers_since = None
+            elif no_workers_since is None:
+                no_workers_since = time.monotonic()
+            elif time.monotonic() - no_workers_since > worker_wait_s:
+                client.cancel(list(remaining))
+                stop(f"every worker of the {where} was lost and none joined within {worker_wait_s:g} s")
+    return n_workers

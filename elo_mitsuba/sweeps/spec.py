@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import EloInputError
+from ..options import MAX_EVENTS
 
 #: Top-level keys of a spec.
 SECTIONS = ("scene", "seed", "fixed", "vary", "zip", "render", "integrator", "keep", "surface")
@@ -275,8 +276,8 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
             _fail(source, f"{sec} must be a table ([{sec}]), not {type(t[sec]).__name__}")
     fixed = {}
     for k, v in t.get("fixed", {}).items():
-        if not _scalar(v):
-            _fail(source, f"fixed.{k} = {v!r}; a fixed scene parameter is one number or string")
+        if not _scalar(v) or (_number(v) and not math.isfinite(v)):
+            _fail(source, f"fixed.{k} = {v!r}; a fixed scene parameter is one finite number or a string")
         if k in RENDER_KEYS or k == "res":
             _fail(source, f"fixed.{k}: set it in [render] ({', '.join(RENDER_KEYS)})")
         fixed[k] = v
@@ -286,7 +287,7 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
         _fail(source, f"unknown key render.{bad[0]}; [render] has: {', '.join(RENDER_KEYS)}")
     resolution = _integer(source, "render.resolution", render["resolution"], 1, 16384) \
         if "resolution" in render else None
-    events = _integer(source, "render.events", render.get("events", 1), 1, 16)
+    events = _integer(source, "render.events", render.get("events", 1), 1, MAX_EVENTS)
     spp = _integer(source, "render.spp", render["spp"], 1, None) if "spp" in render else None
     quality = _quality(source, "render.quality", render.get("quality", "default"))
 
@@ -374,13 +375,16 @@ def _members(source, where, key, value) -> list[Member]:
         if key == "quality":
             vals = [_quality(source, where, v) for v in vals]
         else:
-            vals = [_integer(source, where, v, 1, None if key == "spp" else 16) for v in vals]
+            vals = [_integer(source, where, v, 1, None if key == "spp" else MAX_EVENTS) for v in vals]
         return [Member(key, tuple(vals), "render")]
     if key == "resolution":
         _fail(source, f"{where}: sweep the scene parameter res (render.resolution fixes it)")
     kinds = {type(v) for v in vals}
     if not all(_scalar(v) for v in vals):
         _fail(source, f"{where} = {value!r}; scene parameter values are numbers or strings")
+    bad = [v for v in vals if _number(v) and not math.isfinite(v)]
+    if bad:
+        _fail(source, f"{where}: value {bad[0]!r}; scene parameter values are finite numbers or strings")
     if len({float if k is int else k for k in kinds}) > 1:
         _fail(source, f"{where} = {value!r}; mixes numbers and strings")
     if len(set(vals)) < len(vals):
@@ -425,7 +429,7 @@ def _number(v) -> bool:
 
 
 def _integer(source, where, v, lo, hi) -> int:
-    if not (_number(v) and float(v) == int(v)) or v < lo or (hi is not None and v > hi):
+    if not (_number(v) and math.isfinite(v) and float(v) == int(v)) or v < lo or (hi is not None and v > hi):
         rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
         _fail(source, f"{where} = {v!r}; must be a whole number {rng}")
     return int(v)
@@ -448,21 +452,29 @@ def _surface(source, s, base: Path):
     if ("object" in s) == ("height_map" in s):
         _fail(source, f"[surface]: give either object ({', '.join(SURFACE_OBJECTS)}) or height_map (+ pixel_mm)")
     out = {"flat": s.get("flat", "flat_plate")}
-    if not isinstance(out["flat"], str):
+    if not isinstance(out["flat"], str) or not out["flat"]:
         _fail(source, f"surface.flat = {out['flat']!r}; the flat reference scene's name or XML path")
     if out["flat"].lower().endswith(".xml"):
         out["flat"] = str((base / out["flat"]).resolve())
     if "object" in s:
-        if s["object"] not in SURFACE_OBJECTS:
+        if not isinstance(s["object"], str) or s["object"] not in SURFACE_OBJECTS:
             _fail(source, f"surface.object = {s['object']!r}; the package knows the true gradient of "
                   f"{', '.join(SURFACE_OBJECTS)} (else give height_map and pixel_mm)")
         out["object"] = s["object"]
     else:
+        if not isinstance(s["height_map"], str) or not s["height_map"]:
+            _fail(source, f"surface.height_map = {s['height_map']!r}; the height map's path (.npy, .tif, .csv)")
         path = Path(s["height_map"])
         path = path if path.is_absolute() else base / path
         if not path.is_file():
             _fail(source, f"surface.height_map {str(path)!r} does not exist")
-        if not (_number(s.get("pixel_mm")) and s["pixel_mm"] > 0):
+        from ..heightmap import load_heightmap
+
+        try:  # readable, 2-D, finite: checked now, not on every worker
+            load_heightmap(path)
+        except EloInputError as exc:
+            _fail(source, f"surface.height_map: {exc}")
+        if not (_number(s.get("pixel_mm")) and math.isfinite(s["pixel_mm"]) and s["pixel_mm"] > 0):
             _fail(source, f"surface.pixel_mm = {s.get('pixel_mm')!r}; the height map's pixel size in mm (> 0)")
         out["height_map"] = str(path.resolve())
         out["pixel_mm"] = float(s["pixel_mm"])

@@ -17,7 +17,9 @@ Attributes: the spec (TOML text and digest), the scan geometry, the package vers
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +42,8 @@ def image_variable(channel: str) -> str:
 def check_store_path(path, *, overwrite: bool = False) -> Path:
     """The output store: ``*.zarr``, in an existing folder; an existing path must be a Zarr
     store (it is then resumed, or replaced with ``overwrite``), never a user's other folder."""
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise EloInputError(f"output {path!r}: give the path of a .zarr store (a string or Path)")
     path = Path(path)
     if path.suffix.lower() != ".zarr":
         raise EloInputError(f"output {path}: a sweep writes a Zarr store; the name must end in .zarr")
@@ -53,20 +57,41 @@ def check_store_path(path, *, overwrite: bool = False) -> Path:
 def open_or_create(path, spec, layout: dict, *, overwrite: bool = False) -> str:
     """Create the store for ``spec`` or check that an existing one was made by the same spec.
 
-    Returns ``"created"`` or ``"resumed"``; raises EloInputError for a store of another spec
-    (unless ``overwrite``, which replaces it)."""
+    Returns ``"created"``, ``"resumed"`` or ``"joined"`` (another client created the same
+    sweep's store while this one prepared it: exactly one creates it, the other resumes it);
+    raises EloInputError for a store of another spec (unless ``overwrite``, which replaces it).
+
+    The store is built in a private folder next to ``path`` and renamed into place: ``rename``
+    onto an existing non-empty folder fails, so creation is exclusive, and an interrupted creation
+    never leaves a half-made store behind."""
     path = check_store_path(path, overwrite=overwrite)
     if path.exists():
-        attrs = _attrs(path)
-        if attrs.get("elo_sweep_digest") == spec.digest() and not overwrite:
-            return "resumed"
         if not overwrite:
-            raise EloInputError(
-                f"output {path} holds a sweep of another spec (digest {attrs.get('elo_sweep_digest')}, this spec "
-                f"{spec.digest()}); resuming needs the same spec: choose another -o, or --overwrite to replace it")
+            _check_same_spec(path, spec)
+            return "resumed"
         shutil.rmtree(path)
-    _create(path, spec, layout)
+    tmp = path.with_name(f".{path.name}.creating-{os.getpid()}-{time.time_ns()}")
+    try:
+        _create(tmp, spec, layout)
+        os.rename(tmp, path)
+    except OSError as exc:
+        if not (path / ".zgroup").is_file():
+            raise EloInputError(f"output {path}: cannot create the store ({exc.strerror or exc})") from None
+        _check_same_spec(path, spec, meanwhile=True)  # another client won the race
+        return "joined"
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
     return "created"
+
+
+def _check_same_spec(path: Path, spec, meanwhile: bool = False) -> None:
+    attrs = _attrs(path)
+    if attrs.get("elo_sweep_digest") != spec.digest():
+        made = "was created meanwhile by another client for" if meanwhile else "holds a sweep of"
+        raise EloInputError(
+            f"output {path} {made} another spec (digest {attrs.get('elo_sweep_digest')}, this spec "
+            f"{spec.digest()}); resuming needs the same spec: choose another -o, or --overwrite to replace it")
 
 
 def _attrs(path: Path) -> dict:
@@ -92,12 +117,15 @@ def _create(path: Path, spec, layout: dict) -> None:
                                                              chunks=one + sizes_extra), attrs)
         encoding[name] = {"chunks": one + sizes_extra}
 
+    from .metrics import SIGNAL_UNITS
+
     for name, m in layout["metrics"].items():
+        units = layout["units"] if m.units == SIGNAL_UNITS else m.units  # the render's own label
         if m.per_detector:
             lazy(name, ["detector"], (len(layout["detectors"]),), np.float64,
-                 {"units": m.units, "description": m.description})
+                 {"units": units, "description": m.description})
         else:
-            lazy(name, [], (), np.float64, {"units": m.units, "description": m.description})
+            lazy(name, [], (), np.float64, {"units": units, "description": m.description})
     h, w = layout["image_shape"]
     for ch in layout["channels"]:
         lazy(image_variable(ch), ["y", "x"], (h, w), np.float32,
@@ -166,10 +194,39 @@ def _member_coords(dim, m, index: bool) -> dict:
 
 
 def read_status(path) -> np.ndarray:
-    """The status array (0 pending, 1 done, 2 failed), shape = the sweep's shape."""
+    """The status array (0 pending, 1 done, 2 failed), shape = the sweep's shape. A store whose
+    status cannot be read (a damaged chunk) is refused with one line naming the chunk."""
     import zarr
 
-    return np.asarray(zarr.open_group(str(path), mode="r")["status"][...])
+    try:
+        arr = zarr.open_group(str(path), mode="r")["status"]
+    except Exception as exc:  # noqa: BLE001 -- any reader failure is a damaged store for the user
+        raise EloInputError(f"output {path}: its status array cannot be opened ({_one_line(exc)}); the store is "
+                            "damaged: --overwrite to start again, or choose another -o") from None
+    try:
+        status = np.asarray(arr[...])
+    except Exception as exc:  # noqa: BLE001
+        where = ""
+        for k, idx in enumerate(np.ndindex(arr.shape)):  # name the first unreadable chunk
+            if k >= 10000:
+                break
+            try:
+                arr[idx]
+            except Exception:  # noqa: BLE001
+                where = f" (point {list(idx)}: chunk status/{'.'.join(map(str, idx)) or '0'})"
+                break
+        raise EloInputError(f"output {path}: the status of its points cannot be read{where}: {_one_line(exc)}; the "
+                            "store is damaged: --overwrite to start again, or choose another -o") from None
+    if not np.isin(status, (STATUS_PENDING, STATUS_DONE, STATUS_FAILED)).all():
+        bad = np.argwhere(~np.isin(status, (STATUS_PENDING, STATUS_DONE, STATUS_FAILED)))[0].tolist()
+        raise EloInputError(f"output {path}: point {bad} has status {int(status[tuple(bad)])} (0, 1 or 2 expected); "
+                            "the store is damaged: --overwrite to start again, or choose another -o")
+    return status
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())[:200] or type(exc).__name__
+    return f"{type(exc).__name__}: {text}"
 
 
 def read_errors(path) -> np.ndarray:

@@ -4,9 +4,12 @@ parameters in place, compute the metrics, write the point into the store.
 A worker process keeps a small cache of loaded scenes keyed by their load-time parameters
 (:attr:`~.spec.Point.load_key`); the client sends the points grouped by that key, so each worker
 loads each key about once. Between points the integrator options are put back as loaded and the point's detector moves are
-applied (:meth:`LoadedScene.prepare`), so a point's numbers do not depend on which points the worker
-rendered before: they equal a fresh ``load_scene(...)``, ``set_detector(...)``, ``render(...)``
-with the same seed, bit for bit (tested).
+applied (:meth:`LoadedScene.prepare`); a cached scene whose moved detectors the point does not
+move (an earlier sweep on the same worker moved them) is loaded afresh instead of being put back,
+as a transform rewritten from its float32 copy gets an inverse that differs in the last bit from a
+fresh load's (up to 2e-7 relative in the images). So a point's numbers do not depend on which
+points the worker rendered before: they equal a fresh ``load_scene(...)``, ``set_detector(...)``,
+``render(...)`` with the same seed, bit for bit (tests/test_sweep_faults.py).
 """
 
 from __future__ import annotations
@@ -67,17 +70,26 @@ class LoadedScene:
                            for d in self.scene.detector_names if f"{d}.to_world" in p}
         self.moved: set[str] = set()
 
-    def prepare(self, moves: dict):
-        """Put the scene back as loaded for a point with detector ``moves``, then apply them.
-
-        Only detectors moved before and not moved now are put back: in a sweep every point moves
-        the same detectors (its axes), so that never happens and no transform is ever rewritten
-        from its float32 copy (which would make a detector's inverse transform differ in the
-        last bit from a fresh load's, and so the point's numbers from a direct render's)."""
-        mi = self.scene.mi
+    def moved_by(self, moves: dict) -> set[str]:
         names = set()
         for det in moves:
             names |= set(self.scene.detector_names) if det == ALL_DETECTORS else {det}
+        return names
+
+    def reusable(self, moves: dict) -> bool:
+        """Whether a point with detector ``moves`` can reuse this scene bit for bit: every
+        detector moved before is moved again (its transform is then computed afresh, as in a
+        fresh scene). A detector moved before and not now would have to be put back from its
+        float32 copy, whose recomputed inverse differs in the last bit from a fresh load's."""
+        return not (self.moved - self.moved_by(moves))
+
+    def prepare(self, moves: dict):
+        """Put the scene back as loaded for a point with detector ``moves``, then apply them.
+
+        Detectors moved before and not moved now are put back from their float32 copy (last-bit
+        differences, see :meth:`reusable`: the worker reloads such a scene instead)."""
+        mi = self.scene.mi
+        names = self.moved_by(moves)
         stale = self.moved - names
         for d in stale:
             self.scene.mi_params[f"{d}.to_world"] = mi.Transform4f(mi.ScalarTransform4f(self.transforms[d]))
@@ -92,12 +104,15 @@ class LoadedScene:
         self.moved = names
 
 
-def _scene(path, load: dict, integrator: dict) -> LoadedScene:
+def _scene(path, load: dict, integrator: dict, moves: dict | None = None) -> LoadedScene:
     key = json.dumps([str(path), load, integrator], sort_keys=True, default=str)
     cache = _STATE["scenes"]
-    if key in cache:
+    if key in cache and cache[key].reusable(moves or {}):
         cache.move_to_end(key)
         return cache[key]
+    if key in cache:  # it would have to put a detector back from float32: load it afresh
+        del cache[key]
+        gc.collect()
     while len(cache) >= MAX_SCENES:
         cache.popitem(last=False)
         gc.collect()
@@ -110,7 +125,7 @@ def render_point(spec: SweepSpec, point) -> tuple:
     """Render one point (and its flat reference with a test surface); returns
     ``(RenderResult, flat channels or None)``. Numbers equal a direct render of the same
     parameters and seed."""
-    scene = _scene(spec.scene, point.load, spec.integrator)
+    scene = _scene(spec.scene, point.load, spec.integrator, point.moves)
     scene.prepare(point.moves)
     r = point.render
     result = scene.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"], progress=False)
@@ -126,11 +141,11 @@ def _flat(spec, point, obj: LoadedScene):
     path = resolve_scene_path(spec.surface["flat"])
     declared = declared_parameters(path, {k: str(v) for k, v in point.load.items()})
     load = {k: v for k, v in point.load.items() if k in declared}
-    key = json.dumps([load, point.moves, point.render], sort_keys=True, default=str)
+    key = json.dumps([str(path), load, spec.integrator, point.moves, point.render], sort_keys=True, default=str)
     cache = _STATE["flats"]
     if key in cache:
         return cache[key]
-    flat = _scene(path, load, spec.integrator)
+    flat = _scene(path, load, spec.integrator, point.moves)
     flat.prepare(point.moves)
     r = point.render
     channels = flat.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"],
