@@ -11,7 +11,12 @@ every header as ``orientation``.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import math
+import os
+import sys
 from pathlib import Path
 from typing import Mapping
 
@@ -40,7 +45,9 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
     """
     import OpenEXR
 
-    path = check_output(path, overwrite=overwrite)
+    if not isinstance(path, (str, os.PathLike)):
+        raise EloInputError(f"EXR path {path!r} ({type(path).__name__}): give a file name ending in .exr")
+    path = check_output(path, (".exr",), overwrite=overwrite)
     if not channels:
         raise EloInputError(f"{path}: no channels to write")
     shapes = {np.shape(v) for v in channels.values()}
@@ -77,21 +84,72 @@ def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
     path = Path(path)
     if not path.is_file():
         raise EloInputError(f"{path}: no such file")
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            header = dict(f.header())  # the File clears its own dict on close
-            channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
-    except EloInputError:
-        raise
-    except Exception as exc:  # OpenEXR raises plain Exceptions with long messages
-        raise EloInputError(f"{path}: not a readable EXR file ({str(exc).splitlines()[0]})") from None
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != EXR_MAGIC:
+        raise EloInputError(f"{path}: not a readable EXR file (it does not start with the EXR magic number)")
+    with _library_output() as said:
+        try:
+            with OpenEXR.File(str(path), separate_channels=True) as f:
+                header = dict(f.header())  # the File clears its own dict on close
+                channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
+            error = None
+        except Exception as exc:  # OpenEXR raises plain Exceptions with long messages
+            error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    if error is not None:
+        # the C library's own report (what it printed) names the damage better than the binding's
+        # exception ("file has 0 parts" for a file cut short in its pixel data)
+        detail = next((line for line in said() if "EXR_ERR" in line or "corrupt" in line.lower()), None)
+        reason = (f"truncated or corrupt: {detail.split(': ', 1)[-1]}" if detail else error)
+        raise EloInputError(f"{path}: not a readable EXR file ({reason})")
     meta = {}
     if METADATA_ATTRIBUTE in header:
         try:
             meta = json.loads(header[METADATA_ATTRIBUTE])
         except (TypeError, ValueError):
             raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} is not valid JSON") from None
+        if not isinstance(meta, dict):
+            raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} holds a JSON "
+                                f"{type(meta).__name__}, not an object (name: value, as elo-mitsuba writes it)")
     return channels, meta
+
+
+#: The first four bytes of every OpenEXR file.
+EXR_MAGIC = bytes((0x76, 0x2F, 0x31, 0x01))
+
+
+@contextlib.contextmanager
+def _library_output():
+    """Hold what the OpenEXR library prints on the process's stdout and stderr (file
+    descriptors 1 and 2: it reports a damaged file there, then raises) instead of showing it;
+    yields a function returning those lines."""
+    import ctypes
+    import tempfile
+
+    lines: list[str] = []
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = (os.dup(1), os.dup(2))
+    except (OSError, ValueError, AttributeError):  # no real descriptors (embedded): nothing to hold
+        yield lambda: lines
+        return
+    libc = ctypes.CDLL(None)
+    held = io.StringIO()  # what the binding prints through Python's sys.stdout/sys.stderr
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            with contextlib.redirect_stdout(held), contextlib.redirect_stderr(held):
+                yield lambda: lines
+        finally:
+            libc.fflush(None)  # C and C++ streams buffered on the way to the descriptors
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            sink.seek(0)
+            lines.extend(sink.read().decode("utf-8", "replace").splitlines() + held.getvalue().splitlines())
 
 
 def _metadata_json(path, meta) -> str:
@@ -99,8 +157,29 @@ def _metadata_json(path, meta) -> str:
     try:
         return json.dumps(meta, default=_json_default, allow_nan=False)
     except ValueError:
-        raise EloInputError(f"{path}: the metadata holds NaN or Inf (geometry: "
-                            f"{ {k: meta[k] for k in ('detectors',) if k in meta} }); refusing to write it") from None
+        where = _first_non_finite(meta)
+        raise EloInputError(f"{path}: the metadata holds NaN or Inf{f' at {where}' if where else ''}; "
+                            "refusing to write it") from None
+
+
+def _first_non_finite(value, where: str = "") -> str | None:
+    """Where (``thresholds.min_corrected``, ``detectors.right.center[2]``) a metadata value is
+    NaN or Inf, or None."""
+    if isinstance(value, Mapping):
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in value.items())
+    elif isinstance(value, (list, tuple, np.ndarray)):
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(np.asarray(value).tolist() if isinstance(value, np.ndarray)
+                                                            else value))
+    else:
+        try:
+            return None if math.isfinite(value) else where
+        except TypeError:
+            return None
+    for key, v in items:
+        found = _first_non_finite(v, key)
+        if found is not None:
+            return found
+    return None
 
 
 def _json_default(obj):

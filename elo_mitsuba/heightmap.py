@@ -46,7 +46,11 @@ def load_heightmap(path, units: str = "mm") -> np.ndarray:
 
             data = tifffile.imread(path)
         else:
+            if not path.read_text(errors="replace").strip():  # numpy would warn and return shape (0, 1)
+                raise EloInputError(f"height map {str(path)!r} is empty (no numbers)")
             data = np.loadtxt(path, delimiter=",", dtype=float, ndmin=2)
+    except EloInputError:
+        raise
     except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file for the user
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise EloInputError(f"height map {str(path)!r} could not be read: {reason}") from exc

@@ -124,6 +124,13 @@ def heightmap_to_mesh(
             )
         vertices, faces = _add_walls_and_base(vertices, faces, idx, base)
 
+    # the PLY stores float32: a coordinate beyond its range would be written as Inf
+    largest = float(np.abs(vertices).max())
+    if not largest <= float(np.finfo(np.float32).max):
+        axis = "xyz"[int(np.argmax(np.abs(vertices).max(axis=0)))]
+        what = "heights or --base" if axis == "z" else "pixel size x map size"
+        raise EloInputError(f"mesh {axis} coordinates reach {largest:.3g} mm ({what}), beyond the float32 range of a "
+                            f"PLY ({np.finfo(np.float32).max:.3g}); check the units of the height map")
     return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
 
 

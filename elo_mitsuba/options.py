@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Mapping
 
 from .constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
 from .errors import EloInputError
@@ -106,7 +106,9 @@ class EloOptions:
         unknown = [k for k in changes if k not in _FIELDS]
         if unknown:
             raise EloInputError(f"elo: no option {unknown[0]!r}; options are {', '.join(_FIELDS)}")
-        return dataclasses.replace(self, **changes)
+        options = dataclasses.replace(self, **changes)
+        check_combination(changes, base=options)
+        return options
 
     def as_dict(self) -> dict[str, Any]:
         """Every option by name (what the output header records)."""
@@ -173,6 +175,80 @@ def _range_text(name, kind, lo, hi) -> str:
 
 
 _FIELDS = tuple(f.name for f in dataclasses.fields(EloOptions))
+
+
+#: Options that only scale volts (Eq. 9), and those that set how many points a detector is sampled at.
+_VOLT_OPTIONS = ("beam_current", "transimpedance")
+_SAMPLE_OPTIONS = ("detector_samples", "bounce_detector_samples")
+
+
+def check_combination(given: Mapping[str, Any], *, base: EloOptions | None = None, qualities=None,
+                      events: int | None = None, bounce_possible: bool = True, prefix: str = "",
+                      flags: Mapping[str, str] | None = None) -> None:
+    """Refuse settings that a render would record but not apply: the one rule for every entry
+    point (``EloOptions.replace`` and so ``EloScene.configure``, the render command, sweeps).
+
+    Parameters
+    ----------
+    given : mapping
+        The options being set, by name (their values are validated by :class:`EloOptions`).
+    base : EloOptions, optional
+        The options they are set on (default: the defaults); ``units`` and ``detector_sampling``
+        not in ``given`` come from it.
+    qualities : iterable of str, optional
+        The quality presets the settings will be rendered with (a preset of
+        :data:`QUALITY_PRESETS` integrates the 1st event by the quadrature); default: the options
+        as they are.
+    events : int, optional
+        The most events rendered (None: not known yet, events >= 2 may come).
+    bounce_possible : bool
+        Whether the scene can scatter an electron twice.
+    prefix, flags : str, mapping
+        How the message names an option: ``{prefix}{name}={value!r}``, or the command-line flag of
+        ``flags[name]`` (with ``flags["quality"]`` and ``flags["events"]`` for the advice).
+
+    Raises
+    ------
+    EloInputError
+        ``beam_current``/``transimpedance`` without ``units="voltage"`` (they scale volts only);
+        ``detector_samples``/``bounce_detector_samples`` where neither is used: the 1st event
+        integrated by the triangle quadrature and no events >= 2 that sample the detectors.
+    """
+    flags = dict(flags or {})
+    base = base if base is not None else EloOptions()
+
+    def say(name, value):
+        if name in flags:
+            return f"{flags[name]} {value}"
+        return f"{prefix}{name}={value!r}" if name in _FIELDS else f"{name} {value!r}"
+
+    units = given.get("units", base.units)
+    volts = [k for k in _VOLT_OPTIONS if k in given]
+    if volts and units != "voltage":
+        raise EloInputError(f"{say(volts[0], given[volts[0]])} scales volts only (Eq. 9: U_d = N_d/N_0 I_b T) and "
+                            f"would be recorded but not applied; add {say('units', 'voltage')}")
+    samples = [k for k in _SAMPLE_OPTIONS if k in given]
+    if not samples:
+        return
+    later = ("bounce_detector_samples" in given and bounce_possible and (events is None or events >= 2))
+    own = given.get("detector_sampling", base.detector_sampling)
+    for quality in (list(qualities) if qualities is not None else [None]):
+        preset = quality in QUALITY_PRESETS
+        if later or ("detector_samples" in given and not preset and own != "quadrature"):
+            continue
+        why = (f"{say('quality', quality)} integrates the 1st event by the triangle quadrature" if preset else
+               f"{say('detector_sampling', 'quadrature')} integrates the 1st event by the triangle quadrature"
+               if "detector_samples" in given else "the 1st event uses detector_samples")
+        if "bounce_detector_samples" not in given:
+            later_text = "events >= 2 use bounce_detector_samples"
+        else:
+            later_text = "this render has no events >= 2" if bounce_possible else "this scene cannot scatter twice"
+        advice = (f"use {say('quality', 'scene')} (sampled detectors) or {say('events', 2)} in a scene that "
+                  "scatters twice" if flags else
+                  f"set {prefix}detector_sampling='independent' or 'stratified' with it (not with a quality "
+                  f"preset), or {prefix}bounce_detector_samples for events >= 2")
+        raise EloInputError(f"{say(samples[0], given[samples[0]])} would change nothing: {why}, and {later_text}; "
+                            f"{advice}")
 
 
 def parameter_table() -> str:

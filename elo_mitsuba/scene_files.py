@@ -137,6 +137,49 @@ def layout_parameters(layout: str | int) -> dict[str, float]:
     return {"dh": dh, "dw": dw}
 
 
+def scene_values(detector_layout: str | int | None, params: Mapping, *, names: Mapping[str, str] | None = None) -> dict:
+    """The scene parameters of a Table 1 ``detector_layout`` (sets dh and dw) and ``params``;
+    a parameter given both ways is refused, as is ``layout`` (whose file sets only the dh and dw
+    that the layout replaces): one of them would be silently ignored. ``names`` maps a parameter to
+    how the message names it (the CLI's ``--layout``, ``-D dh``)."""
+    if detector_layout is None:
+        return dict(params)
+    names = dict(names or {})
+    values = layout_parameters(detector_layout)
+    clash = [k for k in params if k in values or k == "layout"]
+    if clash:
+        k = clash[0]
+        raise EloInputError(
+            f"{names.get('detector_layout', 'detector_layout')} {detector_layout} sets dh and dw; "
+            f"{names.get(k, k)}={params[k]} contradicts it: give the layout or dh/dw, not both")
+    return {**values, **params}
+
+
+def check_detector_placement(name: str, center, normal, radius: float, where: str = "") -> None:
+    """The rule every detector obeys, wherever it comes from (a scene, a moved detector, a
+    calibration): its disc lies wholly above the build plane z = 0 (its lowest rim point is
+    r sin(tilt) below its centre) and its front face sees the origin. Raises
+    :class:`EloInputError` naming the detector (prefixed by ``where``)."""
+    import math
+
+    import numpy as np
+
+    at = f"{where}: " if where else ""
+    c = np.asarray(center, dtype=float).reshape(3)
+    n = np.asarray(normal, dtype=float).reshape(3)
+    n = n / np.linalg.norm(n)
+    if c[2] <= 0:
+        raise EloInputError(f"{at}detector {name!r} has its centre at z={c[2]:g} mm, at or below the build plane "
+                            "z=0; detectors must be above the plate")
+    low = c[2] - float(radius) * math.sqrt(max(0.0, 1.0 - float(n[2]) ** 2))
+    if low <= 0:
+        raise EloInputError(f"{at}detector {name!r} (centre z={c[2]:g} mm, radius {float(radius):g} mm) reaches down "
+                            f"to z={low:.3g} mm, through the build plane z=0; raise it (dh) or move it inwards (dw)")
+    if np.dot(n, -c) <= 0:
+        raise EloInputError(f"{at}detector {name!r} faces away from the scan field (normal "
+                            f"{np.round(n, 3).tolist()}); its front face must see the origin")
+
+
 def explain_mitsuba_error(exc: Exception, path: Path, values: Mapping[str, str] | None = None) -> str:
     """One line from Mitsuba's multi-line loader error: where, and the innermost message.
 
@@ -196,6 +239,7 @@ def write_scene_copy(scene_path, source="athene_flat", *, overwrite: bool = Fals
     parameters and everything else unchanged, to edit as one's own."""
     scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene")
     src = resolve_scene_path(source)
+    declared_parameters(src)  # a malformed or incomplete source would be copied broken
     text = portable_scene_text(src)
     header = (f"<!-- Written by 'elo-mitsuba new-scene' from {src.name}: includes and meshes by absolute path, so "
               "this file works from any folder. -->\n")

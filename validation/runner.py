@@ -199,9 +199,9 @@ def run_validation(quick=False, output_dir=None, only=None, log=print, json_path
 
 
 def main(argv=None) -> int:
-    import argparse
+    from elo_mitsuba.cli._args import OneLineParser  # a usage error is one line, not the usage
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m validation",
         description="Reproduce the checkable claims of Renner et al. 2023 with elo-mitsuba: figures "
                     "(PNG) and REPORT.md with the paper's number beside ours for every claim.")

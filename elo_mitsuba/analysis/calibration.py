@@ -24,6 +24,7 @@ needs.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -32,6 +33,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..files import atomic_write, check_output
+from ..scene_files import check_detector_placement
 from .detector_model import FacetModel, to_vector
 from .scan_geometry import Disc, ScanGeometry
 
@@ -267,12 +269,37 @@ def read_calibration(path) -> Calibration:
         raise EloInputError(f"{path}: no 'detectors' object (per detector: center, normal, radius, gain)")
     fits = {}
     for name, d in dets.items():
+        if not isinstance(d, dict):
+            raise EloInputError(f"{path}: detector {name!r} is a JSON {type(d).__name__}; need an object with center, "
+                                "normal, radius")
+        missing = [k for k in ("center", "normal", "radius") if k not in d]
+        if missing:
+            raise EloInputError(f"{path}: detector {name!r} lacks {', '.join(missing)} (need center, normal, radius)")
         try:
             disc = Disc(d["center"], d["normal"], d["radius"])
-        except (KeyError, TypeError) as exc:
-            raise EloInputError(f"{path}: detector {name!r} lacks {exc} (need center, normal, radius)") from None
-        fits[name] = DetectorFit(disc=disc, gain=float(d.get("gain", 1.0)), offset=float(d.get("offset", 0.0)),
+        except (TypeError, ValueError) as exc:  # text where numbers belong
+            raise EloInputError(f"{path}: detector {name!r}: center {d['center']!r}, normal {d['normal']!r}, radius "
+                                f"{d['radius']!r}; need 3 numbers, 3 numbers and a number of mm > 0") from None
+        except EloInputError as exc:
+            raise EloInputError(f"{path}: detector {name!r}: {exc}") from None
+        check_detector_placement(name, disc.center, disc.normal, disc.radius, where=str(path))
+        numbers = {}
+        for key, default in (("gain", 1.0), ("offset", 0.0), ("rms_residual_relative", float("nan"))):
+            try:
+                numbers[key] = float(d.get(key, default))
+            except (TypeError, ValueError):
+                raise EloInputError(f"{path}: detector {name!r}: {key} {d[key]!r} is not a number") from None
+        if not (math.isfinite(numbers["gain"]) and numbers["gain"] != 0 and math.isfinite(numbers["offset"])):
+            raise EloInputError(f"{path}: detector {name!r}: gain {numbers['gain']!r}, offset {numbers['offset']!r}; "
+                                "need a finite gain other than 0 and a finite offset")
+        for key, kind in (("sigma", dict), ("correlation", dict), ("not_separable", list)):
+            if not isinstance(d.get(key, kind()), kind):
+                raise EloInputError(f"{path}: detector {name!r}: {key} {d[key]!r} is not a JSON "
+                                    f"{'object' if kind is dict else 'list'}")
+        fits[name] = DetectorFit(disc=disc, gain=numbers["gain"], offset=numbers["offset"],
                                  sigma=dict(d.get("sigma", {})), correlation=dict(d.get("correlation", {})),
                                  degenerate=list(d.get("not_separable", [])),
-                                 rms_residual=float(d.get("rms_residual_relative", float("nan"))))
+                                 rms_residual=numbers["rms_residual_relative"])
+    if not isinstance(doc.get("source", {}), dict):
+        raise EloInputError(f"{path}: 'source' {doc['source']!r} is not a JSON object")
     return Calibration(detectors=fits, source=dict(doc.get("source", {})))

@@ -64,6 +64,10 @@ def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
         else:
             raise EloInputError(f"{path}: no channel {channel!r}; it has {', '.join(sorted(channels))}")
     elif suffix == ".npy":
+        with open(path, "rb") as f:
+            magic = f.read(6)
+        if magic != b"\x93NUMPY":
+            raise EloInputError(f"{path}: not a readable .npy array ({'an empty file' if not magic else 'no NumPy header'})")
         try:
             arr = np.load(path, allow_pickle=False)
         except Exception as exc:  # numpy raises ValueError/OSError with long messages
@@ -278,7 +282,25 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     if missing:
         raise EloInputError(f"{path}: missing channel(s) {', '.join(missing)}; "
                             "expected the output of 'elo-mitsuba gradient'")
-    field = field_mm if field_mm is not None else meta.get("field_mm")
+    for name in ("dzdx", "dzdy"):  # 'gradient' writes 0, never NaN, where it has no gradient
+        bad = ~np.isfinite(channels[name])
+        if bad.any():
+            row, col = np.argwhere(bad)[0]
+            raise EloInputError(f"{path}: channel {name!r} holds {int(bad.sum())} NaN or Inf value(s) (first at row "
+                                f"{row}, column {col}); a gradient must be finite (0, with mask 1, where unknown)")
+    shape = channels["dzdx"].shape
+    recorded = None
+    if meta.get("field_mm") is not None:
+        try:
+            recorded = field_xy(meta["field_mm"], shape)
+        except (TypeError, ValueError, EloInputError):
+            raise EloInputError(f"{path}: header field_mm {meta['field_mm']!r} is not one or two lengths in mm") from None
+    if field_mm is not None and recorded is not None:
+        given = field_xy(field_mm, shape)
+        if not np.allclose(given, recorded, rtol=1e-6, atol=0):
+            raise EloInputError(f"{path}: field {given[0]:g}x{given[1]:g} mm contradicts the header's field_mm "
+                                f"{recorded[0]:g}x{recorded[1]:g} mm (the gradient's own scan field); leave it out")
+    field = field_mm if field_mm is not None else recorded
     if field is None:
         raise EloInputError(f"{path}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
     mask = channels["mask"] > 0.5 if "mask" in channels and use_mask else None

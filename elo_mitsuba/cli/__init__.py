@@ -14,6 +14,7 @@ import sys
 
 from ..errors import EloError
 from . import checkout
+from ._args import OneLineParser
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = (
@@ -50,11 +51,7 @@ Run 'elo-mitsuba COMMAND --help' for each command's options.
 """
 
 
-class _Parser(argparse.ArgumentParser):
-    """Usage errors as one line (what is wrong, and where to look), exit status 2."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+_Parser = OneLineParser  # usage errors as one line (what is wrong, and where to look), exit status 2
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:

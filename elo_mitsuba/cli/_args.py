@@ -5,6 +5,13 @@ from __future__ import annotations
 import argparse
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """Usage errors as one line (what is wrong, and where to look), exit status 2, no usage dump."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def _integer(text: str) -> int:
     try:
         return int(text)

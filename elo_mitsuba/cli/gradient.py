@@ -174,6 +174,11 @@ def _model_geometry(args, header, shape, geo, source):
         from ..analysis.calibration import read_calibration
 
         model = read_calibration(args.calibration).apply(model)
+    from ..scene_files import check_detector_placement
+
+    where = args.calibration or ("--dh/--dw" if explicit and args.dh is not None else source)
+    for name, disc in model.detectors.items():  # the rule of every detector (a scene's, a moved one's)
+        check_detector_placement(name, disc.center, disc.normal, disc.radius, where=str(where))
     return model
 
 
@@ -376,6 +381,10 @@ def run(args) -> int:
             raise EloInputError("--height-passes applies to --method model only")
     elif args.min_denominator is not None:
         raise EloInputError("--min-denominator applies to --method eq26 only (the model has no denominator)")
+    for flag in ("min_corrected", "min_sum", "min_denominator"):
+        value = getattr(args, flag)
+        if value is not None and not np.isfinite(value):
+            raise EloInputError(f"--{flag.replace('_', '-')} {value}: must be a finite number")
     out = check_output(args.output, (".exr",), overwrite=args.overwrite)
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")

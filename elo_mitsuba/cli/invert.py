@@ -111,7 +111,12 @@ def _start(path, shape, field_mm):
     if not Path(path).is_file():
         raise EloInputError(f"--init {path}: no such file")
     if suffix == ".npy":
-        h = np.load(path, allow_pickle=False)
+        from ..analysis.io import read_image
+
+        try:
+            h, _ = read_image(path)  # allow_pickle=False; a 2-D numeric array or one line why not
+        except EloInputError as exc:
+            raise EloInputError(f"--init {exc}") from None
     elif suffix == ".exr":
         channels, _ = read_exr(path)
         if "dzdx" in channels:
@@ -163,11 +168,11 @@ def run(args) -> int:
     scan = read_scan(args, model_discs=True)
     geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
     fwhm = args.fwhm if args.fwhm is not None else float((scan.header or {}).get("beam_fwhm_mm", 0.0))
+    start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
     if args.fwhm is None and "beam_fwhm_mm" not in (scan.header or {}):
         print(f"note: {scan.source} gives no beam profile (beam_fwhm_mm) and --fwhm is not set: the model's beam is "
               "a single ray; pass --fwhm MM, the beam's FWHM on the plate, if it is wider than a pixel",
               file=sys.stderr)
-    start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
     if args.chamber_later and not args.second_event:
         raise EloInputError("--chamber-later needs --second-event SIM_FLAT.exr (the flat plate's later events)")
     from ..analysis.io import read_later_events

@@ -56,7 +56,7 @@ def add_parser(subparsers):
     p.add_argument("--material", default=None, help="preset or composition, e.g. Ti-6Al-4V or 'Ti:0.9,Al:0.1'")
     p.add_argument("--beam", choices=("vertical", "pivot"), default="vertical",
                    help="vertical beam (paper) or deflected from the gun pivot at --work-distance")
-    p.add_argument("--work-distance", type=positive_float, default=WORK_DISTANCE_MM, metavar="MM",
+    p.add_argument("--work-distance", type=positive_float, default=None, metavar="MM",
                    help=f"pivot height for --beam pivot (default {WORK_DISTANCE_MM:g} mm)")
     p.add_argument("--range", type=positive_float, default=3.0, metavar="R", help="plot -R <= p, q <= R (default 3)")
     p.add_argument("--samples", type=int, default=301, metavar="N", help="samples along p and q (default 301)")
@@ -77,13 +77,17 @@ def run(args) -> int:
         check_output(args.data, (".npz",), overwrite=args.overwrite, what="--data")
     if args.zeta is not None and (args.dh is not None or args.dw is not None):
         raise EloInputError("give either --zeta or --dh/--dw, not both")
+    if args.work_distance is not None and args.beam != "pivot":
+        raise EloInputError(f"--work-distance {args.work_distance:g} sets the pivot of --beam pivot; with --beam "
+                            f"{args.beam} (parallel to -z) it would change nothing: add --beam pivot or leave it out")
+    work_distance = WORK_DISTANCE_MM if args.work_distance is None else args.work_distance
     d_h, d_w = layout_geometry(args.zeta, args.dh, args.dw)
     if not 2 <= args.samples <= 4001:
         raise EloInputError(f"--samples {args.samples}: allowed 2..4001")
     material = get_material(args.material)
     x, y = args.at
     d_pq = detector_pq(d_h, d_w, args.detector, x, y)
-    beam = beam_directions(x, y, args.beam, args.work_distance)
+    beam = beam_directions(x, y, args.beam, work_distance)
     common = dict(beam_dir=beam, material=material, p_range=(-args.range, args.range),
                   q_range=(-args.range, args.range), n=args.samples)
     p, q, g_full, masked = reflectance_map(d_pq, lobe=True, **common)

@@ -12,6 +12,12 @@ from ..files import check_output
 from ..constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
 from ._args import define, number, positive_int, seed
 
+#: How messages name the settings of this command's flags.
+_FLAGS = {"detector_layout": "--layout", "dh": "-D dh", "dw": "-D dw", "layout": "-D layout", "units": "--units",
+          "beam_current": "--beam-current", "transimpedance": "--transimpedance",
+          "detector_samples": "--detector-samples", "bounce_detector_samples": "--detector-samples",
+          "quality": "--quality", "events": "--events"}
+
 HELP = "render the detector images of an XML scene to a multichannel EXR"
 
 DESCRIPTION = """\
@@ -99,7 +105,9 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
+    from ..options import check_combination
     from ..render import NEGLIGIBLE_EVENT_SHARE, load_scene
+    from ..scene_files import scene_values
 
     out = check_output(args.output, (".exr",), overwrite=args.overwrite)
     preview = check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview") if args.preview else None
@@ -108,24 +116,25 @@ def run(args) -> int:
         raise EloInputError(f"-D spp={params['spp']} sets the scene file's sampler, which --quality {args.quality} "
                             "replaces; give --spp instead (or --quality scene)")
     if args.resolution is not None:
+        if "res" in params:
+            raise EloInputError(f"--resolution {args.resolution} and -D res={params['res']} both set the resolution; "
+                                "give one")
         params["res"] = args.resolution
-    chain = {k: v for k, v in (("beam_current", args.beam_current), ("transimpedance", args.transimpedance))
-             if v is not None}
-    if chain and args.units != "voltage":
-        raise EloInputError(f"--{next(iter(chain)).replace('_', '-')} scales volts only; add --units voltage")
+    params = scene_values(args.layout, params, names=_FLAGS)
     t0 = time.perf_counter()
-    scene = load_scene(args.scene, variant=args.variant, detector_layout=args.layout, **params)
-    if args.units:
-        scene.configure(units=args.units, **chain)
+    scene = load_scene(args.scene, variant=args.variant, **params)
+    # the integrator options of the flags, refused where a render would record but not apply them
+    # (the one rule of every entry point: options.check_combination)
+    given = {"units": args.units} if args.units else {}
+    given.update({k: v for k, v in (("beam_current", args.beam_current), ("transimpedance", args.transimpedance))
+                  if v is not None})
     if args.detector_samples:  # explicit wins over the preset (which does not set it)
-        scene.configure(detector_samples=args.detector_samples, bounce_detector_samples=args.detector_samples)
-        if args.quality != "scene":
-            events = args.events if args.events is not None else scene.integrator.events
-            if events < 2 or not scene.integrator.bounce_possible:
-                raise EloInputError(
-                    f"--detector-samples {args.detector_samples} would change nothing: --quality {args.quality} "
-                    "integrates the 1st event by the triangle quadrature, and this render has no events >= 2; "
-                    "use --quality scene (sampled detectors) or --events 2 in a scene that scatters twice")
+        given.update(detector_samples=args.detector_samples, bounce_detector_samples=args.detector_samples)
+    check_combination(given, base=scene.options, qualities=[args.quality],
+                      events=args.events if args.events is not None else scene.integrator.events,
+                      bounce_possible=scene.integrator.bounce_possible, flags=_FLAGS)
+    if given:
+        scene.configure(**given)
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False)
     result.write_exr(out, overwrite=args.overwrite, error_channels=args.error_channels)

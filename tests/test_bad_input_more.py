@@ -1,0 +1,289 @@
+"""Issue 23, classes 7-9: more bad inputs, in the table style of tests/test_bad_input.py.
+
+7. silent wrong results (NaN gradients, detectors under the plate, broken scene copies, Inf
+   vertices) are refused; 8. contradictions are refused, not silently resolved, by every entry
+   point; 9. parsing never tracebacks (garbage, pickled or empty files, a JSON list where an object
+   belongs, text where numbers belong, a truncated EXR without the OpenEXR library's chatter).
+Each case: exit status 2 (API: EloInputError), exactly one line naming what is wrong, no
+traceback, no warning, nothing written or touched."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+import elo_mitsuba as em
+from elo_mitsuba.cli import main
+from elo_mitsuba.exr import read_exr, write_exr
+from elo_mitsuba.options import EloOptions, check_combination
+from elo_mitsuba.scene_files import scene_values, scenes_dir
+
+SENTINEL = b"written by the user"
+
+
+def _raw_exr(path, channels, header_json):
+    """An EXR written past write_exr's checks (NaN pixels, any header text), as other tools may."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage, "elo_mitsuba": header_json}
+    with OpenEXR.File(header, {k: np.asarray(v, np.float32) for k, v in channels.items()}) as f:
+        f.write(str(path))
+
+
+@pytest.fixture(scope="module")
+def d(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bad_more")
+    assert main(["render", "flat_plate", "-o", str(d / "flat.exr"), "--resolution", "8", "--quiet"]) == 0
+    assert main(["render", "corrugated_sheet", "-o", str(d / "corr.exr"), "--resolution", "8", "--quiet"]) == 0
+    assert main(["gradient", "--flat", str(d / "flat.exr"), str(d / "corr.exr"), "-o", str(d / "grad.exr")]) == 0
+    (d / "exists.exr").write_bytes(SENTINEL)
+    # 7: a gradient with NaN/Inf (written by another tool), detectors under the plate
+    grad, gmeta = read_exr(d / "grad.exr")
+    grad = {k: v.copy() for k, v in grad.items()}
+    grad["dzdx"][2, 3], grad["dzdy"][1, 1] = np.nan, np.inf
+    _raw_exr(d / "nan_grad.exr", grad, json.dumps(gmeta))
+    _, fmeta = read_exr(d / "flat.exr")
+    good = {"detectors": {n: {k: g[k] for k in ("center", "normal", "radius")} for n, g in fmeta["detectors"].items()}}
+
+    def calibration(name, **right):
+        doc = json.loads(json.dumps(good))
+        doc["detectors"]["right"].update(right)
+        (d / name).write_text(json.dumps(doc))
+
+    calibration("cal_below.json", center=[127, 0, -5])
+    calibration("cal_through.json", center=[127, 0, 5])
+    calibration("cal_away.json", normal=[0.42, 0, 0.9])
+    # 9: text where numbers belong, a list where an object belongs
+    calibration("cal_centre_text.json", center="127, 0, 272")
+    calibration("cal_radius_text.json", radius="big")
+    calibration("cal_gain_text.json", gain="x")
+    doc = json.loads(json.dumps(good))
+    doc["detectors"]["right"] = [127, 0, 272]
+    (d / "cal_list.json").write_text(json.dumps(doc))
+    src = scenes_dir()
+    text = (src / "flat_plate.xml").read_text()
+    (d / "truncated.xml").write_text(text[: len(text) // 2])
+    np.save(d / "huge.npy", np.full((4, 4), 1e39))  # float64; float32 (PLY) holds up to 3.4e38
+    np.save(d / "hm.npy", np.random.default_rng(0).random((4, 5)))
+    (d / "empty.csv").write_text("")
+    (d / "blank.csv").write_text("\n  \n")
+    np.save(d / "pickled.npy", np.array([{"heights": 1}, None], dtype=object), allow_pickle=True)
+    (d / "empty.npy").write_bytes(b"")
+    np.save(d / "zero_size.npy", np.zeros((0,)))
+    (d / "garbage.npy").write_bytes(b"\x00not an array")
+    obj, ometa = read_exr(d / "corr.exr")
+    _raw_exr(d / "list_header.exr", obj, json.dumps([1, 2]))
+    _raw_exr(d / "list_header_grad.exr", read_exr(d / "grad.exr")[0], json.dumps(["field_mm", 80]))
+    data = (d / "corr.exr").read_bytes()
+    (d / "cut_pixels.exr").write_bytes(data[:-100])  # header whole, the pixel data cut short
+    (d / "cut_header.exr").write_bytes(data[:300])
+    (d / "magic_only.exr").write_bytes(data[:4])
+    (d / "png.exr").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    shutil.copy(src / "flat_plate.xml", d / "plate_copy.xml")
+    return d
+
+
+INV = ["invert", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/h.exr"]
+GRAD = ["gradient", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/g.exr"]
+R = ["render", "flat_plate", "-o", "{d}/new.exr", "--quiet"]
+MESH = ["-o", "{d}/m.ply", "--pixel-size", "0.05"]
+
+#: (id, argv, a fragment of the one line)
+CLI_CASES = [
+    # -- 7: silent wrong results
+    ("invert --init nan gradient", [*INV, "--init", "{d}/nan_grad.exr"], "channel 'dzdx' holds 1 NaN or Inf value(s)"),
+    ("reconstruct nan gradient", ["reconstruct", "{d}/nan_grad.exr", "-o", "{d}/h.npy"], "holds 1 NaN or Inf"),
+    ("gradient calibration below the plate", [*GRAD, "--calibration", "{d}/cal_below.json"],
+     "cal_below.json: detector 'right' has its centre at z=-5 mm, at or below the build plane"),
+    ("gradient calibration through the plate", [*GRAD, "--calibration", "{d}/cal_through.json"],
+     "cal_through.json: detector 'right' (centre z=5 mm, radius 25 mm) reaches down to z=-5.5"),
+    ("invert calibration through the plate", [*INV, "--calibration", "{d}/cal_through.json"],
+     "through the build plane z=0"),
+    ("gradient calibration faces away", [*GRAD, "--calibration", "{d}/cal_away.json"], "faces away from the scan field"),
+    ("gradient --dh cuts the plate", [*GRAD, "--dh", "5", "--dw", "127"], "--dh/--dw: detector 'right'"),
+    ("new-scene truncated xml", ["new-scene", "{d}/s.xml", "--from", "{d}/truncated.xml"], "malformed XML"),
+    ("mesh heights beyond float32", ["mesh", "{d}/huge.npy", *MESH], "beyond the float32 range of a PLY"),
+    ("mesh --base beyond float32", ["mesh", "{d}/hm.npy", *MESH, "--base=-1e39"], "z coordinates reach 1e+39 mm"),
+    # -- 8: contradictions refused
+    ("render -D res with --resolution", [*R, "-D", "res=32", "--resolution", "16"],
+     "--resolution 16 and -D res=32 both set the resolution"),
+    ("render --layout with -D dh", [*R, "--resolution", "4", "--layout", "zeta50", "-D", "dh=100"],
+     "--layout zeta50 sets dh and dw; -D dh=100 contradicts it"),
+    ("render --layout with -D dw", [*R, "--resolution", "4", "--layout", "zeta50", "-D", "dw=100"], "-D dw=100 contradicts"),
+    ("render --layout with -D layout", [*R, "--resolution", "4", "--layout", "zeta50", "-D", "layout=zeta25"],
+     "-D layout=zeta25 contradicts"),
+    ("render --transimpedance without volts", [*R, "--resolution", "4", "--transimpedance", "2e6"],
+     "--transimpedance 2000000.0 scales volts only"),
+    ("render --detector-samples with the quadrature", [*R, "--resolution", "4", "--detector-samples", "4",
+                                                       "--quality", "draft"],
+     "--detector-samples 4 would change nothing: --quality draft integrates the 1st event"),
+    ("reconstruct --field contradicts the header", ["reconstruct", "{d}/grad.exr", "-o", "{d}/h.npy", "--field", "40"],
+     "field 40x40 mm contradicts the header's field_mm 80x80 mm"),
+    ("reflectance-map --work-distance without pivot", ["reflectance-map", "--zeta", "50", "-o", "{d}/m.png",
+                                                       "--work-distance", "300"], "add --beam pivot"),
+    # -- 9: parsing never tracebacks
+    ("invert --init garbage npy", [*INV, "--init", "{d}/garbage.npy"], "--init {d}/garbage.npy: not a readable .npy"),
+    ("invert --init pickled npy", [*INV, "--init", "{d}/pickled.npy"], "cannot be loaded when allow_pickle=False"),
+    ("invert --init empty npy", [*INV, "--init", "{d}/empty.npy"], "not a readable .npy array (an empty file)"),
+    ("invert --init zero-size npy", [*INV, "--init", "{d}/zero_size.npy"], "expected one 2-D numeric image"),
+    ("gradient header is a JSON list", ["gradient", "--flat", "{d}/flat.exr", "{d}/list_header.exr", "-o", "{d}/g.exr"],
+     "header attribute 'elo_mitsuba' holds a JSON list, not an object"),
+    ("reconstruct header is a JSON list", ["reconstruct", "{d}/list_header_grad.exr", "-o", "{d}/h.npy"],
+     "holds a JSON list"),
+    ("gradient calibration centre is text", [*GRAD, "--calibration", "{d}/cal_centre_text.json"],
+     "detector 'right': center '127, 0, 272'"),
+    ("gradient calibration radius is text", [*GRAD, "--calibration", "{d}/cal_radius_text.json"], "radius 'big'"),
+    ("gradient calibration gain is text", [*GRAD, "--calibration", "{d}/cal_gain_text.json"], "gain 'x' is not a number"),
+    ("gradient calibration detector is a list", [*GRAD, "--calibration", "{d}/cal_list.json"],
+     "detector 'right' is a JSON list"),
+    ("gradient EXR cut in its pixels", ["gradient", "--flat", "{d}/flat.exr", "{d}/cut_pixels.exr", "-o", "{d}/g.exr"],
+     "not a readable EXR file (truncated or corrupt"),
+    ("gradient EXR cut in its header", ["gradient", "--flat", "{d}/flat.exr", "{d}/cut_header.exr", "-o", "{d}/g.exr"],
+     "not a readable EXR file"),
+    ("invert --flat EXR of 4 bytes", ["invert", "--flat", "{d}/magic_only.exr", "{d}/corr.exr", "-o", "{d}/h.exr"],
+     "magic_only.exr: not a readable EXR file"),
+    ("gradient PNG named .exr", ["gradient", "--flat", "{d}/png.exr", "{d}/corr.exr", "-o", "{d}/g.exr"],
+     "png.exr: not a readable EXR file (it does not start with the EXR magic number)"),
+    ("mesh empty csv", ["mesh", "{d}/empty.csv", *MESH], "is empty (no numbers)"),
+    ("mesh blank csv", ["mesh", "{d}/blank.csv", *MESH], "is empty (no numbers)"),
+    ("gradient --min-corrected nan", [*GRAD, "--min-corrected", "nan"], "--min-corrected nan: must be a finite number"),
+    ("gradient --min-sum inf", [*GRAD, "--min-sum", "inf"], "--min-sum inf: must be a finite number"),
+    ("validate --only bogus", ["validate", "--only", "bogus"], "invalid choice: 'bogus'"),
+]
+
+
+def _snapshot(d):
+    return {p.name: p.read_bytes() for p in d.rglob("*") if p.is_file()}
+
+
+def _main(argv):
+    try:
+        return main(argv)
+    except SystemExit as exc:  # argparse's usage errors
+        return exc.code
+
+
+@pytest.mark.parametrize("argv,fragment", [c[1:] for c in CLI_CASES], ids=[c[0] for c in CLI_CASES])
+def test_cli_bad_input(d, capfd, argv, fragment):
+    before = _snapshot(d)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rc = _main([a.format(d=d) for a in argv])
+    out, err = capfd.readouterr()  # file descriptors: what a C library prints counts too
+    lines = err.strip().splitlines()
+    assert rc == 2, err
+    assert len(lines) == 1 and lines[0].startswith(("elo-mitsuba: error: ", "python -m validation: error: ")), err
+    assert "Traceback" not in err and fragment.format(d=d) in lines[0], lines[0]
+    assert "Traceback" not in out and "Warning" not in out, out
+    assert not [str(w.message) for w in caught if not issubclass(w.category, ResourceWarning)]  # no numpy warning
+    assert _snapshot(d) == before  # nothing written, nothing touched
+
+
+def _scene():
+    return em.load_scene("flat_plate", res=2)
+
+
+def _after_a_preset_render():
+    scene = _scene()
+    scene.render(quality="draft", progress=False)
+    return scene
+
+
+#: (id, call, a fragment of the one-line EloInputError)
+API_CASES = [
+    ("configure beam_current without volts", lambda: _scene().configure(beam_current=2e-3),
+     "beam_current=0.002 scales volts only"),
+    ("configure transimpedance without volts", lambda: _scene().configure(units="fraction", transimpedance=1e6),
+     "add units='voltage'"),
+    ("configure detector_samples with the quadrature",
+     lambda: _scene().configure(detector_sampling="quadrature", detector_samples=4),
+     "detector_samples=4 would change nothing: detector_sampling='quadrature'"),
+    ("configure detector_samples after a preset", lambda: _after_a_preset_render().configure(detector_samples=4),
+     "would change nothing"),
+    ("EloOptions.replace beam_current", lambda: EloOptions().replace(beam_current=1e-3), "scales volts only"),
+    ("check_combination sweep names", lambda: check_combination({"detector_samples": 4}, qualities=["default"],
+                                                                events=1, prefix="integrator."),
+     "integrator.detector_samples=4 would change nothing: quality 'default'"),
+    ("load_scene layout and dh", lambda: scene_values("zeta50", {"dh": 100}),
+     "detector_layout zeta50 sets dh and dw; dh=100 contradicts it"),
+    ("write_exr png", lambda: write_exr("/tmp/never-written.png", {"a": np.zeros((2, 2))}), "must end in .exr"),
+    ("write_exr int", lambda: write_exr(5, {"a": np.zeros((2, 2))}), "EXR path 5 (int)"),
+    ("write_exr None", lambda: write_exr(None, {"a": np.zeros((2, 2))}), "EXR path None"),
+    ("write_exr nan in the header", lambda: write_exr("/tmp/never-written.exr", {"a": np.zeros((2, 2))},
+                                                      {"thresholds": {"min_corrected": math.nan}}),
+     "metadata holds NaN or Inf at thresholds.min_corrected"),
+    ("read_calibration centre text", lambda: _read_calibration({"center": "abc"}), "center 'abc'"),
+    ("read_calibration below", lambda: _read_calibration({"center": [127, 0, -1]}), "at or below the build plane"),
+    ("read_calibration gain 0", lambda: _read_calibration({"gain": 0}), "finite gain other than 0"),
+    ("heightmap_to_mesh beyond float32", lambda: _mesh(np.full((3, 3), 4e38)), "beyond the float32 range"),
+]
+
+
+def _read_calibration(right, tmp=[]):  # noqa: B006 - one folder for the module's calls
+    import tempfile
+    from pathlib import Path
+
+    from elo_mitsuba.analysis.calibration import read_calibration
+
+    disc = {"center": [127.0, 0.0, 272.0], "normal": [-0.42, 0.0, -0.91], "radius": 25.0}
+    path = Path(tempfile.mkdtemp()) / "c.json"
+    path.write_text(json.dumps({"detectors": {"right": {**disc, **right}}}))
+    try:
+        return read_calibration(path)
+    finally:
+        shutil.rmtree(path.parent)
+
+
+def _mesh(height):
+    from elo_mitsuba.mesh import heightmap_to_mesh
+
+    return heightmap_to_mesh(height, 0.1)
+
+
+@pytest.mark.parametrize("call,fragment", [c[1:] for c in API_CASES], ids=[c[0] for c in API_CASES])
+def test_api_bad_input(call, fragment):
+    with pytest.raises(em.EloInputError) as err:
+        call()
+    message = str(err.value)
+    assert "\n" not in message and fragment in message, message
+
+
+def test_refused_configure_changes_nothing():
+    scene = _scene()
+    before = scene.options
+    with pytest.raises(em.EloInputError):
+        scene.configure(beam_current=2e-3)
+    assert scene.options == before
+    assert scene.configure(units="voltage", beam_current=2e-3).beam_current == 2e-3  # together: applied
+
+
+@pytest.mark.parametrize("argv,fragment", [
+    (["gradient", "--flat", "{d}/flat.exr", "{d}/cut_pixels.exr", "-o", "{d}/g.exr"], "truncated or corrupt"),
+    (["validate", "--only", "bogus"], "invalid choice: 'bogus'"),
+])
+def test_real_processes(d, argv, fragment):
+    """The OpenEXR library's own report (on file descriptors 1 and 2) and argparse's usage stay
+    unprinted: one line on stderr, nothing on stdout."""
+    before = _snapshot(d)
+    r = subprocess.run([sys.executable, "-m", "elo_mitsuba", *[a.format(d=d) for a in argv]], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and fragment in r.stderr, r.stderr
+    assert r.stdout == "" and "Traceback" not in r.stderr and _snapshot(d) == before
+
+
+def test_a_good_exr_still_reads_and_says_nothing(d, capfd):
+    channels, meta = read_exr(d / "corr.exr")
+    assert set(channels) >= {"right", "left", "back", "front"} and isinstance(meta, dict)
+    assert capfd.readouterr() == ("", "")
+
+
+def test_the_table_has_every_class():
+    assert len(CLI_CASES) + len(API_CASES) >= 45
+    assert len({c[0] for c in CLI_CASES}) == len(CLI_CASES) and len({c[0] for c in API_CASES}) == len(API_CASES)
