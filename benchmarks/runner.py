@@ -100,7 +100,7 @@ def section(name):
     return importlib.import_module(f"{__package__}.section_{name}")
 
 
-def run_benchmarks(sections=SECTIONS, quick=False, fresh=False, out=None):
+def run_benchmarks(sections=SECTIONS, quick=False, fresh=False, out=None, overwrite=False):
     """Run ``sections`` (``targets`` too when ``path`` is asked for) and write the Markdown to ``out``.
 
     Parameters
@@ -113,7 +113,9 @@ def run_benchmarks(sections=SECTIONS, quick=False, fresh=False, out=None):
         Recompute the cached references.
     out : path, optional
         Default ``RESULTS.md`` in the current folder (``RESULTS-quick.md`` with ``quick``); checked
-        before any work (folder exists, not a folder itself).
+        before any work (folder exists and can be written, not a folder itself).
+    overwrite : bool
+        Replace an existing ``out`` (CLI ``--overwrite``; ``--update-report`` always does).
 
     Returns
     -------
@@ -124,7 +126,7 @@ def run_benchmarks(sections=SECTIONS, quick=False, fresh=False, out=None):
 
     if out is None:
         out = Path("RESULTS-quick.md" if quick else "RESULTS.md")
-    out = check_output(out, (".md",), overwrite=True, what="--out")  # before minutes of work
+    out = check_output(out, (".md",), overwrite=overwrite, what="--out")  # before minutes of work
     b = Bench(quick, fresh)
     info = machine_info()
     t0 = time.perf_counter()
@@ -150,13 +152,15 @@ def main(argv=None) -> int:
                     help="write the committed benchmarks/RESULTS.md of the checkout (full run only)")
     ap.add_argument("--only", nargs="+", choices=SECTIONS, help="run only these sections")
     ap.add_argument("--fresh", action="store_true", help="recompute cached references")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     args = ap.parse_args(argv)
     out = args.out
     if args.update_report:
         if args.out or args.quick or args.only:
             ap.error("--update-report writes benchmarks/RESULTS.md from a full run: no --out, --quick or --only")
         out = ROOT / "benchmarks" / "RESULTS.md"
-    out = run_benchmarks(args.only or SECTIONS, quick=args.quick, fresh=args.fresh, out=out)
+    out = run_benchmarks(args.only or SECTIONS, quick=args.quick, fresh=args.fresh, out=out,
+                         overwrite=args.overwrite or args.update_report)
     print(f"wrote {out}", file=sys.stderr)
     return 0
 

@@ -1,12 +1,21 @@
-"""What a render will cost, estimated before it starts: memory (refused above what the machine has),
-samples and kernel size (a note above a threshold), so a mistyped number costs one line, not an hour.
+"""What a render or an inversion will cost, estimated before it starts, so that a mistyped number
+costs one line, not an hour or a crash.
 
-The figures are measured on this project's reference machine (2 CPU cores, llvm_ad_mono) and
-are meant to be right within a factor of two; ``elo-mitsuba render`` prints them as notes.
+* Memory above what this process can get (:func:`memory_limit`: the machine's MemAvailable, the
+  process's own address-space limit ``ulimit -v`` and its cgroup's memory.max, whichever is
+  lowest) is always refused: the work could only end in a MemoryError or a crash.
+* Time above :data:`REFUSE_SECONDS` is refused unless the user asks for it (CLI ``--yes``,
+  Python ``force=True``): such work is almost always a mistyped number (``--spp 1000000000``).
+* Time above :data:`NOTE_SECONDS` gets a note with the estimate.
+
+:func:`check_work` is the one rule; :func:`check_render` and :func:`check_inversion` estimate
+their work and call it. The figures are measured on this project's reference machine (2 CPU
+cores, llvm_ad_mono) and are meant to be right within a factor of two.
 """
 
 from __future__ import annotations
 
+import math
 import os
 
 from .errors import EloInputError
@@ -24,23 +33,163 @@ SAMPLES_PER_SECOND_2_CORES = 2e6
 #: Every traced event is unrolled into the kernel: its compile time grows with events^2
 #: (athene_flat on 2 cores: events 2, 4, 8 -> 4, 23, 79 s beyond the start-up).
 COMPILE_SECONDS_PER_EVENT2 = 1.3
-#: A render estimated to take longer than this gets a note with the estimate (and Ctrl-C hint).
+#: Detector points sampled per event are unrolled into the kernel too (a shadow ray each): the time
+#: to trace and compile them grows faster than their number (flat_plate, 4 detectors, --quality
+#: scene on 2 cores: --detector-samples 64 / 256, i.e. 256 / 1024 points, add 12 / 140 s).
+COMPILE_SECONDS_PER_DETECTOR_POINT = 0.017
+COMPILE_SECONDS_PER_DETECTOR_POINT2 = 1.2e-4
+#: Memory of the traced kernel per unrolled detector point (same measurement: 0.7 GB at 1024).
+KERNEL_BYTES_PER_DETECTOR_POINT = 0.5e6
+#: Work estimated to take longer than this gets a note with the estimate (and a Ctrl-C hint).
 NOTE_SECONDS = 60.0
+#: Work estimated to take longer than this is refused unless asked for (CLI ``--yes``, Python
+#: ``force=True``): 4 hours, beyond any render or inversion this package's own studies run
+#: (the full validation takes minutes) and well short of what a mistyped number asks for.
+REFUSE_SECONDS = 4 * 3600.0
+
+#: Resident memory of an inversion (``invert``, :func:`~elo_mitsuba.analysis.inversion.invert_heights`)
+#: = a base (numpy, scipy, the four images read) + bytes per pixel (the linearised model's partials
+#: per detector and disc node, the normal equations, the coarse scales): fitted on the corrugated
+#: sheet at 128^2-512^2 and the 1500^2 figure of issue 23 (peak 4.2 GB).
+INVERSION_BASE_BYTES = 200e6
+INVERSION_BYTES_PER_PIXEL = 1800
+#: Seconds per pixel and Gauss-Newton step on 2 cores (corrugated sheet at 512^2: 2.4 s per step;
+#: an uncertainty probe costs a third of a step, counted here as one; the set-up as two).
+INVERSION_SECONDS_PER_PIXEL_STEP = 1e-5
 
 
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux: MemAvailable), None if unknown."""
+def _meminfo_available() -> int | None:
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
                     return int(line.split()[1]) * 1024
-    except OSError:
+    except (OSError, ValueError, IndexError):
         pass
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def _address_space_left() -> int | None:
+    """RLIMIT_AS (``ulimit -v``) less the address space this process already uses; None unlimited."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, OSError, ValueError):
+        return None
+    if soft == resource.RLIM_INFINITY or soft < 0:
+        return None
+    used = 0
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    used = int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(0, soft - used)
+
+
+def _read_int(path) -> int | None:
+    try:
+        text = open(path).read().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _cgroup_left() -> int | None:
+    """The least memory left under the limits of this process's cgroup and its ancestors
+    (v2 memory.max, v1 memory.limit_in_bytes): limit - usage + the reclaimable page cache."""
+    try:
+        lines = open("/proc/self/cgroup").read().splitlines()
+    except OSError:
+        return None
+    found = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        if parts[0] == "0" and parts[1] == "":  # v2
+            root, files = "/sys/fs/cgroup", ("memory.max", "memory.current", "inactive_file")
+        elif "memory" in parts[1].split(","):  # v1
+            root, files = "/sys/fs/cgroup/memory", ("memory.limit_in_bytes", "memory.usage_in_bytes",
+                                                    "total_inactive_file")
+        else:
+            continue
+        rel = parts[2].strip("/")
+        levels = rel.split("/") if rel else []
+        for k in range(len(levels), -1, -1):  # the cgroup itself, then each ancestor
+            folder = os.path.join(root, *levels[:k])
+            limit, usage = _read_int(os.path.join(folder, files[0])), _read_int(os.path.join(folder, files[1]))
+            if limit is None or usage is None or limit >= 1 << 60:  # "max" or unlimited
+                continue
+            cache = 0
+            try:
+                for stat_line in open(os.path.join(folder, "memory.stat")):
+                    key, _, value = stat_line.partition(" ")
+                    if key == files[2]:
+                        cache = int(value)
+            except (OSError, ValueError):
+                pass
+            found.append(max(0, limit - usage + cache))
+    return min(found) if found else None
+
+
+def memory_limit() -> tuple[int | None, str]:
+    """(bytes this process can still allocate, what sets that figure): the least of the machine's
+    MemAvailable, the address space left under ``ulimit -v`` (RLIMIT_AS) and the memory left under
+    the cgroup's limit; (None, "unknown") where none can be read."""
+    limits = [(v, what) for v, what in ((_meminfo_available(), "available on this machine"),
+                                         (_address_space_left(), "left under this process's 'ulimit -v'"),
+                                         (_cgroup_left(), "left under this process's cgroup memory limit"))
+              if v is not None]
+    return min(limits) if limits else (None, "unknown")
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this process can still allocate (:func:`memory_limit`), None if unknown."""
+    return memory_limit()[0]
+
+
+def check_work(seconds: float, memory_bytes: float, force: bool = False, *, what: str = "this work",
+               hint: str = "", available: int | None = None) -> None:
+    """The one rule for unbounded work, checked before it starts; raises :class:`EloInputError`.
+
+    Parameters
+    ----------
+    seconds, memory_bytes : float
+        The work's estimated wall time and peak resident memory.
+    force : bool
+        The user asked for it (CLI ``--yes``, Python ``force=True``): a long estimate is allowed.
+        Memory is refused regardless: it cannot be bought with patience.
+    what : str
+        How the message names the work (``"a 512x512 render of 1e+09 spp"``).
+    hint : str
+        What to lower instead (``"lower --spp"``).
+    available : int, optional
+        Bytes available (default :func:`memory_limit`; tests pass their own).
+
+    Raises
+    ------
+    EloInputError
+        Memory above what is available (naming what sets the limit), or, without ``force``, time
+        above :data:`REFUSE_SECONDS`.
+    """
+    source = "available"
+    if available is None:
+        available, source = memory_limit()
+    hint = f"; {hint}" if hint else ""
+    if available is not None and memory_bytes > available:
+        raise EloInputError(f"{what} needs about {_human_bytes(memory_bytes)} of memory, "
+                            f"{_human_bytes(available)} is {source}{hint}")
+    if seconds > REFUSE_SECONDS and not force:
+        raise EloInputError(f"{what} would take about {_human_seconds(seconds)} (estimate; work over "
+                            f"{_human_seconds(REFUSE_SECONDS)} is refused as likely a mistake){hint}, or pass "
+                            "--yes (Python: force=True) to run it anyway")
 
 
 def _human_bytes(n: float) -> str:
@@ -60,44 +209,91 @@ def _human_seconds(s: float) -> str:
     return f"{s / 86400:.3g} days"
 
 
-def estimate(resolution, channels: int, spp: int, traced_events: int, passes: int) -> dict:
-    """Memory (bytes), samples and seconds (render, kernel compilation) of one render."""
+def detector_points(integrator) -> tuple[int, int]:
+    """(detector points unrolled into the kernel, points sampled per path and event) of an
+    integrator (plugins/integrator_elo.py): each detector's ``detector_samples`` on the 1st event
+    (none where the quadrature integrates it) and ``bounce_detector_samples`` on each of the
+    ``bounce_samples`` continuation paths of every later event."""
+    detectors = len(getattr(integrator, "detectors", ())) or 1
+    first = 0 if getattr(integrator, "detector_sampling", "") == "quadrature" else int(integrator.detector_samples)
+    later = max(0, integrator.traced_events() - 1)
+    bounce = int(getattr(integrator, "bounce_detector_samples", 1) or 1)
+    paths = int(getattr(integrator, "bounce_samples", 1) or 1)
+    unrolled = detectors * (first + later * paths * bounce)
+    return unrolled, max(1, first, bounce if later else 1)
+
+
+def estimate(resolution, channels: int, spp: int, traced_events: int, passes: int,
+             detector_points: tuple[int, int] = (0, 1)) -> dict:
+    """Memory (bytes), samples and seconds (render, kernel compilation) of one render;
+    ``detector_points``: :func:`detector_points` of its integrator."""
     w, h = (int(v) for v in resolution)
     pixels = w * h
+    unrolled, per_path = (int(v) for v in detector_points)
     per = BYTES_PER_PIXEL_CHANNEL_PASSES if passes > 1 else BYTES_PER_PIXEL_CHANNEL
-    samples = pixels * int(spp) * max(1, int(traced_events))
+    samples = pixels * int(spp) * max(1, int(traced_events)) * max(1, per_path)
     cores = max(1, os.cpu_count() or 1)
+    compile_s = COMPILE_SECONDS_PER_EVENT2 * traced_events ** 2 if traced_events > 2 else 0.0
+    compile_s += COMPILE_SECONDS_PER_DETECTOR_POINT * unrolled + COMPILE_SECONDS_PER_DETECTOR_POINT2 * unrolled ** 2
     return {
-        "memory_bytes": BASE_BYTES + pixels * channels * per,
+        "memory_bytes": BASE_BYTES + pixels * channels * per + KERNEL_BYTES_PER_DETECTOR_POINT * unrolled,
         "samples": samples,
         "render_seconds": samples / (SAMPLES_PER_SECOND_2_CORES * cores / 2),
-        "compile_seconds": COMPILE_SECONDS_PER_EVENT2 * traced_events ** 2 if traced_events > 2 else 0.0,
+        "compile_seconds": compile_s,
     }
 
 
 def check_render(resolution, channels: int, spp: int, traced_events: int, passes: int,
-                 available: int | None = None) -> list[str]:
-    """Refuse a render that cannot fit in memory; return notes on long ones.
+                 available: int | None = None, *, detector_points: tuple[int, int] = (0, 1),
+                 force: bool = False) -> list[str]:
+    """Refuse a render that cannot fit in memory or (without ``force``) would run longer than
+    :data:`REFUSE_SECONDS` (:func:`check_work`); return notes on long ones.
 
     Raises
     ------
     EloInputError
         When the estimated memory exceeds what is available (``available`` bytes; default
-        :func:`available_memory`), naming both numbers and what sets them.
+        :func:`memory_limit`), naming both numbers and what sets them; or the time, with the
+        estimate and how to ask for it anyway.
     """
-    est = estimate(resolution, channels, spp, traced_events, passes)
-    available = available_memory() if available is None else available
+    est = estimate(resolution, channels, spp, traced_events, passes, detector_points)
     w, h = (int(v) for v in resolution)
-    if available is not None and est["memory_bytes"] > available:
-        raise EloInputError(
-            f"a {w}x{h} render with {channels - 1} channels needs about {_human_bytes(est['memory_bytes'])} of memory, "
-            f"{_human_bytes(available)} is available; lower the resolution (memory grows with its square) or the events")
+    seconds = est["render_seconds"] + est["compile_seconds"]
+    points = f", {detector_points[0]} detector points in the kernel" if detector_points[0] > 64 else ""
+    check_work(seconds, est["memory_bytes"], force, available=available,
+               what=f"a {w}x{h} render with {channels - 1} channels",
+               hint=f"{est['samples']:.3g} samples ({spp} spp x {traced_events} event(s) per pixel{points}); lower "
+                    "the resolution (memory grows with its square), --spp, --events or --detector-samples")
     notes = []
     if est["compile_seconds"] > NOTE_SECONDS / 2:
-        notes.append(f"{traced_events} traced events: compiling the kernel takes about "
-                     f"{_human_seconds(est['compile_seconds'])} (it grows with events^2; the event shares printed "
-                     "after a render show how many matter)")
+        notes.append(f"{traced_events} traced events{points}: compiling the kernel takes about "
+                     f"{_human_seconds(est['compile_seconds'])} (it grows with events^2 and the detector points; "
+                     "the event shares printed after a render show how many events matter)")
     if est["render_seconds"] > NOTE_SECONDS:
         notes.append(f"{est['samples']:.3g} samples ({w}x{h} px x {spp} spp x {traced_events} event(s)): up to about "
                      f"{_human_seconds(est['render_seconds'])} (progress below; Ctrl-C stops it)")
     return notes
+
+
+def estimate_inversion(shape, iterations: int, scales: int, uncertainty_probes: int) -> dict:
+    """Peak memory (bytes) and the longest time (seconds) of an inversion of ``shape`` (H, W):
+    the set-up (two steps), ``iterations`` steps at full resolution, twice where coarse-to-fine
+    runs (``scales`` > 1), a third more for the coarse scales, and one step per uncertainty probe."""
+    pixels = int(shape[0]) * int(shape[1])
+    steps = 2 + max(1, int(iterations)) * (2 + 1 / 3 if int(scales) > 1 else 1) + int(uncertainty_probes)
+    cores = max(1, os.cpu_count() or 1)
+    return {"memory_bytes": INVERSION_BASE_BYTES + INVERSION_BYTES_PER_PIXEL * pixels,
+            "seconds": steps * pixels * INVERSION_SECONDS_PER_PIXEL_STEP / (cores / 2), "steps": steps}
+
+
+def check_inversion(shape, iterations: int, scales: int, uncertainty_probes: int, force: bool = False,
+                    available: int | None = None) -> None:
+    """Refuse an inversion that cannot fit in memory or (without ``force``) would run longer than
+    :data:`REFUSE_SECONDS` (:func:`check_work`), before it starts."""
+    est = estimate_inversion(shape, iterations, scales, uncertainty_probes)
+    h, w = (int(v) for v in shape)
+    check_work(est["seconds"], est["memory_bytes"], force, available=available,
+               what=f"inverting {w}x{h} px ({math.ceil(est['steps'])} steps at most, counting "
+                    f"{int(uncertainty_probes)} uncertainty probes)",
+               hint="crop or bin the images (memory grows with the pixels), or lower --iterations or "
+                    "--uncertainty-probes")

@@ -8,7 +8,10 @@ destroys an existing one.
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
+import tempfile
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -34,7 +37,9 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
     ------
     EloInputError
         For a suffix not in ``suffixes``, an existing file without ``overwrite``, a path that is
-        a folder, or a parent folder that does not exist or is a file.
+        a folder, a parent folder that does not exist, is a file or cannot be written (read-only,
+        immutable, ``/proc``: :func:`check_writable_folder`), or, with ``overwrite``, an existing
+        file that cannot be replaced (immutable or append-only).
     """
     path = Path(path)
     if suffixes is not None:
@@ -50,7 +55,64 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
         raise EloInputError(f"{what} {path}: directory {parent} does not exist")
     if not parent.is_dir():
         raise EloInputError(f"{what} {path}: {parent} is a file, not a directory")
+    check_writable_folder(parent, f"{what} {path}")
+    if path.exists():
+        _check_replaceable(path, what)
     return path
+
+
+def check_writable_folder(folder, what: str) -> Path:
+    """Refuse (one line, naming ``what``) an existing folder in which no file can be created: not
+    writable for this user, read-only or immutable (``chattr +i``), or a virtual file system such
+    as ``/proc``. Root ignores permission bits, so the test is an actual probe: a temporary file
+    is created in ``folder`` and removed at once (nothing else is touched)."""
+    folder = Path(folder)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".elo-mitsuba-probe-", dir=folder)
+    except OSError as exc:
+        reason = _flag_reason(folder) or ("the folder does not take new files" if exc.errno == errno.ENOENT
+                                          else f"{exc.strerror or exc}".lower())
+        raise EloInputError(f"{what}: cannot write in folder {folder} ({reason}); "
+                            "choose a folder you can write to") from None
+    os.close(fd)
+    os.unlink(probe)
+    return folder
+
+
+#: Linux inode flags (``chattr``) under which nothing in a folder, or a file itself, can be
+#: created, renamed or replaced: immutable, append-only (ioctl FS_IOC_GETFLAGS).
+_FS_IOC_GETFLAGS = 0x80086601
+_FLAGS = {0x00000010: "immutable (chattr +i)", 0x00000020: "append-only (chattr +a)"}
+
+
+def _flag_reason(path: Path) -> str | None:
+    """"immutable (chattr +i)" or "append-only (chattr +a)" where ``path`` carries that flag; None
+    otherwise, and where the system or file system has no such flags."""
+    try:
+        import fcntl
+        import struct
+
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            flags = struct.unpack("l", fcntl.ioctl(fd, _FS_IOC_GETFLAGS, struct.pack("l", 0)))[0]
+        finally:
+            os.close(fd)
+    except (OSError, ImportError):
+        return None
+    return next((text for bit, text in _FLAGS.items() if flags & bit), None)
+
+
+def _check_replaceable(path: Path, what: str) -> None:
+    """Refuse an existing file that ``os.replace`` could not replace: immutable or append-only
+    (Linux inode flags), or in a sticky folder (``/tmp``) and owned by another user."""
+    reason = _flag_reason(path)
+    if reason is None and os.geteuid() != 0:
+        parent, own = path.parent.stat(), path.stat()
+        if parent.st_mode & stat.S_ISVTX and os.geteuid() not in (own.st_uid, parent.st_uid):
+            reason = "owned by another user in a sticky folder"
+    if reason is not None:
+        raise EloInputError(f"{what} {path} is {reason} and cannot be replaced, even with --overwrite; "
+                            "choose another name")
 
 
 def atomic_write(path, write: Callable[[Path], None]) -> Path:

@@ -26,7 +26,7 @@ import numpy as np
 
 from ._version import __version__
 from .errors import EloError, EloInputError
-from .budget import check_render
+from .budget import check_render, detector_points
 from .exr import write_exr
 from .grid import ORIENTATION
 from .error_estimate import DETERMINISTIC, NOT_ESTIMATED, combine_halves, summarise
@@ -370,7 +370,7 @@ class EloScene:
 
     # -- rendering --
     def render(self, spp: int | None = None, seed: int = 0, events: int | None = None,
-               progress: bool | None = None, quality: str | None = None) -> RenderResult:
+               progress: bool | None = None, quality: str | None = None, force: bool = False) -> RenderResult:
         """Render all detector channels; returns numpy images and metadata.
 
         ``quality`` (a preset of :data:`~elo_mitsuba.options.QUALITY_PRESETS`, or ``"scene"``)
@@ -382,7 +382,8 @@ class EloScene:
         gets a note (:func:`elo_mitsuba.budget.check_render`). ``progress``: None (default) shows
         progress on stderr for multi-pass renders, as a bar on a terminal and otherwise as a line
         per 10 % once the render has run for :data:`PROGRESS_AFTER_S`; True always, False never
-        (no notes either).
+        (no notes either). ``force=True`` (CLI ``--yes``) lets a render estimated to run longer than
+        :data:`~elo_mitsuba.budget.REFUSE_SECONDS` start; memory beyond what is available is refused always.
         """
         seed = _whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
         if spp is not None:
@@ -399,7 +400,8 @@ class EloScene:
         n_passes = sum(math.ceil(n / per_pass) for n, _ in halves)
         names = self.integrator.channel_names()
         notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(),
-                             max(n_passes, 2 if len(halves) > 1 else 1))
+                             max(n_passes, 2 if len(halves) > 1 else 1),
+                             detector_points=detector_points(self.integrator), force=force)
         if progress is not False:
             for note in notes:
                 print(f"elo-mitsuba: note: {note}", file=sys.stderr, flush=True)
@@ -595,10 +597,12 @@ def load_scene(scene, variant: str | None = None, detector_layout: str | None = 
 
 
 def render(scene, spp: int | None = None, events: int | None = None, seed: int = 0,
-           variant: str | None = None, detector_layout: str | None = None, **params) -> RenderResult:
-    """Render a scene (path, shipped name or :class:`EloScene`) and return its detector images."""
+           variant: str | None = None, detector_layout: str | None = None, force: bool = False,
+           **params) -> RenderResult:
+    """Render a scene (path, shipped name or :class:`EloScene`) and return its detector images
+    (``force``: see :meth:`EloScene.render`)."""
     if not isinstance(scene, EloScene):
         scene = load_scene(scene, variant=variant, detector_layout=detector_layout, **params)
     elif params or detector_layout:
         raise EloInputError("scene parameters are fixed once an EloScene is loaded; use set_detector/set_material")
-    return scene.render(spp=spp, seed=seed, events=events)
+    return scene.render(spp=spp, seed=seed, events=events, force=force)

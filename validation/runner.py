@@ -118,11 +118,13 @@ def check_outputs(out_dir: Path, json_path=None, overwrite: bool = False) -> Non
     """Refuse, before any study runs, an output folder that is a file (or under one), an existing
     report without ``overwrite``, and a bad ``--json`` path (one line, EloInputError)."""
     from elo_mitsuba.errors import EloInputError
-    from elo_mitsuba.files import check_output
+    from elo_mitsuba.files import check_output, check_writable_folder
 
     for folder in (out_dir, *out_dir.parents):
         if folder.exists() and not folder.is_dir():
             raise EloInputError(f"--output-dir {out_dir}: {folder} is a file, not a folder")
+    # the folder, or the nearest one that exists (the rest is created), must take new files
+    check_writable_folder(next(f for f in (out_dir, *out_dir.parents) if f.exists()), f"--output-dir {out_dir}")
     if (out_dir / "REPORT.md").exists() and not overwrite:
         raise EloInputError(f"--output-dir {out_dir} holds a REPORT.md already; pass --overwrite to replace it "
                             "(or choose another --output-dir)")

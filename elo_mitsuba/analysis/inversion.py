@@ -49,6 +49,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from ..budget import check_inversion
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
@@ -439,7 +440,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                    noise: float | None = None, iterations: int = ITERATIONS, cg_iterations: int = CG_ITERATIONS,
                    tol: float = TOL, discrepancy: float = DISCREPANCY, time_budget_s: float | None = None,
                    shadows: bool = True, scales: int = SCALES, uncertainty_probes: int = UNCERTAINTY_PROBES,
-                   nodes=NODES, progress: Callable[[dict], None] | None = None) -> InversionResult:
+                   nodes=NODES, progress: Callable[[dict], None] | None = None,
+                   force: bool = False) -> InversionResult:
     """Four detector images -> the height map that the forward model maps onto them.
 
     Parameters
@@ -489,6 +491,9 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         disc's partial shadowing: (1, 4) counts quarters, (2, 8) sixteenths.
     progress : callable, optional
         Called with each step's history entry.
+    force : bool
+        Run even when the estimate (:func:`elo_mitsuba.budget.check_inversion`) says it takes longer
+        than :data:`~elo_mitsuba.budget.REFUSE_SECONDS`; memory beyond what is available is refused always.
 
     Returns
     -------
@@ -514,6 +519,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         for n in DETECTOR_NAMES:
             if np.shape(data[n]) != shape:
                 raise EloInputError(f"{what}[{n!r}] is {np.shape(data[n])}, the scan geometry {shape}")
+    check_inversion(shape, iterations, scales, uncertainty_probes, force=force)
     t0 = time.perf_counter()
     if start is None:
         from .model_gradient import model_gradient

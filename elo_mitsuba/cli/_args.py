@@ -55,3 +55,13 @@ def seed(text: str) -> int:
     if value > (1 << 32) - 1:
         raise argparse.ArgumentTypeError(f"{value} is above 4294967295 (seeds are 32-bit)")
     return value
+
+
+def add_yes(parser) -> None:
+    """``--yes``: run work estimated to take longer than budget.REFUSE_SECONDS (refused otherwise)."""
+    from ..budget import REFUSE_SECONDS
+
+    parser.add_argument("--yes", action="store_true",
+                        help=f"run even when the estimate says it takes longer than {REFUSE_SECONDS / 3600:g} h "
+                             "(refused otherwise as likely a mistyped number); memory beyond what is available "
+                             "is refused regardless")

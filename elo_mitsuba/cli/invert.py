@@ -10,6 +10,8 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
+from ..budget import check_inversion
+from ._args import add_yes
 from .gradient import add_scan_arguments, positive_float
 
 DESCRIPTION = """\
@@ -97,6 +99,7 @@ def add_parser(subparsers):
                           "error on the melt plate in the chamber (validation row I5), costs one render")
     p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    add_yes(p)
     p.set_defaults(run=run, event=None, min_corrected=None, min_sum=None)
     return p
 
@@ -166,6 +169,10 @@ def run(args) -> int:
     from .gradient import _model_geometry, flat_note, noise_shares, read_scan
 
     scan = read_scan(args, model_discs=True)
+    check_inversion(scan.shape, inversion.ITERATIONS if args.iterations is None else args.iterations,
+                    inversion.SCALES if args.scales is None else args.scales,
+                    inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes,
+                    force=args.yes)  # before the model gradient and any render
     geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
     fwhm = args.fwhm if args.fwhm is not None else float((scan.header or {}).get("beam_fwhm_mm", 0.0))
     start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
@@ -208,7 +215,7 @@ def run(args) -> int:
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
-        time_budget_s=args.time_budget, progress=progress,
+        time_budget_s=args.time_budget, progress=progress, force=args.yes,
         uncertainty_probes=inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
     shares, noise_line = noise_shares(scan)
     meta = {"method": "inversion", "beam_fwhm_mm": fwhm, "noise": res.noise, "alpha": res.alpha,

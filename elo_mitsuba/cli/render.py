@@ -10,7 +10,7 @@ from pathlib import Path
 from ..errors import EloInputError
 from ..files import check_output
 from ..constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
-from ._args import define, number, positive_int, seed
+from ._args import add_yes, define, number, positive_int, seed
 
 #: How messages name the settings of this command's flags.
 _FLAGS = {"detector_layout": "--layout", "dh": "-D dh", "dw": "-D dw", "layout": "-D layout", "units": "--units",
@@ -100,6 +100,7 @@ def add_parser(subparsers):
     p.add_argument("--preview", metavar="PNG", help="also write the detector images side by side as a PNG (axes in mm, colour bars)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT.exr (and the preview) if they exist")
     p.add_argument("--quiet", action="store_true", help="no progress or summary output")
+    add_yes(p)
     p.set_defaults(run=run)
     return p
 
@@ -136,7 +137,7 @@ def run(args) -> int:
     if given:
         scene.configure(**given)
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
-                          progress=None if not args.quiet else False)
+                          progress=None if not args.quiet else False, force=args.yes)
     result.write_exr(out, overwrite=args.overwrite, error_channels=args.error_channels)
     if preview is not None:
         from ..analysis.plots import preview_detectors
