@@ -179,7 +179,7 @@ _FIELDS = tuple(f.name for f in dataclasses.fields(EloOptions))
 
 #: Options that only scale volts (Eq. 9), and those that set how many points a detector is sampled at.
 _VOLT_OPTIONS = ("beam_current", "transimpedance")
-_SAMPLE_OPTIONS = ("detector_samples", "bounce_detector_samples")
+SAMPLE_OPTIONS = ("detector_samples", "bounce_detector_samples")
 
 
 def check_combination(given: Mapping[str, Any], *, base: EloOptions | None = None, qualities=None,
@@ -227,7 +227,7 @@ def check_combination(given: Mapping[str, Any], *, base: EloOptions | None = Non
     if volts and units != "voltage":
         raise EloInputError(f"{say(volts[0], given[volts[0]])} scales volts only (Eq. 9: U_d = N_d/N_0 I_b T) and "
                             f"would be recorded but not applied; add {say('units', 'voltage')}")
-    samples = [k for k in _SAMPLE_OPTIONS if k in given]
+    samples = [k for k in SAMPLE_OPTIONS if k in given]
     if not samples:
         return
     later = ("bounce_detector_samples" in given and bounce_possible and (events is None or events >= 2))

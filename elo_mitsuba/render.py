@@ -30,9 +30,11 @@ from .budget import check_render, detector_points
 from .exr import write_exr
 from .grid import ORIENTATION
 from .error_estimate import DETERMINISTIC, NOT_ESTIMATED, combine_halves, summarise
-from .options import PRESET_FIELDS, QUALITIES, EloOptions, half_budget, quality_options
+from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
+                      half_budget, quality_options)
 from .runtime import ensure_variant
-from .scene_files import declared_parameters, explain_mitsuba_error, layout_parameters, resolve_scene_path
+from .scene_files import (check_detector_placement, declared_parameters, explain_mitsuba_error,
+                          resolve_scene_path, scene_values)
 
 #: An event order adding less than this share of the signal in 99 % of the pixels is reported as
 #: negligible (0.1 %: below the default preset's per-pixel error of events >= 2, 0.2 %).
@@ -144,8 +146,7 @@ class EloScene:
         # the scene and its parameters are checked (XML only) before Mitsuba is imported: in a new
         # process a misspelt scene or parameter is refused in a fraction of a second
         self.path = resolve_scene_path(scene)
-        values = dict(layout_parameters(detector_layout)) if detector_layout is not None else {}
-        values.update(params)
+        values = scene_values(detector_layout, params)  # a layout and its dh/dw both given: refused
         declared = declared_parameters(self.path, {k: str(v) for k, v in values.items()})
         unknown = [k for k in values if k not in declared]
         if unknown:
@@ -171,11 +172,14 @@ class EloScene:
         # the scene file's spp, read once: Mitsuba's render(spp=n) sets the sensor's sampler to n,
         # so the sampler cannot be asked again after a render (each render would halve it)
         self.scene_spp = int(self.sensor.sampler().sample_count())
-        #: the scene file's integrator options, to which ``quality="scene"`` returns the presets' fields
-        self._scene_options = self.integrator.options
         #: the quality every render applies unless told another: a preset's name, ``"scene"``, or
         #: ``"custom"`` once configure() changed a field a preset sets (then the options stay as set)
         self.quality = "scene"
+        #: the fields a preset sets as they were before the first preset overwrote them (the scene
+        #: file's, with what configure() changed), restored by ``quality="scene"``; None: not overwritten
+        self._own_fields = None
+        #: the options set by configure(), for the check that a preset applied later uses them
+        self._configured: dict = {}
         self.mi_params = self.mi.traverse(self.scene)
         self._check_detectors()
 
@@ -251,24 +255,7 @@ class EloScene:
 
     def _check_detectors(self):
         for name, geo in self.detector_geometry().items():
-            c, n = np.array(geo["center"]), np.array(geo["normal"])
-            if c[2] <= 0:
-                raise EloInputError(
-                    f"{self.path}: detector {name!r} has its centre at z={c[2]:g} mm, at or below the "
-                    "build plane z=0; detectors must be above the plate"
-                )
-            # the whole disc, not only its centre: its lowest rim point is r sin(tilt) below the centre
-            low = c[2] - geo["radius"] * math.sqrt(max(0.0, 1.0 - float(n[2]) ** 2))
-            if low <= 0:
-                raise EloInputError(
-                    f"{self.path}: detector {name!r} (centre z={c[2]:g} mm, radius {geo['radius']:g} mm) reaches down "
-                    f"to z={low:.3g} mm, through the build plane z=0; raise it (dh) or move it inwards (dw)"
-                )
-            if np.dot(n, -c) <= 0:
-                raise EloInputError(
-                    f"{self.path}: detector {name!r} faces away from the scan field (normal "
-                    f"{np.round(n, 3).tolist()}); its front face must see the origin"
-                )
+            check_detector_placement(name, geo["center"], geo["normal"], geo["radius"], where=str(self.path))
 
     # -- changing parameters without reloading --
     @property
@@ -287,7 +274,8 @@ class EloScene:
             except EloError:
                 self.integrator.configure(saved)
                 raise
-        if set(PRESET_FIELDS).intersection(changes):
+        self._configured.update(changes)
+        if set(PRESET_FIELDS).intersection(changes) and self.quality in QUALITY_PRESETS:
             self.quality = "custom"  # a preset re-applied at the next render would undo the change
         return self.integrator.options
 
@@ -349,17 +337,20 @@ class EloScene:
 
     def set_quality(self, quality: str) -> int:
         """Apply a quality preset (:data:`~elo_mitsuba.options.QUALITY_PRESETS`) to the integrator for this scene's
-        resolution, events and beam, for this and every later render; returns its spp (``scene``:
-        the scene file's sampler count and its settings of the fields a preset sets; ``custom``:
-        the options as they are, the scene file's spp)."""
+        resolution, events and beam, for this and every later render; returns its spp. ``scene``:
+        the scene file's sampler count, and the fields a preset sets as they were before a preset
+        overwrote them (the scene file's, with what :meth:`configure` changed); ``custom``: the
+        options as they are, the scene file's spp."""
         if quality not in QUALITIES + ("custom",):
             raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
         if quality in ("scene", "custom"):
-            if quality == "scene":
-                own = {f: getattr(self._scene_options, f) for f in PRESET_FIELDS}
-                self.integrator.configure(self.integrator.options.replace(**own))
+            if quality == "scene" and self._own_fields is not None:
+                self.integrator.configure(self.integrator.options.replace(**self._own_fields))
+                self._own_fields = None
             self.quality = quality
             return self.scene_spp
+        if self._own_fields is None:
+            self._own_fields = {f: getattr(self.integrator.options, f) for f in PRESET_FIELDS}
         pixel_mm = self.sensor.field / self.sensor.resolution[0]
         options, spp = quality_options(quality, self.integrator.options, pixel_mm=pixel_mm,
                                        fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events(),
@@ -392,7 +383,13 @@ class EloScene:
             self.set_events(events)
         # the quality is applied at every render, so that the result depends on the scene's state
         # (events, resolution, beam) and the arguments, never on what was rendered before
-        preset_spp = self.set_quality(quality if quality is not None else self.quality)
+        quality = quality if quality is not None else self.quality
+        if quality in QUALITY_PRESETS:  # sample counts configured earlier that the preset would not use
+            check_combination({k: v for k, v in self._configured.items() if k in SAMPLE_OPTIONS},
+                              base=self.integrator.options, qualities=[quality],
+                              events=events if events is not None else self.integrator.events,
+                              bounce_possible=self.integrator.bounce_possible)
+        preset_spp = self.set_quality(quality)
         spp = int(preset_spp if spp is None else spp)
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))

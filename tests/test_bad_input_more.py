@@ -197,6 +197,12 @@ def _after_a_preset_render():
 
 
 #: (id, call, a fragment of the one-line EloInputError)
+def _configured(**options):
+    scene = em.load_scene("flat_plate", res=2)
+    scene.configure(**options)
+    return scene
+
+
 API_CASES = [
     ("configure beam_current without volts", lambda: _scene().configure(beam_current=2e-3),
      "beam_current=0.002 scales volts only"),
@@ -213,6 +219,11 @@ API_CASES = [
      "integrator.detector_samples=4 would change nothing: quality 'default'"),
     ("load_scene layout and dh", lambda: scene_values("zeta50", {"dh": 100}),
      "detector_layout zeta50 sets dh and dw; dh=100 contradicts it"),
+    ("load_scene detector_layout and dh", lambda: em.load_scene("flat_plate", detector_layout="zeta50", dh=100),
+     "detector_layout zeta50 sets dh and dw; dh=100 contradicts it"),
+    ("render a preset after detector_samples", lambda: _configured(detector_sampling="independent",
+                                                                   detector_samples=4).render(quality="default"),
+     "detector_samples=4 would change nothing: quality 'default'"),
     ("write_exr png", lambda: write_exr("/tmp/never-written.png", {"a": np.zeros((2, 2))}), "must end in .exr"),
     ("write_exr int", lambda: write_exr(5, {"a": np.zeros((2, 2))}), "EXR path 5 (int)"),
     ("write_exr None", lambda: write_exr(None, {"a": np.zeros((2, 2))}), "EXR path None"),
