@@ -49,13 +49,21 @@ def _one_line_error(capsys) -> str:
 
 @pytest.fixture
 def no_render(monkeypatch):
-    """Fail the test if any point starts rendering (in process)."""
+    """Fail the test if any point starts rendering (in process) or a local cluster starts."""
     import elo_mitsuba.sweeps.run as run
     import elo_mitsuba.sweeps.worker as worker
 
     def fail(*a, **k):
         pytest.fail("a render started")
 
+    real_connect = run._connect
+
+    def connect(address, workers):
+        if address is None:
+            pytest.fail("a local cluster started")
+        return real_connect(address, workers)
+
+    monkeypatch.setattr(run, "_connect", connect)
     monkeypatch.setattr(worker, "run_batch", fail)
     monkeypatch.setattr(run, "run_batch", fail)
     monkeypatch.setattr(worker, "render_point", fail)
@@ -282,8 +290,7 @@ def test_two_clients_creating_one_store(tmp_path, monkeypatch):
     monkeypatch.setattr(store, "_create", racing)
     assert store.open_or_create(out, spec_a, layout) == "joined"
     monkeypatch.setattr(store, "_create", racing)
-    shutil_out = tmp_path / "race2.zarr"
-    out = shutil_out
+    out = tmp_path / "race2.zarr"  # now the other client creates this one, for spec_a
     with pytest.raises(EloInputError, match="created meanwhile by another client for another spec"):
         store.open_or_create(out, spec_b, layout)
     assert not [p for p in tmp_path.iterdir() if ".creating-" in p.name]

@@ -20,7 +20,13 @@ Each worker loads a scene once per combination of load-time parameters (XML <def
 layout, dh, dw, res) and re-renders it in place for spp, events, quality and detector moves
 (right.center, right.normal, right.radius, detectors.radius). Re-running the same command resumes:
 points done are skipped, failed ones retried; a different spec on an existing store is refused.
-The spec is checked completely before any render (exit 2 with one line).
+The spec is checked completely, every point's values against the scene, before the store is
+created (exit 2 with one line); so are the cluster arguments (--workers and --threads at most the
+cores, a --scheduler that answers within 10 s). A sweep whose estimate is above 4 h on this machine
+or 2 million store files is refused with the estimate unless --yes. If every worker is lost (none
+for --worker-wait seconds) or the scheduler is lost, the sweep stops with one line (exit 2); the
+points stored stay done, and re-running the command resumes. Two clients on one store: exactly one
+creates it, and each point is rendered by one of them (claims in OUT.zarr/.claims).
 """
 
 EPILOG = """\

@@ -2,6 +2,9 @@
 cluster, into one Zarr store readable by ``xarray.open_zarr``.
 
 * :mod:`.spec`    the TOML spec, validated before any render (:func:`load_spec`);
+* :mod:`.validate` every point's values checked against the scene, without rendering;
+* :mod:`.cost`    the sweep's estimate (time, memory, store size); unbounded work refused;
+* :mod:`.claims`  per-point claims: two clients resuming one store never render a point twice;
 * :mod:`.metrics` the design metrics computed on the workers (a registry);
 * :mod:`.store`   the Zarr layout, per-point status, resume;
 * :mod:`.worker`  what a worker does: load once, re-render in place, write its own point;
