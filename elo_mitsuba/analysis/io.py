@@ -273,8 +273,9 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     Returns
     -------
     dict
-        ``dzdx``, ``dzdy`` (float32 images), ``mask`` (bool, True = untrusted; None if the file
-        has none or ``use_mask`` is False), ``field_mm`` (``field_mm`` if given, else the
+        ``dzdx``, ``dzdy`` (float32 images, 0 where the file holds NaN), ``mask`` (bool, True =
+        untrusted: the file's mask unless ``use_mask`` is False, and its NaN pixels; None if
+        neither), ``field_mm`` (``field_mm`` if given, else the
         header's) and ``metadata`` (the header).
     """
     channels, meta = read_exr(path)
@@ -282,12 +283,15 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     if missing:
         raise EloInputError(f"{path}: missing channel(s) {', '.join(missing)}; "
                             "expected the output of 'elo-mitsuba gradient'")
-    for name in ("dzdx", "dzdy"):  # 'gradient' writes 0, never NaN, where it has no gradient
-        bad = ~np.isfinite(channels[name])
+    for name in ("dzdx", "dzdy"):
+        bad = np.isinf(channels[name])
         if bad.any():
             row, col = np.argwhere(bad)[0]
-            raise EloInputError(f"{path}: channel {name!r} holds {int(bad.sum())} NaN or Inf value(s) (first at row "
-                                f"{row}, column {col}); a gradient must be finite (0, with mask 1, where unknown)")
+            raise EloInputError(f"{path}: channel {name!r} holds {int(bad.sum())} infinite value(s) (first at row "
+                                f"{row}, column {col}); a gradient must be finite (NaN or 0 with mask 1 where unknown)")
+    # NaN is another tool's 'unknown' ('gradient' writes 0 with mask 1): masked, and 0 where it was,
+    # so that no NaN reaches an integration (it spread over the whole height map)
+    unknown = np.isnan(channels["dzdx"]) | np.isnan(channels["dzdy"])
     shape = channels["dzdx"].shape
     recorded = None
     if meta.get("field_mm") is not None:
@@ -304,6 +308,9 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     if field is None:
         raise EloInputError(f"{path}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
     mask = channels["mask"] > 0.5 if "mask" in channels and use_mask else None
+    if unknown.any():
+        mask = unknown if mask is None else mask | unknown
+        channels = {**channels, **{c: np.where(unknown, np.float32(0), channels[c]) for c in ("dzdx", "dzdy")}}
     return {"dzdx": channels["dzdx"], "dzdy": channels["dzdy"], "mask": mask,
             "field_mm": field_xy(field, channels["dzdx"].shape),
             "metadata": meta}
