@@ -1,4 +1,4 @@
-"""Height maps: reading, validating, pixel positions and gradients (millimetres).
+"""Height maps: reading, validating and pixel positions (millimetres).
 
 A height map is a 2-D array ``height[i, j]`` in millimetres in the package's image orientation
 (:mod:`elo_mitsuba.grid`: row 0 is the +y edge, columns run towards +x), centred on the z-axis.
@@ -99,10 +99,3 @@ def pixel_centres(shape, pixel_size_mm) -> tuple[np.ndarray, np.ndarray]:
     h, w = int(shape[0]), int(shape[1])
     p = float(pixel_size_mm)
     return pixel_axes((h, w), (w * p, h * p))
-
-
-def heightmap_gradient(height_mm, pixel_size_mm) -> tuple[np.ndarray, np.ndarray]:
-    """Central-difference ``(dZ/dx, dZ/dy)`` of a map in scene axes (note: y runs against rows)."""
-    h = np.asarray(height_mm, dtype=float)
-    d_rows, d_cols = np.gradient(h, float(pixel_size_mm))
-    return d_cols, -d_rows
