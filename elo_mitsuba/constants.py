@@ -29,7 +29,6 @@ DEFAULT_MATERIAL = "Ti-6Al-4V"
 # --- Measurement chain (Eq. 3, Eq. 9, Sec. 2.4) -----------------------------------------------------
 BEAM_CURRENT_A = 3e-3
 TRANSIMPEDANCE_V_PER_A = 1e5
-DWELL_TIME_S = 0.4e-6
 ELEMENTARY_CHARGE_C = 1.602176634e-19
 
 # --- ATHENE validation geometry (Sec. 2.2) ----------------------------------------------------------
@@ -37,8 +36,6 @@ DETECTOR_HEIGHT_MM = 272.0        # d_h
 DETECTOR_DISTANCE_MM = 127.0      # d_w, from the z-axis
 DETECTOR_DIAMETER_MM = 50.0       # copper discs
 FIELD_MM = 80.0                   # scan field width
-RESOLUTION = 1500                 # scan lines -> 53.3 um pixels
-BEAM_FWHM_MM = 0.27               # Gaussian beam profile on ATHENE (Sec. 3.2)
 #: Work distance w_d (gun pivot height above the build plane). The paper does not give ATHENE's;
 #: we choose 400 mm: above the detectors (272 mm) and typical of PBF-EB guns, giving a deflection
 #: angle of 8.0 deg at the corner of the 80 mm field. It is a scene parameter everywhere.
