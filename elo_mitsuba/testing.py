@@ -1,4 +1,5 @@
-"""Independent references for the BSDF ``elo_bse`` and the calls that hold the plugin to them.
+"""Independent references for the BSDF ``elo_bse`` and the calls that hold the plugin to them
+(as Mitsuba ships ``mitsuba.testing`` and ``mitsuba.chi2`` for its own BSDFs).
 
 The tests (``tests/test_bsdf.py``) and the validation (``validation/bsdf_report.py``) use this
 module as their one reference for g_BSE through Mitsuba. The references do not use the plugin nor

@@ -5,7 +5,7 @@ Conventions (local frame, normal +z): ``si.wi`` points back to where the electro
 upper hemisphere is eta(theta) (Eq. 2 with Eqs. 10/12). Sampling is a mixture of a cosine lobe and
 a Phong lobe about the mirror direction; ``pdf`` is the density of that sampling.
 
-The references are independent of the plugin and live in :mod:`elo_mitsuba.analysis.bsdf_checks`
+The references are independent of the plugin and live in :mod:`elo_mitsuba.testing`
 (shared with validation/bsdf_report.py): eta(theta) from Eqs. 10-12, the hemisphere integral by a
 2-D Gauss product rule in a frame adapted to the lobe (no C table), and the calls of the plugin in
 its local frame. ``pytest -s`` prints the measured numbers; validation/bsdf_report.py prints them
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elo_mitsuba.analysis.bsdf_checks import (
+from elo_mitsuba.testing import (
     CHI2_SAMPLES,
     MATERIALS,
     THETAS_CHI2,

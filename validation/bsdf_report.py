@@ -3,7 +3,7 @@
     python3 validation/bsdf_report.py [--samples N]
 
 Table 1: relative error of the hemisphere integral of ``eval`` against eta(theta) (Eqs. 10/12),
-by an independent 2-D Gauss product rule (elo_mitsuba.analysis.bsdf_checks.hemisphere_nodes), for
+by an independent 2-D Gauss product rule (elo_mitsuba.testing.hemisphere_nodes), for
 Ti-6Al-4V, Cu and 316L. Table 2: Mitsuba's chi2 test per incidence angle (Ti-6Al-4V): p-value,
 histogram mass vs pdf mass (chi2 tabulation and accurate quadrature) in binomial standard errors,
 and the worst |weight / (eval/pdf) - 1| over the sampled directions. Runs in ~10 s on 2 cores.
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from elo_mitsuba.analysis import bsdf_checks as checks
+from elo_mitsuba import testing as checks
 
 
 def main(argv=None) -> int:

@@ -24,7 +24,7 @@ def _hemisphere_nodes(n_mu, n_phi):
 
 def energy(ctx, st):
     import elo_mitsuba
-    from elo_mitsuba.analysis.bsdf_checks import bsdf_eval
+    from elo_mitsuba.testing import bsdf_eval
     from elo_mitsuba.physics import g_bse_local, get_material, lobe_normalisation
 
     cfg = ctx.settings["checks"]
