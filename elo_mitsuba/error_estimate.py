@@ -2,7 +2,7 @@
 
 A render is the weighted mean ``w_a A + w_b B`` of two independent estimates with ``w_a + w_b = 1``
 (the halves' shares of the samples). For unbiased halves with variances s^2/w_a and s^2/w_b
-(s^2 the variance of the mean), ``E[(A - B)^2] = s^2 / (w_a w_b)``, so
+(s^2 the variance of the mean), ``E[(A - B)^2] = s^2 / (w_a w_b)``, so ::
 
     err = sqrt(w_a w_b) |A - B|        (|A - B| / 2 for equal halves)
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Relative errors are taken against max(|value|, FLOOR x the image mean of |value|), as in benchmarks/.
+#: Relative errors are taken against ``max(|value|, FLOOR x the image mean of |value|)``, as in benchmarks/.
 FLOOR = 0.05
 #: Status of a channel's estimate: from the halves, or none because the channel has no sampling
 #: error (both halves identical: a deterministic estimator such as the 1st event by the triangle

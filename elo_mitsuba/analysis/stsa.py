@@ -120,7 +120,7 @@ def stsa_correct(images: Mapping, flats: Mapping, *, min_flat_fraction: float = 
 def sum_images(corrected: Mapping) -> tuple[np.ndarray, np.ndarray]:
     """Material-contrast sum images R^C + L^C and B^C + F^C (Eq. 23).
 
-    In the point-detector Lambert model both equal (eta/eta_C) 2/|n_S| [1 - (n_Sx x + n_Sy y)/d_h].
+    In the point-detector Lambert model both equal ``(eta/eta_C) 2/|n_S| [1 - (n_Sx x + n_Sy y)/d_h]``.
     Non-finite inputs give 0 (callers use the masks of :func:`stsa_correct` /
     :func:`normalised_differences`).
     """

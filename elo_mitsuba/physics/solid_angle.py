@@ -1,6 +1,6 @@
 """Solid angle of a plane triangle: Van Oosterom & Strackee (Eq. A1, corrected denominator).
 
-For the vertices a, b, c of a triangle relative to the observer,
+For the vertices a, b, c of a triangle relative to the observer, ::
 
     tan(Omega/2) = a . (b x c) / (|a||b||c| + (a.b)|c| + (a.c)|b| + (b.c)|a|).
 
@@ -15,7 +15,7 @@ import numpy as np
 
 
 def vos_denominator(la, lb, lc, ab, ac, bc):
-    """The denominator of Eq. A1 from the lengths |a|, |b|, |c| and the dot products a.b, a.c, b.c
+    """The denominator of Eq. A1 from the lengths ``|a|, |b|, |c|`` and the dot products a.b, a.c, b.c
     (numpy or Dr.Jit arrays)."""
     return la * lb * lc + ab * lc + ac * lb + bc * la
 
