@@ -6,7 +6,8 @@
 * :func:`write_gradient` / :func:`read_gradient`: the gradient EXR (channels
   :data:`GRADIENT_CHANNELS`, the scan geometry in the header) that ``elo-mitsuba gradient`` writes
   and ``elo-mitsuba reconstruct`` reads; the contract between the two, also for Python users.
-* :func:`write_height`: a height map as EXR (with mask and header), NPY or TIFF.
+* :func:`write_inversion`: an inversion's heights and what it knows of them (height map files
+  alone: :func:`elo_mitsuba.heightmap.write_height`).
 
 Arrays keep the package orientation (:mod:`elo_mitsuba.grid`). Recorded machine images must be
 stored the same way; nothing here flips anything.
@@ -22,11 +23,11 @@ import numpy as np
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..exr import read_exr, write_exr
-from ..files import atomic_write, check_output
+from ..files import check_output
 from ..grid import field_xy
+from ..heightmap import HEIGHT_SUFFIXES, write_height
 
 IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
-HEIGHT_SUFFIXES = (".exr", ".npy", ".tif", ".tiff")
 #: Channels of the gradient EXR, in the order written: the Eq. 26 gradient, the normalised
 #: differences of Eq. 15, the sums of opposite detectors, the mask (1 = untrusted) and its reasons.
 GRADIENT_CHANNELS = ("dzdx", "dzdy", "Mx", "My", "sum_rl", "sum_bf", "mask", "mask_reason")
@@ -314,35 +315,6 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     return {"dzdx": channels["dzdx"], "dzdy": channels["dzdy"], "mask": mask,
             "field_mm": field_xy(field, channels["dzdx"].shape),
             "metadata": meta}
-
-
-def write_height(path, height, mask=None, metadata: Mapping | None = None, overwrite: bool = False) -> Path:
-    """Write a height map (mm) by suffix.
-
-    ``.exr``: channels ``height`` and ``mask`` (1 = no height measured) and the metadata;
-    ``.npy``: the float64 height array; ``.tif``: float32 with the metadata as JSON in its
-    ImageDescription. NPY/TIFF carry no mask: masked pixels hold 0 there (use EXR to keep the
-    mask); NPY carries no metadata either.
-    """
-    path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
-    height = np.asarray(height, dtype=float)
-    if not np.all(np.isfinite(height)):
-        raise EloInputError(f"{path}: height holds NaN or Inf; refusing to write it")
-    mask = np.zeros(height.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    suffix = path.suffix.lower()
-    if suffix == ".exr":
-        write_exr(path, {"height": height, "mask": mask.astype(np.float32)}, dict(metadata or {}),
-                  overwrite=overwrite)
-    elif suffix == ".npy":
-        atomic_write(path, lambda tmp: np.save(tmp, height))
-    else:
-        import tifffile
-
-        from ..exr import _metadata_json
-
-        text = _metadata_json(path, dict(metadata or {}))
-        atomic_write(path, lambda tmp: tifffile.imwrite(tmp, height.astype(np.float32), description=text))
-    return path
 
 
 #: Channels of an inversion EXR besides the predicted images (``model.<detector>``).

@@ -146,7 +146,7 @@ def _start(path, shape, field_mm):
 def run(args) -> int:
     from ..files import check_output
 
-    from ..analysis.io import HEIGHT_SUFFIXES
+    from ..heightmap import HEIGHT_SUFFIXES
 
     out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
     if args.preview:

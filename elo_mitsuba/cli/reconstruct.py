@@ -22,9 +22,11 @@ Solvers (Queau, Durou & Aujol 2018 survey the field):
           are unknown); needs memory for large images
   auto    'masked' if any pixel is masked, else 'dct' (default)
 
-Output by suffix: .exr (channels height and mask, 1 = no height; geometry in the header), .npy
-(float64) or .tif (float32, the header as JSON in its ImageDescription). NPY/TIFF hold 0 at
-masked pixels and no mask; NPY holds no header (use .exr or .tif to keep the figures below).
+Output by suffix (elo_mitsuba.heightmap): .exr (channels height and mask, 1 = no height; geometry
+in the header), .tif (float32, the header as JSON in its ImageDescription, the pixel size in its
+resolution tags), .gsf (Gwyddion Simple Field, metres) or .npy (float64, no header). Pixels
+without a height hold NaN in TIFF/GSF/NPY, 0 with mask 1 in the EXR (use .exr, .tif or .gsf to
+keep the figures below).
 
 How far the result can be trusted is printed and stored in the header ("quality"):
   integrability residual  relative RMS misfit between the height map's gradient and the input
@@ -50,7 +52,7 @@ def add_parser(subparsers):
         description=DESCRIPTION.format(res=MAX_INTEGRABILITY_RESIDUAL, mask=MAX_MASKED_FRACTION), epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("gradient", metavar="GRAD.exr", help="output of 'elo-mitsuba gradient'")
-    p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|npy|tif)", help="height map to write")
+    p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|tif|gsf|npy)", help="height map to write")
     p.add_argument("--method", choices=("auto",) + METHODS, default="auto", help="integration solver (default auto)")
     p.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm if the header lacks it")
     p.add_argument("--ignore-mask", action="store_true", help="treat every pixel as trusted")
@@ -69,7 +71,9 @@ def run(args) -> int:
     from ..files import check_output
 
     # the arguments first: a rejected one costs no import of the analysis (scipy, matplotlib)
-    out = check_output(args.output, (".exr", ".npy", ".tif", ".tiff"), overwrite=args.overwrite)
+    from ..heightmap import HEIGHT_SUFFIXES, write_height
+
+    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
     if args.min_component < 1:
@@ -79,10 +83,9 @@ def run(args) -> int:
 
     from ..analysis import integrate_gradient
     from ..analysis.integrate import reconstruction_quality, resolve_method
-    from ..analysis.io import HEIGHT_SUFFIXES, read_gradient, write_height
+    from ..analysis.io import read_gradient
     from ..analysis.plots import preview_height
 
-    check_output(out, HEIGHT_SUFFIXES, overwrite=args.overwrite)  # the one list of suffixes
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
     field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
     method = resolve_method(args.method, grad["dzdx"], grad["dzdy"], mask)  # what runs is what is reported
@@ -105,7 +108,7 @@ def run(args) -> int:
         "field_mm": list(field),
         "resolution": [height.shape[1], height.shape[0]],
         "method": method,
-        "mask": "1 = no height measured (0 stored there), 0 = measured",
+        "mask": "1 = no height measured, 0 = measured",
         "source": str(args.gradient),
         "quality": quality,
         "grid": ("scan grid of a perspective scan: pixel (i, j) holds the height where its beam lands "
@@ -126,6 +129,6 @@ def run(args) -> int:
         print(f"elo-mitsuba: warning: {line}", file=sys.stderr)
     if args.preview:
         preview_height(height, field, args.preview, mask=mask_out if mask_out.any() else None,
-                       title=f"Height map ({method})", overwrite=args.overwrite)
+                       title=f"Height map by normal integration ('{method}' solver)", overwrite=args.overwrite)
         print(f"wrote {args.preview}")
     return 0
