@@ -1,4 +1,4 @@
-"""Geometry helpers of elo_mitsuba.analysis.geometry against closed forms."""
+"""Geometry helpers of elo_mitsuba.analysis.layout against closed forms."""
 
 import pytest
 
@@ -8,7 +8,7 @@ def test_disc_nodes_integrate_area_moments_and_on_axis_solid_angle():
     and the solid angle of a disc seen on its axis from h, 2 pi (1 - h / sqrt(h^2 + R^2))."""
     import numpy as np
 
-    from elo_mitsuba.analysis.geometry import disc_nodes
+    from elo_mitsuba.analysis.layout import disc_nodes
 
     centre, normal, radius, h = np.array([127.0, 0.0, 272.0]), np.array([-127.0, 0.0, -272.0]), 25.0, 300.0
     q, w = disc_nodes(centre, normal, radius, n_r=16, n_phi=48)

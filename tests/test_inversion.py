@@ -393,7 +393,7 @@ def test_relative_noise_tells_object_and_flat_apart(sigma_object, sigma_flat):
     """The object's and the flat's own noise, each from its images alone, and in quadrature the
     noise of their ratio (what the inversion and the model gradient see)."""
     from elo_mitsuba.analysis import flat_plate_images, pixel_coordinates, point_detector_images
-    from elo_mitsuba.analysis.inversion import estimate_noise, relative_noise
+    from elo_mitsuba.analysis.noise import estimate_noise, relative_noise
 
     field, shape = (40.0, 40.0), (96, 112)
     x, y = pixel_coordinates(shape, field)

@@ -20,12 +20,12 @@ import importlib
 
 #: Public name -> (module of this package, name there).
 _EXPORTS = {
-    **{n: ("design", n) for n in (
+    **{n: ("reflectance", n) for n in (
         "detector_pq", "image_statistics", "layout_geometry", "masked_normal_fraction", "masking_lines",
         "normal_histogram", "pq_grid", "reflectance_map")},
-    **{n: ("geometry", n) for n in (
-        "check_detector_geometry", "detector_vectors", "field_xy", "geometry_from_metadata", "masking_condition",
-        "pixel_axes", "pixel_coordinates", "pixel_size", "zeta_deg")},
+    **{n: ("layout", n) for n in (
+        "check_detector_geometry", "detector_vectors", "field_xy", "masking_condition", "pixel_axes",
+        "pixel_coordinates", "pixel_size", "symmetric_layout", "zeta_deg")},
     **{n: ("gradient", n) for n in (
         "MASK_BITS", "GradientResult", "detector_masking", "eq26_denominator", "gradient_from_differences",
         "raw_gradient", "surface_gradient")},

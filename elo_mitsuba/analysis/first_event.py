@@ -2,7 +2,7 @@
 
 N_1,d / N_0 = int_{Omega_d} g_BSE dOmega = int_disc g_BSE cos(psi) / r^2 dA  (Eq. 5 written over
 the detector area), with Gauss-Legendre nodes in the radius and midpoint nodes in the azimuth
-(:func:`~elo_mitsuba.analysis.geometry.disc_nodes`). Independent of Mitsuba and of the
+(:func:`~elo_mitsuba.analysis.layout.disc_nodes`). Independent of Mitsuba and of the
 integrator's estimators (no sampling, no triangles, no Van Oosterom-Strackee): the tests,
 the validation studies and the benchmarks hold the renderer's 1st event to it.
 """
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..physics import g_bse, get_material
-from .geometry import disc_nodes
+from .layout import disc_nodes
 
 
 def disc_integral(point, beam_dir, normal, centre, disc_normal, radius, material, n_r=64, n_phi=256,

@@ -22,7 +22,7 @@ from typing import Mapping
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
-from .geometry import check_detector_geometry, detector_vectors, masking_condition, pixel_coordinates
+from .layout import check_detector_geometry, detector_vectors, masking_condition, pixel_coordinates
 from .stsa import MIN_FLAT_FRACTION, MIN_SUM, check_images, normalised_differences, stsa_correct, sum_images
 
 #: Why a pixel is untrusted (bits of ``GradientResult.reasons``).

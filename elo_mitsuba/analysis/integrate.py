@@ -32,7 +32,7 @@ import numpy as np
 # scipy is imported inside the solvers: 'elo-mitsuba reconstruct --help' reads this module's
 # constants, and a help text or a rejected argument must not pay for importing scipy (~0.3 s)
 from ..errors import EloInputError
-from .geometry import pixel_size
+from .layout import pixel_size
 
 METHODS = ("dct", "fft", "masked")
 

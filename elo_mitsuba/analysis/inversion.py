@@ -53,6 +53,7 @@ from ..budget import check_inversion
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
+from .noise import MIN_FLAT, estimate_noise
 from .height_model import HeightModel, corners_from_pixels, neighbour, neighbour_t, pixels_from_corners
 
 #: Disc rule of the model: its 16 nodes also resolve a disc's partial shadowing (the RMS
@@ -111,8 +112,6 @@ UNCERTAINTY_PROBES = 4
 HUBER_K = 2.0
 #: Step halvings tried when a full step does not lower the objective.
 LINE_SEARCH = 4
-#: A flat-plate value below this (its images' median fraction) gives the pixel no weight.
-MIN_FLAT = 1e-3
 #: A pixel whose misfit exceeds this many noise levels is untrusted (the model does not reproduce
 #: its images: a later event the model holds wrong, a partly shadowed disc, a feature below the
 #: pixel pitch) ...
@@ -185,41 +184,6 @@ def _second_differences(h):
 def _second_differences_t(vx, vy):
     return (neighbour_t(vx, "left") + neighbour_t(vx, "right") - 2.0 * vx
             + neighbour_t(vy, "up") + neighbour_t(vy, "down") - 2.0 * vy)
-
-
-def estimate_noise(corrected, weights) -> float:
-    """Noise level of the corrected images from their second differences along rows and columns
-    (1.4826 MAD / sqrt(6), the median over detectors and both axes): the images' own structure
-    (edges, the blurred relief) hardly enters a median of second differences."""
-    out = []
-    for c, w in zip(corrected, weights):
-        for axis in (0, 1):
-            a = np.moveaxis(c, axis, 0)
-            v = np.moveaxis(w, axis, 0)
-            d2 = a[:-2] - 2.0 * a[1:-1] + a[2:]
-            ok = (v[:-2] * v[1:-1] * v[2:]) > 0
-            if ok.any():
-                out.append(1.4826 * float(np.median(np.abs(d2[ok]))) / np.sqrt(6.0))
-    return float(np.median(out)) if out else 0.0
-
-
-def relative_noise(images: Mapping, smoothing_px: float = 4.0) -> float:
-    """Relative noise level (std / signal) of one set of detector images, e.g. the object's or the
-    flat plate's alone: :func:`estimate_noise` of each image over its own Gaussian-smoothed
-    version (``smoothing_px``), which divides out the slowly varying level (the detectors' solid
-    angles, the material). Where the corrected images carry sigma_C^2 = sigma_object^2 +
-    sigma_flat^2, this tells the two shares apart: how much a mean of more flat recordings
-    (:func:`~.stsa.mean_flat`) would gain."""
-    from scipy.ndimage import gaussian_filter
-
-    ratios, weights = [], []
-    for n in DETECTOR_NAMES:
-        a = np.asarray(images[n], float)
-        smooth = gaussian_filter(np.where(np.isfinite(a), a, 0.0), smoothing_px, mode="nearest")
-        ok = np.isfinite(a) & (np.abs(smooth) > MIN_FLAT * np.median(np.abs(smooth)))
-        ratios.append(np.where(ok, a / np.where(ok, smooth, 1.0), 0.0))
-        weights.append(ok.astype(float))
-    return estimate_noise(np.stack(ratios), np.stack(weights))
 
 
 def _huber(r, k):

@@ -29,7 +29,7 @@ import numpy as np
 from ..constants import DETECTOR_DIRECTIONS, LOBE_WIDTH_DEG, WORK_DISTANCE_MM
 from ..errors import EloInputError
 from ..physics import g_bse, get_material
-from .geometry import check_detector_geometry, detector_vectors, pixel_coordinates
+from .layout import check_detector_geometry, detector_vectors, pixel_coordinates
 
 MODELS = ("lambert", "diffuse", "g_bse")
 BEAMS = ("vertical", "pivot")

@@ -27,8 +27,7 @@ from ..constants import (
 )
 from ..errors import EloInputError
 from ..grid import field_xy, pixel_coordinates
-
-PROJECTIONS = ("perspective", "orthographic")
+from ..schema import PROJECTIONS, HeaderGeometry, geometry_header, read_geometry
 
 
 @dataclass(frozen=True)
@@ -122,9 +121,14 @@ class ScanGeometry:
     def from_metadata(cls, meta: Mapping, shape, source: str = "header", *, field_mm=None,
                       material: str | None = None) -> "ScanGeometry":
         """The geometry an EXR header of ``elo-mitsuba render`` records (detectors as discs of the
-        header's centre, normal and equivalent radius)."""
-        meta = dict(meta or {})
-        dets = meta.get("detectors")
+        header's centre, normal and equivalent radius), read by :func:`~elo_mitsuba.schema.read_geometry`."""
+        return cls.from_header(read_geometry(meta, source, shape=shape, field_mm=field_mm), shape, material=material)
+
+    @classmethod
+    def from_header(cls, header: HeaderGeometry, shape, *, material: str | None = None) -> "ScanGeometry":
+        """The scan geometry of a header read by :func:`~elo_mitsuba.schema.read_geometry`: its
+        detectors as discs (centre, normal, radius each required)."""
+        dets, source = header.detectors, header.source
         if not isinstance(dets, Mapping) or not all(n in dets for n in DETECTOR_NAMES):
             raise EloInputError(f"{source}: header lacks the detectors {', '.join(DETECTOR_NAMES)}; "
                                 "pass --dh and --dw (mm) and, if not 25, --radius")
@@ -135,15 +139,9 @@ class ScanGeometry:
                 discs[name] = Disc(d["center"], d["normal"], d["radius"])
             except (KeyError, TypeError) as exc:
                 raise EloInputError(f"{source}: detector {name!r} lacks {exc} (need center, normal, radius)") from None
-        if field_mm is None:
-            if "field_mm" not in meta:
-                raise EloInputError(f"{source}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
-            field_mm = meta["field_mm"]
-        return cls(field_mm=field_mm, shape=shape, detectors=discs,
-                   work_distance_mm=float(meta.get("work_distance_mm", WORK_DISTANCE_MM)),
-                   projection=str(meta.get("projection", "perspective")),
-                   aim_offset_mm=tuple(meta.get("beam_aim_offset_mm", (0.0, 0.0))),
-                   material=material or material_from_metadata(meta))
+        return cls(field_mm=header.field_mm, shape=shape, detectors=discs,
+                   work_distance_mm=header.work_distance_mm, projection=header.projection,
+                   aim_offset_mm=header.aim_offset_mm, material=material or header.material)
 
     def with_detectors(self, detectors: Mapping) -> "ScanGeometry":
         """A copy whose detectors are replaced (e.g. by a calibration's)."""
@@ -198,25 +196,7 @@ class ScanGeometry:
         return float(np.mean(c[:, 2])), float(np.mean(np.hypot(c[:, 0], c[:, 1])))
 
     def as_dict(self) -> dict:
-        return {"field_mm": list(self.field_mm), "resolution": [self.shape[1], self.shape[0]],
-                "work_distance_mm": self.work_distance_mm, "projection": self.projection,
-                "beam_aim_offset_mm": list(self.aim_offset_mm), "material": self.material,
-                "detectors": {k: d.as_dict() for k, d in self.detectors.items()}}
-
-
-def material_from_metadata(meta: Mapping) -> str:
-    """The surface material a header records: the one material of the non-detector shapes.
-
-    ``materials`` maps shape ids to ``"name (El:frac,...)"``; detector plates are left out. Several
-    different surface materials (or none recorded) give the default material, since one facet
-    model cannot mix them.
-    """
-    mats = dict(meta.get("materials") or {})
-    dets = set((meta.get("detectors") or {}).keys())
-    found = {v for k, v in mats.items() if k not in dets}
-    if len(found) != 1:
-        return DEFAULT_MATERIAL
-    text = next(iter(found))
-    if "(" in text and text.endswith(")"):
-        return text[text.index("(") + 1:-1]
-    return text
+        """The header's geometry block (:func:`~elo_mitsuba.schema.geometry_header`)."""
+        return geometry_header(self.field_mm, self.shape, work_distance_mm=self.work_distance_mm,
+                               projection=self.projection, aim_offset_mm=self.aim_offset_mm, material=self.material,
+                               detectors={k: d.as_dict() for k, d in self.detectors.items()})

@@ -1,7 +1,7 @@
 """STSA contrast correction, sum images and normalised difference images (Sec. 2.1.4, Eqs. 15, 23).
 
 All functions take and return images in the package orientation (:mod:`elo_mitsuba.grid`: row 0 = +y edge, columns
-towards +x; see :mod:`elo_mitsuba.analysis.geometry`). Detector images are given as a mapping
+towards +x; see :mod:`elo_mitsuba.analysis.layout`). Detector images are given as a mapping
 ``{"right": R, "left": L, "back": B, "front": F}`` in any consistent unit (N_d/N_0 from the
 forward model, or volts from a machine); the STSA correction divides the unit out.
 

@@ -1,8 +1,13 @@
-"""Argument types shared by the sub-commands: each rejects bad text with a one-line reason."""
+"""Argument types shared by the sub-commands: each rejects bad text with a one-line reason.
+
+The one home of the command line's numeric argument types; range checks that depend on other
+arguments belong to the library.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -25,6 +30,25 @@ def number(text: str) -> float:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (a length in mm, a noise level, seconds)."""
+    v = number(text)
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be finite and > 0")
+    return v
+
+
+def field_arg(text: str) -> tuple[float, float]:
+    """``--field FX[,FY]``: the scan field in mm (one value: a square field)."""
+    try:
+        vals = [float(v) for v in text.replace("x", ",").split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give FX or FX,FY in mm, e.g. 80 or 80,60") from None
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise argparse.ArgumentTypeError(f"{text!r}: give one or two lengths > 0 in mm, e.g. 80 or 80,60")
+    return (vals[0], vals[-1])
 
 
 def positive_int(text: str) -> int:
@@ -65,3 +89,53 @@ def add_yes(parser) -> None:
                         help=f"run even when the estimate says it takes longer than {REFUSE_SECONDS / 3600:g} h "
                              "(refused otherwise as likely a mistyped number); memory beyond what is available "
                              "is refused regardless")
+
+
+def add_scan_arguments(p):
+    """The inputs of one scan (object and flat-plate images, geometry): shared by gradient and invert
+    (:func:`scan_inputs` turns them into the keywords of :func:`~elo_mitsuba.analysis.chain.read_scan`)."""
+    from ..constants import DETECTOR_NAMES
+
+    p.add_argument("object", nargs="?", metavar="OBJECT.exr",
+                   help="object images: EXR with channels right, left, back, front")
+    src = p.add_argument_group("single-channel inputs (recorded machine images)")
+    for n in DETECTOR_NAMES:
+        src.add_argument(f"--{n}", metavar="FILE", help=f"{n} detector image (EXR/TIFF/NPY)")
+    flat = p.add_argument_group("STSA correction (flat plate)")
+    flat.add_argument("--flat", metavar="FLAT.exr", action="append",
+                      help="flat-plate EXR with channels right, left, back, front; repeat it for several "
+                           "recordings: their mean is used (the flat's noise falls as 1/sqrt(N))")
+    for n in DETECTOR_NAMES:
+        flat.add_argument(f"--flat-{n}", metavar="FILE", action="append",
+                          help=f"flat-plate image of the {n} detector (repeatable, as --flat)")
+    flat.add_argument("--no-flat", action="store_true",
+                      help="the inputs are already STSA-corrected (skip the division)")
+    geo = p.add_argument_group("geometry (overrides the EXR headers)")
+    geo.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm, e.g. 80")
+    geo.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
+    geo.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
+    geo.add_argument("--radius", type=positive_float, metavar="MM",
+                     help="detector disc radius (model method, without a header; default 25)")
+    geo.add_argument("--wd", type=positive_float, metavar="MM",
+                     help="work distance: beam pivot height (model method, without a header; default 400)")
+    geo.add_argument("--projection", choices=("perspective", "orthographic"),
+                     help="beam from the pivot or parallel to -z (model method, without a header)")
+    geo.add_argument("--material", metavar="NAME",
+                     help="surface material for the model (default: the header's, else Ti-6Al-4V)")
+    geo.add_argument("--calibration", metavar="CALIB.json",
+                     help="detector centres and normals from 'elo-mitsuba calibrate' (model method)")
+
+
+def scan_inputs(args) -> dict:
+    """The keywords of :func:`~elo_mitsuba.analysis.chain.read_scan` from :func:`add_scan_arguments`'s flags."""
+    from ..constants import DETECTOR_NAMES
+
+    return dict(object_exr=args.object, files={n: getattr(args, n) for n in DETECTOR_NAMES}, flat=args.flat or [],
+                flat_files={n: getattr(args, f"flat_{n}") or [] for n in DETECTOR_NAMES}, no_flat=args.no_flat,
+                event=args.event, field_mm=args.field, d_h=args.dh, d_w=args.dw, material=args.material)
+
+
+def model_inputs(args) -> dict:
+    """The keywords of :func:`~elo_mitsuba.analysis.chain.model_geometry` from :func:`add_scan_arguments`'s flags."""
+    return dict(d_h=args.dh, d_w=args.dw, radius=args.radius, work_distance_mm=args.wd, projection=args.projection,
+                material=args.material, calibration=args.calibration)

@@ -7,8 +7,7 @@ import argparse
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
-from ..errors import EloInputError
-from .gradient import field_arg, nominal_geometry, positive_float
+from ._args import field_arg, positive_float
 
 DESCRIPTION = """\
 Fit where each detector really is, from the four images of a plane plate (any unit: volts,
@@ -69,43 +68,16 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from ..analysis.calibration import calibrate, write_calibration
-    from ..analysis.io import load_detector_set
-    from ..analysis.scan_geometry import ScanGeometry
-    from ..analysis.stsa import mean_flat
+    from ..analysis.chain import calibration_start, read_calibration_flats
     from ..files import check_output
-    from ..grid import field_xy
 
     out = check_output(args.output, (".json",), overwrite=args.overwrite, what="calibration")
-    files = {n: getattr(args, n) for n in DETECTOR_NAMES}
-    if args.flat and any(files.values()):
-        raise EloInputError("flat-plate images: give FLAT.exr files or the four single files, not both")
-    sets = [load_detector_set(f, None, "flat-plate images", args.event) for f in args.flat] or \
-        [load_detector_set(None, files, "flat-plate images", args.event)]
-    if sets[0][0] is None:
-        raise EloInputError("no flat-plate images: give FLAT.exr or --right/--left/--back/--front")
-    header = sets[0][1]
-    for path, (_, other) in zip(args.flat[1:], sets[1:]):
-        for key in ("field_mm", "resolution", "detectors", "work_distance_mm", "projection"):
-            if other.get(key) != header.get(key):
-                raise EloInputError(f"{path}: header {key} {other.get(key)!r} differs from {args.flat[0]}'s "
-                                    f"{header.get(key)!r}; average only recordings of one set-up")
-    flats = mean_flat([images for images, _ in sets])
+    flats, header, source = read_calibration_flats(args.flat, {n: getattr(args, n) for n in DETECTOR_NAMES},
+                                                   args.event)
     shape = next(iter(flats.values())).shape
-    source = str(args.flat[0]) if args.flat else "command line"  # the header's file
-    if (args.dh is None) != (args.dw is None):
-        raise EloInputError("give both --dh and --dw (the nominal layout), or neither (the header's detectors)")
-    if args.dh is not None or not header.get("detectors"):
-        if args.dh is None:
-            raise EloInputError(f"{source}: no detector geometry in the input; pass --dh and --dw (mm)")
-        field = args.field if args.field is not None else header.get("field_mm")
-        if field is None:
-            raise EloInputError(f"{source}: no scan field in the input; pass --field FX[,FY] (mm)")
-        nominal = nominal_geometry(args, header, shape, field_xy(field, shape), args.dh, args.dw)
-    else:
-        for flag in ("radius", "wd", "projection"):
-            if getattr(args, flag) is not None:
-                raise EloInputError(f"--{flag} applies with --dh/--dw (the nominal layout); {source} records it")
-        nominal = ScanGeometry.from_metadata(header, shape, str(source), field_mm=args.field, material=args.material)
+    nominal = calibration_start(header, shape, source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
+                                radius=args.radius, work_distance_mm=args.wd, projection=args.projection,
+                                material=args.material)
     cal = calibrate(flats, nominal, fit_offset=args.fit_offset, fit_tilt=not args.no_tilt)
     cal.source["input"] = [str(f) for f in args.flat] if len(args.flat) > 1 else source
     write_calibration(out, cal, overwrite=args.overwrite)

@@ -8,11 +8,10 @@ import time
 
 import numpy as np
 
-from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..budget import check_inversion
-from ._args import add_yes
-from .gradient import add_scan_arguments, positive_float
+from ..schema import BEAM_FWHM
+from ._args import add_scan_arguments, add_yes, model_inputs, positive_float, scan_inputs
 
 DESCRIPTION = """\
 Solve for the height map itself: the heights whose modelled images (the renderer's 1st event with
@@ -104,45 +103,6 @@ def add_parser(subparsers):
     return p
 
 
-def _start(path, shape, field_mm):
-    """Starting heights or gradient from --init."""
-    from pathlib import Path
-
-    from ..analysis.io import read_exr, read_gradient
-
-    suffix = Path(path).suffix.lower()
-    if not Path(path).is_file():
-        raise EloInputError(f"--init {path}: no such file")
-    if suffix == ".npy":
-        from ..analysis.io import read_image
-
-        try:
-            h, _ = read_image(path)  # allow_pickle=False; a 2-D numeric array or one line why not
-        except EloInputError as exc:
-            raise EloInputError(f"--init {exc}") from None
-    elif suffix == ".exr":
-        channels, _ = read_exr(path)
-        if "dzdx" in channels:
-            g = read_gradient(path, field_mm=field_mm)
-            from ..analysis.gradient import GradientResult
-
-            mask = g["mask"] if g["mask"] is not None else np.zeros(shape, bool)
-            if g["dzdx"].shape != tuple(shape):
-                raise EloInputError(f"--init {path}: {g['dzdx'].shape[1]}x{g['dzdx'].shape[0]} px, the images "
-                                    f"{shape[1]}x{shape[0]}")
-            return GradientResult(dzdx=g["dzdx"], dzdy=g["dzdy"], mx=None, my=None, sum_x=None, sum_y=None,
-                                  mask=mask, reasons=mask.astype(np.uint8), corrected=None)
-        if "height" not in channels:
-            raise EloInputError(f"--init {path}: needs channels dzdx, dzdy (a gradient) or height")
-        h = channels["height"]
-    else:
-        raise EloInputError(f"--init {path}: use a gradient or height .exr, or a .npy of heights")
-    h = np.asarray(h, float)
-    if h.shape != tuple(shape) or not np.all(np.isfinite(h)):
-        raise EloInputError(f"--init {path}: heights must be finite and {shape[1]}x{shape[0]} px")
-    return h - h.mean()
-
-
 def run(args) -> int:
     from ..files import check_output
 
@@ -164,64 +124,44 @@ def run(args) -> int:
     if args.no_flat:
         raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
 
-    from ..analysis import inversion
+    from ..analysis import chain, inversion
     from ..analysis.io import write_inversion
-    from .gradient import _model_geometry, flat_note, noise_shares, read_scan
 
-    scan = read_scan(args, model_discs=True)
+    scan = chain.read_scan(**scan_inputs(args), model_discs=True)
     check_inversion(scan.shape, inversion.ITERATIONS if args.iterations is None else args.iterations,
                     inversion.SCALES if args.scales is None else args.scales,
                     inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes,
                     force=args.yes)  # before the model gradient and any render
-    geometry = _model_geometry(args, scan.header, scan.shape, scan.geo, scan.source)
-    fwhm = args.fwhm if args.fwhm is not None else float((scan.header or {}).get("beam_fwhm_mm", 0.0))
-    start = _start(args.init, scan.shape, geometry.field_mm) if args.init else None
-    if args.fwhm is None and "beam_fwhm_mm" not in (scan.header or {}):
+    geometry = chain.model_geometry(scan, **model_inputs(args))
+    fwhm = scan.beam_fwhm(args.fwhm)
+    start = chain.read_start(args.init, scan.shape, geometry.field_mm) if args.init else None
+    if args.fwhm is None and BEAM_FWHM not in (scan.header or {}):
         print(f"note: {scan.source} gives no beam profile (beam_fwhm_mm) and --fwhm is not set: the model's beam is "
               "a single ray; pass --fwhm MM, the beam's FWHM on the plate, if it is wider than a pixel",
               file=sys.stderr)
     if args.chamber_later and not args.second_event:
         raise EloInputError("--chamber-later needs --second-event SIM_FLAT.exr (the flat plate's later events)")
-    from ..analysis.io import read_later_events
-
-    flat_later, share = read_later_events(args.second_event, scan.shape) if args.second_event else (None, None)
-    flat_later_error = None
-    if args.second_event:
-        from ..analysis.io import read_later_errors
-
-        flat_later_error = read_later_errors(args.second_event)
     t0 = time.perf_counter()
-    if start is None and share is not None:  # the model gradient with the same later events removed
-        from ..analysis.model_gradient import model_gradient
-
-        start = model_gradient(scan.images, scan.flats, geometry, flat_second_event=share)
-    later, later_error = flat_later, flat_later_error
-    if args.chamber_later:
-        from ..analysis.later_events import later_events
-
-        h0 = inversion.start_heights(start, geometry) if hasattr(start, "dzdx") else start
-        print("rendering the start surface in the chamber for its later events ...", file=sys.stderr, flush=True)
-        later, later_error = later_events(h0, geometry, fwhm_mm=fwhm, with_errors=True)
 
     def progress(step):
         at = f"scale 1/{step['scale']} " if step.get("scale", 1) > 1 else ""
         print(f"  {at}step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
               f"{step['seconds']:.1f} s", file=sys.stderr, flush=True)
 
-    res = inversion.invert_heights(
-        scan.images, scan.flats, geometry, start=start, fwhm_mm=fwhm, later=later, flat_later=flat_later,
-        later_error=later_error, flat_later_error=flat_later_error, alpha=args.alpha,
+    res = chain.invert(
+        scan, geometry, fwhm_mm=fwhm, start=start, second_event=args.second_event, chamber_later=args.chamber_later,
+        notify=lambda line: print(line, file=sys.stderr, flush=True), alpha=args.alpha,
         scales=inversion.SCALES if args.scales is None else args.scales, noise=args.noise, shadows=not args.no_shadows,
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
         time_budget_s=args.time_budget, progress=progress, force=args.yes,
         uncertainty_probes=inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
-    shares, noise_line = noise_shares(scan)
-    meta = {"method": "inversion", "beam_fwhm_mm": fwhm, "noise": res.noise, "alpha": res.alpha,
+    shares, noise_line = scan.noise_shares()
+    meta = {"method": "inversion", BEAM_FWHM: fwhm, "noise": res.noise, "alpha": res.alpha,
             "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
             "grid": "scan grid: pixel (i, j) holds the height where its beam lands",
-            "sources": {"object": args.object or {n: getattr(args, n) for n in DETECTOR_NAMES},
+            "sources": {"object": scan.object_files,
                         "flat": scan.flat_provenance(),
                         "init": args.init, "second_event": args.second_event},
             "object_later_events": ("rendered from the start surface in the chamber" if args.chamber_later
@@ -233,7 +173,7 @@ def run(args) -> int:
           f"{time.perf_counter() - t0:.1f} s; misfit rms {res.history[0]['rms']:.4g} -> {res.history[-1]['rms']:.4g} "
           f"(noise {res.noise:.3g}); height range {h.max() - h.min():.4g} mm; "
           f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)"
-          + flat_note(scan))
+          + scan.flat_note())
     if noise_line:
         print(noise_line)
     if res.height_error is not None:

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from ..errors import EloInputError
-from .gradient import field_arg
+from ._args import field_arg
 
 DESCRIPTION = """\
 Integrate a surface gradient (the EXR written by 'elo-mitsuba gradient': channels dzdx, dzdy and

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES, TABLE1_LAYOUTS, WORK_DISTANCE_MM
 from ..errors import EloInputError
-from .gradient import positive_float
+from ._args import positive_float
 
 DESCRIPTION = f"""\
 Draw the reflectance maps of Sec. 4.3 (Figs. 12-13): the scattering function g_BSE of Eq. 13

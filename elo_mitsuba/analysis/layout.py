@@ -1,4 +1,4 @@
-"""Scan-field and detector geometry shared by every analysis function.
+"""The detector layout of Eq. 17 and the scan-field geometry shared by every analysis function.
 
 Pixel positions follow the package's one image orientation, defined in :mod:`elo_mitsuba.grid`
 (:func:`pixel_axes`, :func:`pixel_coordinates`, re-exported here).
@@ -120,34 +120,31 @@ def zeta_deg(d_h, d_w) -> float:
     return float(np.degrees(np.arctan2(d_w, d_h)))
 
 
-def geometry_from_metadata(meta: Mapping, source: str = "metadata", *, d_h=None, d_w=None,
-                           field_mm=None, shape=None) -> dict:
-    """Scan geometry from an EXR metadata dict written by the forward model.
+def symmetric_layout(header, *, d_h=None, d_w=None) -> dict:
+    """The Eq. 17 layout a header's detectors form (header read by
+    :func:`~elo_mitsuba.schema.read_geometry`).
 
     ``d_h`` is the z of each detector centre and ``d_w`` the distance of the centre from the
     z-axis. The four detectors must agree (relative tolerance :data:`GEOMETRY_RTOL`) and lie along
     +x, -x, +y, -y, otherwise Eq. 17 (and therefore Eq. 26) does not describe the set-up and an
-    :class:`EloInputError` says so. Explicit ``d_h``, ``d_w`` or ``field_mm`` override the header
-    (then the detector block may be missing). A scalar field is the width of an image of
-    ``shape`` (H, W) (else of the header's resolution): field_y = field H / W.
+    :class:`EloInputError` says so. Explicit ``d_h``, ``d_w`` override the header (then the
+    detector block may be missing).
+
+    Parameters
+    ----------
+    header : HeaderGeometry
+        The header's geometry.
+    d_h, d_w : float, optional
+        Detector height and distance from the z-axis (mm) overriding the header's.
 
     Returns
     -------
     dict
         ``{"field_mm": (fx, fy), "d_h": float, "d_w": float, "resolution": (W, H) or None}``.
     """
-    meta = dict(meta or {})
-    if field_mm is None:
-        if "field_mm" not in meta:
-            raise EloInputError(f"{source}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
-        field_mm = meta["field_mm"]
-    res = meta.get("resolution")
-    resolution = None if res is None else (int(res[0]), int(res[1]))
-    if shape is None and resolution is not None:
-        shape = (resolution[1], resolution[0])
-    fx, fy = field_xy(field_mm, shape)  # a scalar field is the width (square pixels)
+    source = header.source
     if d_h is None or d_w is None:
-        dets = meta.get("detectors")
+        dets = header.detectors
         if not isinstance(dets, Mapping) or not all(n in dets for n in DETECTOR_NAMES):
             raise EloInputError(
                 f"{source}: header lacks detector centres for {', '.join(DETECTOR_NAMES)}; "
@@ -180,4 +177,4 @@ def geometry_from_metadata(meta: Mapping, source: str = "metadata", *, d_h=None,
         d_h = float(np.mean(list(hs.values()))) if d_h is None else d_h
         d_w = float(np.mean(list(ws.values()))) if d_w is None else d_w
     d_h, d_w = check_detector_geometry(d_h, d_w)
-    return {"field_mm": (fx, fy), "d_h": d_h, "d_w": d_w, "resolution": resolution}
+    return {"field_mm": header.field_mm, "d_h": d_h, "d_w": d_w, "resolution": header.resolution}

@@ -21,7 +21,7 @@ import numpy as np
 from ..constants import DETECTOR_NAMES, LOBE_WIDTH_DEG, TABLE1_LAYOUTS
 from ..errors import EloInputError
 from ..physics import g_bse, get_material
-from .geometry import check_detector_geometry, detector_vectors, masking_condition
+from .layout import check_detector_geometry, detector_vectors, masking_condition
 from .gradient import detector_masking
 from .integrate import height_gradient
 

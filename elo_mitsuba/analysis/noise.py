@@ -1,0 +1,93 @@
+"""Noise of detector images: its level in the STSA-corrected images, each recording's own
+relative noise, and how the corrected images' noise divides between the object and the flat plate.
+
+The corrected images C = I / F carry sigma_C^2 = sigma_object^2 + sigma_flat^2 (relative noise of
+each); the mean of N flat recordings (:func:`~.stsa.mean_flat`) divides sigma_flat^2 by N. The
+inversion and the model gradient weight their misfits by :func:`estimate_noise`; the commands
+report :func:`noise_shares`.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from ..constants import DETECTOR_NAMES
+
+#: A level below this fraction of its images' median gives the pixel no weight (a flat plate's
+#: value in the inversion, a smoothed image's in :func:`relative_noise`).
+MIN_FLAT = 1e-3
+#: The flat's share of the noise variance from which the summary suggests more recordings of it.
+FLAT_SHARE_ADVICE = 0.1
+
+
+def estimate_noise(corrected, weights) -> float:
+    """Noise level of the corrected images from their second differences along rows and columns
+    (1.4826 MAD / sqrt(6), the median over detectors and both axes): the images' own structure
+    (edges, the blurred relief) hardly enters a median of second differences."""
+    out = []
+    for c, w in zip(corrected, weights):
+        for axis in (0, 1):
+            a = np.moveaxis(c, axis, 0)
+            v = np.moveaxis(w, axis, 0)
+            d2 = a[:-2] - 2.0 * a[1:-1] + a[2:]
+            ok = (v[:-2] * v[1:-1] * v[2:]) > 0
+            if ok.any():
+                out.append(1.4826 * float(np.median(np.abs(d2[ok]))) / np.sqrt(6.0))
+    return float(np.median(out)) if out else 0.0
+
+
+def relative_noise(images: Mapping, smoothing_px: float = 4.0) -> float:
+    """Relative noise level (std / signal) of one set of detector images, e.g. the object's or the
+    flat plate's alone: :func:`estimate_noise` of each image over its own Gaussian-smoothed
+    version (``smoothing_px``), which divides out the slowly varying level (the detectors' solid
+    angles, the material). Where the corrected images carry sigma_C^2 = sigma_object^2 +
+    sigma_flat^2, this tells the two shares apart: how much a mean of more flat recordings
+    (:func:`~.stsa.mean_flat`) would gain."""
+    from scipy.ndimage import gaussian_filter
+
+    ratios, weights = [], []
+    for n in DETECTOR_NAMES:
+        a = np.asarray(images[n], float)
+        smooth = gaussian_filter(np.where(np.isfinite(a), a, 0.0), smoothing_px, mode="nearest")
+        ok = np.isfinite(a) & (np.abs(smooth) > MIN_FLAT * np.median(np.abs(smooth)))
+        ratios.append(np.where(ok, a / np.where(ok, smooth, 1.0), 0.0))
+        weights.append(ok.astype(float))
+    return estimate_noise(np.stack(ratios), np.stack(weights))
+
+
+def noise_shares(images: Mapping, flats: Mapping | None, flat_count: int) -> tuple[dict, str]:
+    """The object's and the flat's relative noise (:func:`relative_noise`) for a header, and a
+    line saying how much of the corrected images' noise the flat holds and what four times as many
+    recordings of it would leave ("" without a flat or without a finite estimate).
+
+    Parameters
+    ----------
+    images, flats : mapping of str to ndarray
+        The object's and the (mean) flat plate's detector images; ``flats`` None: no flat.
+    flat_count : int
+        How many flat recordings ``flats`` is the mean of.
+
+    Returns
+    -------
+    shares : dict
+        ``noise_object``, ``noise_flat`` (relative, std / signal) and ``flat_recordings``; empty
+        without a flat.
+    line : str
+        The summary line for the user.
+    """
+    if flats is None:
+        return {}, ""
+    so, sf = relative_noise(images), relative_noise(flats)
+    if not (np.isfinite(so) and np.isfinite(sf) and so + sf > 0):
+        return {}, ""
+    n = flat_count
+    share = sf ** 2 / (so ** 2 + sf ** 2)
+    more = sf ** 2 / 4 / (so ** 2 + sf ** 2 / 4)
+    what = "1 recording" if n == 1 else f"the mean of {n} recordings"
+    line = (f"image noise: object {100 * so:.2g} %, flat plate {100 * sf:.2g} % ({what}): the flat holds "
+            f"{100 * share:.0f} % of the corrected images' noise variance")
+    if share >= FLAT_SHARE_ADVICE:
+        line += f"; the mean of {4 * n} flat recordings would hold {100 * more:.0f} % (repeat --flat)"
+    return {"noise_object": so, "noise_flat": sf, "flat_recordings": n}, line

@@ -1,0 +1,373 @@
+"""The package's file conventions: channel names, unit labels, header keys and the geometry header.
+
+One place for what the renderer writes and the analysis reads:
+
+* channel names: a detector's image is ``<id>``, its k-th scattering event alone ``<id>.e<k>``
+  (:func:`event_channel`), a channel's per-pixel standard error ``<name>.err``
+  (:func:`error_channel`);
+* the unit label of detector images (:func:`signal_units`: N_d/N_0, or V);
+* the header's key names, and the one reader (:func:`read_geometry`) and writer
+  (:func:`geometry_header`) of its geometry block;
+* the beam's FWHM -> Gaussian sigma (:func:`fwhm_to_sigma`; headers call the FWHM
+  ``beam_fwhm_mm``, code ``fwhm_mm``).
+
+This module imports only numpy and the package's core (constants, errors, grid), so that the
+plugins and every layer above them can use it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from .constants import DEFAULT_MATERIAL, WORK_DISTANCE_MM
+from .errors import EloInputError
+from .grid import field_xy
+
+# -- channel names --
+#: Separator of a channel's event suffix: ``right.e2``.
+EVENT_SEPARATOR = ".e"
+#: Suffix of a channel's standard-error channel: ``right.err``.
+ERROR_SUFFIX = ".err"
+
+
+def event_channel(name: str, event: int) -> str:
+    """The channel of detector ``name``'s ``event``-th scattering event alone.
+
+    Parameters
+    ----------
+    name : str
+        Detector (shape) id, e.g. ``right``.
+    event : int
+        Scattering event, 1 = the first.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> event_channel("right", 2)
+    'right.e2'
+    """
+    return f"{name}{EVENT_SEPARATOR}{int(event)}"
+
+
+def event_channels(names: Iterable[str], events: int, first: int = 1) -> list[str]:
+    """Every per-event channel of ``names``, events ``first`` .. ``events``, detector by detector.
+
+    Parameters
+    ----------
+    names : iterable of str
+        Detector ids.
+    events : int
+        The last event.
+    first : int
+        The first event (1; 2 for the later events alone).
+
+    Returns
+    -------
+    list of str
+
+    Examples
+    --------
+    >>> event_channels(["right", "left"], 2)
+    ['right.e1', 'right.e2', 'left.e1', 'left.e2']
+    """
+    return [event_channel(n, k) for n in names for k in range(first, int(events) + 1)]
+
+
+def error_channel(name: str) -> str:
+    """The channel holding channel ``name``'s per-pixel standard error.
+
+    Parameters
+    ----------
+    name : str
+        A channel, e.g. ``right`` or ``right.e2``.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> error_channel("right.e2")
+    'right.e2.err'
+    """
+    return f"{name}{ERROR_SUFFIX}"
+
+
+def error_channels(channels: Mapping) -> dict:
+    """The standard-error channels of ``channels`` by the channel they belong to.
+
+    Parameters
+    ----------
+    channels : mapping of str to ndarray
+        An EXR's channels.
+
+    Returns
+    -------
+    dict
+        ``{name: error image}`` for each ``<name>.err``.
+
+    Examples
+    --------
+    >>> error_channels({"right": 1.0, "right.err": 0.1})
+    {'right': 0.1}
+    """
+    return {name[:-len(ERROR_SUFFIX)]: v for name, v in channels.items() if name.endswith(ERROR_SUFFIX)}
+
+
+# -- units --
+#: Detector images in the fraction of the beam's electrons that reach the detector (Eq. 5).
+UNITS_FRACTION = "N_d/N_0"
+#: Detector images as the amplifier's voltage U_d = N_d/N_0 I_b T (Eq. 9).
+UNITS_VOLTAGE = "V"
+
+
+def signal_units(units: str = "fraction") -> str:
+    """The label of detector images for the integrator's ``units`` option.
+
+    Parameters
+    ----------
+    units : str
+        ``voltage`` or anything else (the fraction N_d/N_0).
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> signal_units("voltage"), signal_units("fraction")
+    ('V', 'N_d/N_0')
+    """
+    return UNITS_VOLTAGE if units == "voltage" else UNITS_FRACTION
+
+
+# -- header keys --
+FIELD = "field_mm"
+RESOLUTION = "resolution"
+DETECTORS = "detectors"
+WORK_DISTANCE = "work_distance_mm"
+PROJECTION = "projection"
+AIM_OFFSET = "beam_aim_offset_mm"
+BEAM_FWHM = "beam_fwhm_mm"
+MATERIAL = "material"
+MATERIALS = "materials"
+UNITS = "units"
+#: What recordings averaged into one flat must share.
+SETUP_KEYS = (FIELD, RESOLUTION, DETECTORS, WORK_DISTANCE, PROJECTION)
+PROJECTIONS = ("perspective", "orthographic")
+
+# -- the beam profile --
+#: FWHM of a Gaussian over its sigma, 2 sqrt(2 ln 2).
+FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+
+def fwhm_to_sigma(fwhm_mm: float) -> float:
+    """The standard deviation of the Gaussian beam profile whose FWHM is ``fwhm_mm``.
+
+    Parameters
+    ----------
+    fwhm_mm : float
+        Full width at half maximum (mm).
+
+    Returns
+    -------
+    float
+        Sigma (mm).
+
+    Examples
+    --------
+    >>> round(fwhm_to_sigma(0.27), 5)
+    0.11466
+    """
+    return float(fwhm_mm) / FWHM_PER_SIGMA
+
+
+# -- the geometry header --
+@dataclass(frozen=True)
+class HeaderGeometry:
+    """The scan geometry a header records, as read by :func:`read_geometry`.
+
+    Attributes
+    ----------
+    source : str
+        How messages name the header's file.
+    field_mm : (float, float)
+        Scan field (mm).
+    resolution : (int, int) or None
+        Image size (W, H) the header records.
+    detectors : mapping or None
+        ``{name: {"center": [x, y, z], "normal": [...], "radius": r}}`` as recorded (mm), checked
+        by whoever interprets them (:func:`~elo_mitsuba.analysis.layout.symmetric_layout`,
+        :meth:`~elo_mitsuba.analysis.scan_geometry.ScanGeometry.from_header`).
+    work_distance_mm : float
+        Height of the beam pivot.
+    projection : str
+        ``perspective`` or ``orthographic``.
+    aim_offset_mm : (float, float)
+        Offset of every aim point.
+    material : str
+        The surface material (:func:`material_from_metadata`).
+    """
+
+    source: str
+    field_mm: tuple
+    resolution: tuple | None
+    detectors: Mapping | None
+    work_distance_mm: float
+    projection: str
+    aim_offset_mm: tuple
+    meta: Mapping = field(default_factory=dict, repr=False)
+
+    @property
+    def material(self) -> str:
+        return material_from_metadata(self.meta)
+
+
+def has_detectors(meta: Mapping | None) -> bool:
+    """Whether a header records detectors (a forward model's; recorded images carry none).
+
+    Examples
+    --------
+    >>> has_detectors({}), has_detectors({"detectors": {"right": {}}})
+    (False, True)
+    """
+    return bool((meta or {}).get(DETECTORS))
+
+
+def read_geometry(meta: Mapping | None, source: str = "header", *, shape=None, field_mm=None) -> HeaderGeometry:
+    """The geometry block of a header: the one reader of its keys.
+
+    Parameters
+    ----------
+    meta : mapping
+        An EXR header of ``elo-mitsuba render`` (or of ``gradient``, ``invert``).
+    source : str
+        How messages name the file.
+    shape : (int, int), optional
+        Image shape (H, W): a scalar field is its width (field_y = field H / W); default: the
+        header's resolution.
+    field_mm : float or (float, float), optional
+        Scan field (mm) overriding the header's.
+
+    Returns
+    -------
+    HeaderGeometry
+
+    Examples
+    --------
+    >>> g = read_geometry({"field_mm": 80, "resolution": [64, 32], "projection": "orthographic"})
+    >>> g.field_mm, g.resolution, g.projection, g.work_distance_mm
+    ((80.0, 40.0), (64, 32), 'orthographic', 400.0)
+    >>> read_geometry({}, "melt.exr")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: melt.exr: no 'field_mm' in the header; pass --field FX[,FY] (mm)
+    """
+    meta = dict(meta or {})
+    if field_mm is None:
+        if FIELD not in meta:
+            raise EloInputError(f"{source}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
+        field_mm = meta[FIELD]
+    res = meta.get(RESOLUTION)
+    resolution = None if res is None else (int(res[0]), int(res[1]))
+    if shape is None and resolution is not None:
+        shape = (resolution[1], resolution[0])
+    dets = meta.get(DETECTORS)
+    return HeaderGeometry(
+        source=str(source), field_mm=field_xy(field_mm, shape), resolution=resolution,
+        detectors=dets if isinstance(dets, Mapping) else None,
+        work_distance_mm=float(meta.get(WORK_DISTANCE, WORK_DISTANCE_MM)),
+        projection=str(meta.get(PROJECTION, "perspective")),
+        aim_offset_mm=tuple(meta.get(AIM_OFFSET, (0.0, 0.0))), meta=meta)
+
+
+def material_from_metadata(meta: Mapping) -> str:
+    """The surface material a header records: the one material of the non-detector shapes.
+
+    ``materials`` maps shape ids to ``"name (El:frac,...)"``; detector plates are left out. Several
+    different surface materials (or none recorded) give the default material, since one facet
+    model cannot mix them.
+
+    Parameters
+    ----------
+    meta : mapping
+        An EXR header of ``elo-mitsuba render``.
+
+    Returns
+    -------
+    str
+        The composition (or name) of the surface material.
+
+    Examples
+    --------
+    >>> material_from_metadata({"materials": {"plate": "Ti-6Al-4V (Ti:0.9,Al:0.06,V:0.04)"}})
+    'Ti:0.9,Al:0.06,V:0.04'
+    """
+    mats = dict(meta.get(MATERIALS) or {})
+    dets = set((meta.get(DETECTORS) or {}).keys())
+    found = {v for k, v in mats.items() if k not in dets}
+    if len(found) != 1:
+        return DEFAULT_MATERIAL
+    text = next(iter(found))
+    if "(" in text and text.endswith(")"):
+        return text[text.index("(") + 1:-1]
+    return text
+
+
+def grid_header(field_mm, shape) -> dict:
+    """The scan grid's part of a header: field (mm) and resolution (W, H) of an image of ``shape``.
+
+    Examples
+    --------
+    >>> grid_header(80, (32, 64))
+    {'field_mm': [80.0, 40.0], 'resolution': [64, 32]}
+    """
+    h, w = int(shape[0]), int(shape[1])
+    return {FIELD: list(field_xy(field_mm, (h, w))), RESOLUTION: [w, h]}
+
+
+def geometry_header(field_mm, shape, *, work_distance_mm: float, projection: str, aim_offset_mm, material: str,
+                    detectors: Mapping) -> dict:
+    """The geometry block of a header, as :func:`read_geometry` reads it back.
+
+    Parameters
+    ----------
+    field_mm : float or (float, float)
+        Scan field (mm).
+    shape : (int, int)
+        Image shape (H, W).
+    work_distance_mm : float
+        Height of the beam pivot (mm).
+    projection : str
+        ``perspective`` or ``orthographic``.
+    aim_offset_mm : (float, float)
+        Offset of every aim point (mm).
+    material : str
+        The surface material.
+    detectors : mapping
+        ``{name: {"center", "normal", "radius"}}`` (mm).
+
+    Returns
+    -------
+    dict
+
+    Examples
+    --------
+    >>> h = geometry_header(80, (64, 64), work_distance_mm=400.0, projection="perspective",
+    ...                     aim_offset_mm=(0.0, 0.0), material="Ti-6Al-4V", detectors={})
+    >>> read_geometry(h).field_mm == (80.0, 80.0), list(h)[:2]
+    (True, ['field_mm', 'resolution'])
+    """
+    return {**grid_header(field_mm, shape), WORK_DISTANCE: work_distance_mm, PROJECTION: projection,
+            AIM_OFFSET: list(aim_offset_mm), MATERIAL: material, DETECTORS: dict(detectors)}
+
+
+__all__ = [n for n in dir() if not n.startswith("_") and n not in (
+    "annotations", "dataclass", "field", "Iterable", "Mapping", "np", "EloInputError", "field_xy",
+    "DEFAULT_MATERIAL", "WORK_DISTANCE_MM")]
