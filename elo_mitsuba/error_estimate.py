@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .options import half_budget
+
 #: Relative errors are taken against ``max(|value|, FLOOR x the image mean of |value|)``, as in benchmarks/.
 FLOOR = 0.05
 #: Status of a channel's estimate: from the halves, or none because the channel has no sampling
@@ -177,3 +179,85 @@ def later_events_error(errors, names, events: int) -> dict | None:
         return None
     shape = next(v.shape for v in out.values() if v is not None)
     return {n: np.zeros(shape) if v is None else np.sqrt(v) for n, v in out.items()}
+
+
+#: How a render's errors were estimated, as its metadata states it.
+METHOD = ("two independent halves of the samples (A, B): standard error per pixel "
+          "sqrt(w_A w_B) |A - B|; relative to max(|value|, 5 % of the channel's mean)")
+
+
+def split_render(spp: int, integrator, beam_fwhm: float):
+    """How a render of ``spp`` samples per pixel splits into two independent halves.
+
+    spp >= 2: the samples split in two (same options). 1 spp with events >= 2 traced: two
+    renders of 1 spp with half the continuation paths each (:func:`~elo_mitsuba.options.half_budget`).
+    1 spp, 1st event only, by the quadrature with a single-ray beam: with one ray per triangle
+    (``triangle`` visibility) the result is deterministic (one render, no sampling error); with
+    the sampled visibility two renders (partly occluded detectors are sampled; identical halves
+    are reported as deterministic). 1 spp of sampled detectors: one render, not estimated (one
+    sample per pixel cannot be split).
+
+    Parameters
+    ----------
+    spp : int
+        Samples per pixel of the whole render.
+    integrator
+        The scene's ``elo`` integrator (its options, traced events and detector sampling).
+    beam_fwhm : float
+        The beam's FWHM in mm (0: a single ray).
+
+    Returns
+    -------
+    halves : list of (int, EloOptions or None)
+        Per half its spp and the options it renders with (None: the integrator's own).
+    status : str or None
+        The status forced on every channel (:data:`DETERMINISTIC`, :data:`NOT_ESTIMATED`), or None.
+    """
+    if spp >= 2:
+        return [((spp + 1) // 2, None), (spp // 2, None)], None
+    if integrator.traced_events() > 1:
+        half = half_budget(integrator.options)
+        return [(1, half), (1, half)], None
+    if integrator.detector_sampling == "quadrature" and not beam_fwhm > 0:
+        if integrator.quadrature_visibility == "triangle":
+            return [(1, None)], DETERMINISTIC
+        return [(1, integrator.options), (1, integrator.options)], None
+    return [(1, None)], NOT_ESTIMATED
+
+
+def combine_channels(names, sums, counts, equal_halves: bool, forced_status):
+    """The channels of a render, their per-pixel errors and summaries, from its halves.
+
+    Parameters
+    ----------
+    names : list of str
+        The channel names, in the order of the planes.
+    sums : list of ndarray (channels, H, W)
+        Each half's mean (one entry: a render that was not split); overwritten.
+    counts : list of int
+        The samples per pixel of each half.
+    equal_halves : bool
+        The halves split the continuation paths (1 spp each, equal weight) instead of the samples.
+    forced_status : str or None
+        The status of every channel of a render that was not split (:func:`split_render`).
+
+    Returns
+    -------
+    channels : dict of str to ndarray, float32
+    errors : dict of str to ndarray, float32
+        Only the channels with an estimated error.
+    summary : dict of str to dict, as :func:`summarise`
+    """
+    if len(sums) == 1:
+        planes = sums[0]
+        channels = {name: np.asarray(planes[i], np.float32) for i, name in enumerate(names)}
+        return channels, {}, {name: summarise(channels[name], None, forced_status) for name in names}
+    share_a = 0.5 if equal_halves else counts[0] / sum(counts)
+    a, b = sums
+    channels, errors, summary = {}, {}, {}
+    scratch = np.empty(a[0].size, np.float64)  # reused by every channel
+    for i, name in enumerate(names):
+        channels[name], err, summary[name] = combine_halves(a[i], b[i], share_a, scratch)
+        if err is not None:
+            errors[name] = err
+    return channels, errors, summary

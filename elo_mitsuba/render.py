@@ -19,26 +19,22 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from ._version import __version__
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
-from .exr import write_exr
 from .grid import ORIENTATION
-from .error_estimate import DETERMINISTIC, NOT_ESTIMATED, combine_halves, summarise
+from .error_estimate import METHOD, combine_channels, split_render
 from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
-                      half_budget, quality_options)
+                      quality_options)
+from .progress import RenderProgress
+from .result import NEGLIGIBLE_EVENT_SHARE, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
 from .scene_files import (check_detector_placement, declared_parameters, explain_mitsuba_error,
                           resolve_scene_path, scene_values)
 
-#: An event order adding less than this share of the signal in 99 % of the pixels is reported as
-#: negligible (0.1 %: below the default preset's per-pixel error of events >= 2, 0.2 %).
-NEGLIGIBLE_EVENT_SHARE = 1e-3
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
 SAMPLES_PER_PASS = 1 << 24
@@ -49,80 +45,8 @@ MAX_SPP_PER_PASS = 1024
 #: Options whose validity depends on the scene (detector ids, detector shapes for the quadrature):
 #: EloScene.configure checks them at once; the others are checked by EloOptions alone.
 _NEEDS_THE_SCENE = {"front_only", "detector_sampling", "quadrature_triangles"}
-#: Off a terminal, progress lines start once a render has run this long (short renders stay quiet).
-PROGRESS_AFTER_S = 3.0
-#: ... and come at least this often between the 10 % steps.
-PROGRESS_EVERY_S = 30.0
 #: Largest seed: Mitsuba's samplers take 32-bit seeds.
 MAX_SEED = (1 << 32) - 1
-
-
-# ---- results -----------------------------------------------------------------------------------------
-@dataclass
-class RenderResult:
-    """Detector images (numpy float32, orientation of :mod:`elo_mitsuba.grid`), the geometry that
-    produced them and the error estimate.
-
-    ``errors`` maps each channel with an estimated sampling error to its per-pixel standard error
-    (same units, from two independent halves of the samples, :mod:`elo_mitsuba.error_estimate`);
-    ``metadata["error_estimate"]["channels"]`` summarises every channel (``status``: estimated,
-    deterministic or not estimated; ``rms_rel``, ``p99_rel``, ``rms_abs``); see
-    :meth:`error_summary`.
-    """
-
-    channels: dict[str, np.ndarray]
-    metadata: dict = field(default_factory=dict)
-    errors: dict[str, np.ndarray] = field(default_factory=dict)
-
-    def error_summary(self) -> dict[str, dict]:
-        """Per channel: the summary of its error estimate (empty if the render made none)."""
-        return dict(self.metadata.get("error_estimate", {}).get("channels", {}))
-
-    @property
-    def detectors(self) -> list[str]:
-        return [name for name in self.channels if "." not in name]
-
-    def write_exr(self, path, overwrite: bool = False, error_channels: bool = False) -> Path:
-        """Write the channels and metadata (error summary included) to an EXR; with
-        ``error_channels`` also each channel's per-pixel standard error as ``<name>.err`` (zero
-        for a deterministic channel; none where it is not estimated)."""
-        channels = dict(self.channels)
-        if error_channels:
-            summary = self.error_summary()
-            for name, img in self.channels.items():
-                if name in self.errors:
-                    channels[f"{name}.err"] = self.errors[name]
-                elif summary.get(name, {}).get("status") == DETERMINISTIC:
-                    channels[f"{name}.err"] = np.zeros_like(img)
-        return write_exr(path, channels, self.metadata, overwrite=overwrite)
-
-    def event_shares(self) -> list[dict]:
-        """What each scattering event adds: per event k (1-based), ``mean`` = its share of the
-        signal summed over detectors and pixels, and ``p99`` = the 99th percentile over pixels of
-        its share of that pixel's total (where the total is > 0). Empty with one event."""
-        events = int(self.metadata.get("events", 1))
-        if events < 2:
-            return []
-        total = sum(self.channels[d].astype(np.float64) for d in self.detectors)
-        lit = total > 0
-        signal = float(total.sum())
-        out = []
-        for k in range(1, events + 1):
-            ek = sum(self.channels[f"{d}.e{k}"].astype(np.float64) for d in self.detectors)
-            mean = float(ek.sum()) / signal if signal > 0 else 0.0
-            p99 = float(np.percentile(ek[lit] / total[lit], 99)) if np.any(lit) else 0.0
-            out.append({"event": k, "mean": mean, "p99": p99})
-        return out
-
-    def negligible_events(self, threshold: float = NEGLIGIBLE_EVENT_SHARE, shares=None) -> int | None:
-        """The number of events that would do: the smallest n such that every event above n adds
-        less than ``threshold`` of the signal in 99 % of the pixels (None if all are needed).
-        ``shares``: :meth:`event_shares` if already computed."""
-        shares = self.event_shares() if shares is None else shares
-        n = len(shares)
-        while n > 1 and shares[n - 1]["p99"] < threshold:
-            n -= 1
-        return n if shares and n < len(shares) else None
 
 
 # ---- the scene ----------------------------------------------------------------------------------------
@@ -181,6 +105,9 @@ class EloScene:
         #: the options set by configure(), for the check that a preset applied later uses them
         self._configured: dict = {}
         self.mi_params = self.mi.traverse(self.scene)
+        #: each placed detector's transform as loaded (float64 copies), for restore_detectors()
+        self._loaded = {name: np.array(self.mi_params[f"{name}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
+                        for name in self.detector_names if f"{name}.to_world" in self.mi_params}
         self._check_detectors()
 
     # -- introspection --
@@ -190,13 +117,12 @@ class EloScene:
 
     def detector_geometry(self) -> dict[str, dict]:
         """Centre, unit normal (front face) and equivalent radius of each detector, in mm."""
+        from .plugins._detectors import detector_geometry  # Mitsuba is imported by now
+
         out = {}
         for name, shape in self.integrator.detectors:
             key = f"{name}.to_world"
-            if shape.is_mesh() or key not in self.mi_params:
-                out[name] = _shape_geometry(self.mi, shape)
-            else:  # disk, rectangle, sphere ...: exact from the transform
-                out[name] = _disk_geometry(self.mi_params[key], shape)
+            out[name] = detector_geometry(shape, self.mi_params[key] if key in self.mi_params else None)
             if not (out[name]["area_mm2"] > 0 and np.all(np.isfinite(out[name]["normal"]))):
                 raise EloInputError(f"{self.path}: detector {name!r} has area {out[name]['area_mm2']:g} mm^2 "
                                     "(a scale of 0 in its transform?); a detector needs a radius > 0")
@@ -335,6 +261,22 @@ class EloScene:
             self.mi_params.update()
             raise
 
+    def restore_detectors(self, names=None) -> None:
+        """Put detectors ``names`` (default: all) back where the scene file placed them.
+
+        The transform is rebuilt from its float32 values, so its inverse may differ in the last bit
+        from a fresh load's (up to 2e-7 relative in the images): a caller that needs a fresh
+        load's numbers bit for bit moves the detector again with :meth:`set_detector` (computed
+        afresh, as in a new scene) or loads the scene anew."""
+        names = list(self._loaded) if names is None else list(names)
+        unknown = [n for n in names if n not in self._loaded]
+        if unknown:
+            raise EloInputError(f"no placed detector {unknown[0]!r} (detectors: {', '.join(self._loaded)})")
+        for name in names:
+            self.mi_params[f"{name}.to_world"] = self.mi.Transform4f(self.mi.ScalarTransform4f(self._loaded[name]))
+        if names:
+            self.mi_params.update()
+
     def set_quality(self, quality: str) -> int:
         """Apply a quality preset (:data:`~elo_mitsuba.options.QUALITY_PRESETS`) to the integrator for this scene's
         resolution, events and beam, for this and every later render; returns its spp. ``scene``:
@@ -372,7 +314,7 @@ class EloScene:
         kernel. Before any work, a render that cannot fit in memory is refused and a long one
         gets a note (:func:`elo_mitsuba.budget.check_render`). ``progress``: None (default) shows
         progress on stderr for multi-pass renders, as a bar on a terminal and otherwise as a line
-        per 10 % once the render has run for :data:`PROGRESS_AFTER_S`; True always, False never
+        per 10 % once the render has run for :data:`~elo_mitsuba.progress.PROGRESS_AFTER_S`; True always, False never
         (no notes either). ``force=True`` (CLI ``--yes``) lets a render estimated to run longer than
         :data:`~elo_mitsuba.budget.REFUSE_SECONDS` start; memory beyond what is available is refused always.
         """
@@ -393,7 +335,7 @@ class EloScene:
         spp = int(preset_spp if spp is None else spp)
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
-        halves, first_status = self._halves(spp)
+        halves, first_status = split_render(spp, self.integrator, self.sensor.fwhm)
         n_passes = sum(math.ceil(n / per_pass) for n, _ in halves)
         names = self.integrator.channel_names()
         notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(),
@@ -404,7 +346,7 @@ class EloScene:
                 print(f"elo-mitsuba: note: {note}", file=sys.stderr, flush=True)
         # progress counts samples of both halves (a half of a 1-spp render counts as one)
         work = sum(n for n, _ in halves)
-        report = _Progress(work, n_passes, progress)
+        report = RenderProgress(work, n_passes, progress)
         # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
         # float32 channel-major array, so that peak memory stays near the film's own; the passes
         # of each half are summed in float64
@@ -436,60 +378,15 @@ class EloScene:
                 sums.append(acc)
         finally:
             self.integrator.configure(saved)
-        report.end()
-        channels, errors, summary = _combine(names, sums, [n for n, _ in halves], halves[0][1] is not None,
-                                             first_status)
+            report.end()
+        channels, errors, summary = combine_channels(names, sums, [n for n, _ in halves], halves[0][1] is not None,
+                                                     first_status)
         for name, img in channels.items():
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
         meta = self.metadata(spp, seed)
-        meta["error_estimate"] = {
-            "method": ("two independent halves of the samples (A, B): standard error per pixel "
-                       "sqrt(w_A w_B) |A - B|; relative to max(|value|, 5 % of the channel's mean)"),
-            "channels": summary}
+        meta["error_estimate"] = {"method": METHOD, "channels": summary}
         return RenderResult(channels, meta, errors)
-
-    def _halves(self, spp: int):
-        """How the render splits into two independent halves for the error estimate:
-        ([(spp, options or None)] per half, the status forced on every channel or None).
-
-        spp >= 2: the samples split in two (same options). 1 spp with events >= 2 traced: two
-        renders of 1 spp with half the continuation paths each. 1 spp, 1st event only, by the
-        quadrature with a single-ray beam: with one ray per triangle (``triangle`` visibility)
-        the result is deterministic (one render, no sampling error); with the sampled visibility
-        two renders (partly occluded detectors are sampled; identical halves are reported as
-        deterministic). 1 spp of sampled detectors: one render, not estimated (one sample per
-        pixel cannot be split)."""
-        integ = self.integrator
-        if spp >= 2:
-            return [((spp + 1) // 2, None), (spp // 2, None)], None
-        if integ.traced_events() > 1:
-            half = half_budget(integ.options)
-            return [(1, half), (1, half)], None
-        if integ.detector_sampling == "quadrature" and not self.sensor.fwhm > 0:
-            if integ.quadrature_visibility == "triangle":
-                return [(1, None)], DETERMINISTIC
-            return [(1, integ.options), (1, integ.options)], None
-        return [(1, None)], NOT_ESTIMATED
-
-
-def _combine(names, sums, counts, equal_halves: bool, forced_status):
-    """(channels float32, per-pixel errors, summary per channel) from the halves' means ``sums``
-    (one per half, (channels, H, W)) of ``counts`` samples each; ``equal_halves``: the halves
-    split the continuation paths (1 spp each, equal weight) instead of the samples."""
-    if len(sums) == 1:
-        planes = sums[0]
-        channels = {name: np.asarray(planes[i], np.float32) for i, name in enumerate(names)}
-        return channels, {}, {name: summarise(channels[name], None, forced_status) for name in names}
-    share_a = 0.5 if equal_halves else counts[0] / sum(counts)
-    a, b = sums
-    channels, errors, summary = {}, {}, {}
-    scratch = np.empty(a[0].size, np.float64)  # reused by every channel
-    for i, name in enumerate(names):
-        channels[name], err, summary[name] = combine_halves(a[i], b[i], share_a, scratch)
-        if err is not None:
-            errors[name] = err
-    return channels, errors, summary
 
 
 def _vector3(name: str, what: str, value) -> np.ndarray:
@@ -514,78 +411,6 @@ def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
         bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
         raise EloInputError(f"{name}={value!r}; must be a whole number {bound}")
     return int(number)
-
-
-class _Progress:
-    """Progress of the pass loop on stderr: rate and time left, as a bar redrawn on a terminal,
-    else (logs, pipes, CI) a line per 10 %, or every :data:`PROGRESS_EVERY_S` in between, once the
-    render has run :data:`PROGRESS_AFTER_S`."""
-
-    def __init__(self, total: int, passes: int, enabled: bool | None):
-        self.total, self.passes = total, passes
-        self.tty = sys.stderr.isatty()
-        self.enabled = (passes > 1) if enabled is None else bool(enabled)
-        self.always = bool(enabled)
-        self.next_step, self.drawn, self.last = 0.1, False, -math.inf
-
-    def __call__(self, done: int, elapsed: float) -> None:
-        if not self.enabled or done <= 0:
-            return
-        eta = elapsed / done * (self.total - done)
-        text = (f"{done}/{self.total} spp ({100 * done / self.total:.0f} %), {elapsed:.1f} s, "
-                f"{done / max(elapsed, 1e-9):.3g} spp/s, {eta:.1f} s left")
-        if self.tty:
-            width = 30
-            filled = int(width * done / self.total)
-            print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {text}", end="", file=sys.stderr, flush=True)
-            self.drawn = True
-        elif (self.always or elapsed >= PROGRESS_AFTER_S) and (
-                done / self.total >= self.next_step - 1e-12 or elapsed - self.last >= PROGRESS_EVERY_S
-                or self.last == -math.inf):
-            print(f"  render: {text}", file=sys.stderr, flush=True)
-            self.next_step = math.floor(10 * done / self.total + 1e-9) / 10 + 0.1
-            self.last = elapsed
-
-    def end(self) -> None:
-        if self.drawn:
-            print(file=sys.stderr)
-
-
-def _disk_geometry(to_world, shape) -> dict:
-    """Centre, front normal and equivalent radius of a unit shape placed by ``to_world``."""
-    m = np.array(to_world.matrix, dtype=float).reshape(4, 4) if hasattr(to_world, "matrix") else None
-    m = m.squeeze() if m is not None else np.eye(4)
-    centre = m[:3, 3]
-    area = float(shape.surface_area()[0])
-    if abs(np.linalg.det(m[:3, :3])) < 1e-300:  # a zero scale: no normal; the caller names the detector
-        return {"center": [round(float(x), 6) for x in centre], "normal": [math.nan] * 3, "radius": 0.0,
-                "area_mm2": 0.0}
-    normal = np.linalg.inv(m[:3, :3]).T @ np.array([0.0, 0.0, 1.0])
-    normal /= np.linalg.norm(normal)
-    return {
-        "center": [round(float(x), 6) for x in centre],
-        "normal": [round(float(x), 6) for x in normal],
-        "radius": round(math.sqrt(area / math.pi), 6),
-        "area_mm2": round(area, 6),
-    }
-
-
-def _shape_geometry(mi, shape, n_samples: int = 4096) -> dict:
-    """Area-weighted centroid, mean unit normal and equivalent radius of a shape (mm)."""
-    u = (np.arange(n_samples) + 0.5) / n_samples
-    v = np.modf(np.arange(n_samples) * 0.6180339887498949)[0]
-    ps = shape.sample_position(0.0, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))))
-    p = np.array([np.asarray(ps.p.x), np.asarray(ps.p.y), np.asarray(ps.p.z)]).T
-    n = np.array([np.asarray(ps.n.x), np.asarray(ps.n.y), np.asarray(ps.n.z)]).T
-    normal = n.mean(axis=0)
-    normal /= np.linalg.norm(normal)
-    area = float(shape.surface_area()[0])
-    return {
-        "center": [round(float(x), 6) for x in p.mean(axis=0)],
-        "normal": [round(float(x), 6) for x in normal],
-        "radius": round(math.sqrt(area / math.pi), 6),
-        "area_mm2": round(area, 6),
-    }
 
 
 def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:

@@ -1,4 +1,4 @@
-"""Detectors of an ELO scene: discovery, triangulation for the quadrature, planarity (set-up time).
+"""Detectors of an ELO scene: discovery, geometry, triangulation for the quadrature, planarity (set-up time).
 
 A detector is any shape carrying an emitter; its ``id`` is its channel name. For the triangle
 quadrature of Appendix A (Eq. A2) a detector is covered by triangles wound counter-clockwise about
@@ -159,3 +159,50 @@ def quadrature_geometry(detectors, n_tri):
                     [(tuple(int(i) for i in t), dr.opaque(mi.Vector3f, [float(x) for x in n]))
                      for t, n in zip(index, normals)]))
     return out
+
+
+def detector_geometry(shape, to_world=None) -> dict:
+    """Centre, unit front normal, equivalent radius and area of a detector (mm, mm^2).
+
+    Exact from ``to_world`` for a disk, rectangle, sphere ... (a unit shape placed by its
+    transform); a mesh, or a shape without a transform, from samples of its surface."""
+    if shape.is_mesh() or to_world is None:
+        return _sampled_geometry(shape)
+    return _placed_geometry(to_world, shape)
+
+
+def _placed_geometry(to_world, shape) -> dict:
+    """Centre, front normal and equivalent radius of a unit shape placed by ``to_world``."""
+    m = np.array(to_world.matrix, dtype=float).reshape(4, 4) if hasattr(to_world, "matrix") else None
+    m = m.squeeze() if m is not None else np.eye(4)
+    centre = m[:3, 3]
+    area = float(shape.surface_area()[0])
+    if abs(np.linalg.det(m[:3, :3])) < 1e-300:  # a zero scale: no normal; the caller names the detector
+        return {"center": [round(float(x), 6) for x in centre], "normal": [math.nan] * 3, "radius": 0.0,
+                "area_mm2": 0.0}
+    normal = np.linalg.inv(m[:3, :3]).T @ np.array([0.0, 0.0, 1.0])
+    normal /= np.linalg.norm(normal)
+    return {
+        "center": [round(float(x), 6) for x in centre],
+        "normal": [round(float(x), 6) for x in normal],
+        "radius": round(math.sqrt(area / math.pi), 6),
+        "area_mm2": round(area, 6),
+    }
+
+
+def _sampled_geometry(shape, n_samples: int = 4096) -> dict:
+    """Area-weighted centroid, mean unit normal and equivalent radius of a shape (mm)."""
+    u = (np.arange(n_samples) + 0.5) / n_samples
+    v = np.modf(np.arange(n_samples) * 0.6180339887498949)[0]
+    ps = shape.sample_position(0.0, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))))
+    p = np.array([np.asarray(ps.p.x), np.asarray(ps.p.y), np.asarray(ps.p.z)]).T
+    n = np.array([np.asarray(ps.n.x), np.asarray(ps.n.y), np.asarray(ps.n.z)]).T
+    normal = n.mean(axis=0)
+    normal /= np.linalg.norm(normal)
+    area = float(shape.surface_area()[0])
+    return {
+        "center": [round(float(x), 6) for x in p.mean(axis=0)],
+        "normal": [round(float(x), 6) for x in normal],
+        "radius": round(math.sqrt(area / math.pi), 6),
+        "area_mm2": round(area, 6),
+    }

@@ -1,17 +1,12 @@
 """Unbounded work is estimated before it starts: refused where it cannot fit in memory, noted
-where it is long, and shown as progress (also off a terminal)."""
-
-import io
+where it is long, and shown as progress (tests/test_progress.py)."""
 
 import pytest
 
 import elo_mitsuba as em
-import importlib
 
 from elo_mitsuba import budget
 from elo_mitsuba.cli import main
-
-render = importlib.import_module("elo_mitsuba.render")  # the module (elo_mitsuba.render is the function)
 
 
 def test_memory_that_cannot_fit_is_refused_with_the_numbers():
@@ -39,18 +34,3 @@ def test_cli_refuses_a_resolution_that_cannot_fit(tmp_path, capsys):
     # the error estimate renders two halves (two sets of channel planes): 1.6 TB, was 1.2 TB in one pass
     assert "needs about 1.6 TB of memory" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o.exr").exists()
-
-
-def test_progress_lines_off_a_terminal(monkeypatch):
-    err = io.StringIO()
-    monkeypatch.setattr(render.sys, "stderr", err)
-    p = render._Progress(100, 10, None)
-    for k in range(1, 11):
-        p(10 * k, 1.0 * k)  # 10 passes, 1 s each: quiet for the first PROGRESS_AFTER_S
-    p.end()
-    lines = err.getvalue().splitlines()
-    assert lines[0].startswith("  render: 30/100 spp (30 %), 3.0 s") and "s left" in lines[0]
-    assert len(lines) == 8 and lines[-1].startswith("  render: 100/100 spp (100 %)")
-    err.truncate(0)
-    render._Progress(100, 1, None)(100, 50.0)  # a single pass: nothing to report
-    assert err.getvalue() == ""

@@ -59,3 +59,31 @@ def test_every_cited_document_is_in_the_repository():
             if not (ROOT / name).is_file() and not (path.parent / name).is_file():
                 missing.append(f"{path.relative_to(ROOT)}: {name}")
     assert not missing, "cited files not in the repository: " + "; ".join(missing)
+
+
+def test_render_py_stays_one_concept():
+    """render.py is EloScene (load once, render many): its helpers live in their own modules."""
+    lines = len((ROOT / "elo_mitsuba" / "render.py").read_text().splitlines())
+    assert lines <= 450, f"elo_mitsuba/render.py has {lines} lines (at most 450)"
+
+
+def _writes_to_world(path: Path) -> list[int]:
+    """Lines of ``path`` that assign to a subscript whose key names ``to_world``."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign)) else [])
+        for target in targets:
+            if isinstance(target, ast.Subscript) and "to_world" in ast.unparse(target.slice):
+                out.append(node.lineno)
+    return out
+
+
+def test_only_render_py_moves_a_detector():
+    """A detector's ``to_world`` is written by EloScene alone (set_detector, restore_detectors),
+    so that its checks and the bit-for-bit guarantee of a moved detector hold everywhere."""
+    owner = ROOT / "elo_mitsuba" / "render.py"
+    assert _writes_to_world(owner), "the rule no longer sees render.py's writes"
+    bad = [f"{p.relative_to(ROOT)}:{n}" for p in _sources("elo_mitsuba", "plugins", "validation", "benchmarks")
+           if p != owner for n in _writes_to_world(p)]
+    assert not bad, "to_world written outside elo_mitsuba/render.py: " + ", ".join(bad)

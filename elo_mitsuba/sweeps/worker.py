@@ -65,9 +65,6 @@ class LoadedScene:
         if integrator:
             self.scene.configure(**integrator)
         self.options = self.scene.options
-        p = self.scene.mi_params
-        self.transforms = {d: np.array(p[f"{d}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
-                           for d in self.scene.detector_names if f"{d}.to_world" in p}
         self.moved: set[str] = set()
 
     def moved_by(self, moves: dict) -> set[str]:
@@ -86,15 +83,11 @@ class LoadedScene:
     def prepare(self, moves: dict):
         """Put the scene back as loaded for a point with detector ``moves``, then apply them.
 
-        Detectors moved before and not moved now are put back from their float32 copy (last-bit
-        differences, see :meth:`reusable`: the worker reloads such a scene instead)."""
-        mi = self.scene.mi
+        Detectors moved before and not moved now are put back as loaded
+        (:meth:`~elo_mitsuba.EloScene.restore_detectors`; last-bit differences, see
+        :meth:`reusable`: the worker reloads such a scene instead)."""
         names = self.moved_by(moves)
-        stale = self.moved - names
-        for d in stale:
-            self.scene.mi_params[f"{d}.to_world"] = mi.Transform4f(mi.ScalarTransform4f(self.transforms[d]))
-        if stale:
-            self.scene.mi_params.update()
+        self.scene.restore_detectors(sorted(self.moved - names))
         self.scene.integrator.configure(self.options)
         # detectors first (all), then single ones, so that right.radius refines detectors.radius
         for det in sorted(moves, key=lambda d: d != ALL_DETECTORS):
