@@ -99,3 +99,21 @@ def test_scene_quality_keeps_what_configure_set_before_a_preset():
     used.render(quality="draft", progress=False)
     _same(fresh, used.render(quality="scene", progress=False))
     assert fresh.metadata["integrator_options"]["quadrature_triangles"] == 24
+
+
+def test_restore_detectors_puts_them_back_as_loaded():
+    scene = em.load_scene("flat_plate", res=8)
+    loaded = scene.detector_geometry()
+    fresh = scene.render(spp=2).channels
+    scene.set_detector("right", center=(150, 0, 250), radius=30)
+    scene.set_detector("left", center=(-150, 0, 250))
+    scene.restore_detectors(["right"])
+    assert scene.detector_geometry()["right"] == loaded["right"]
+    assert scene.detector_geometry()["left"] != loaded["left"]
+    scene.restore_detectors()
+    assert scene.detector_geometry() == loaded
+    again = scene.render(spp=2).channels
+    for name, img in fresh.items():  # the transform from its float32 copy: last bits of the inverse
+        np.testing.assert_allclose(again[name], img, rtol=1e-6, atol=1e-6 * float(np.abs(img).max()))
+    with pytest.raises(em.EloInputError, match=r"no placed detector 'nowhere' \(detectors: right, left"):
+        scene.restore_detectors(["nowhere"])
