@@ -1,8 +1,10 @@
 """PNG previews with matplotlib's Agg canvas (no display, no pyplot global state) and CMasher maps.
 
 Scan images are drawn seen from above with +y up (row 0 at the top, ``origin="upper"``), axes in mm.
-Masked (untrusted) pixels are painted in one flat colour (green as in Fig. 14b). Every writer
-refuses to replace an existing file unless ``overwrite=True``.
+Masked (untrusted) pixels are painted in one flat grey that no colour map of the package contains,
+with a legend entry. Signed images get a colour scale symmetric about 0, per panel, never narrower
+than the quantity's noise floor (a flat panel must not stretch its noise over the whole map: its
+title says so). Every writer refuses to replace an existing file unless ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -21,16 +23,24 @@ from ..grid import field_xy
 # drawn with a colour scale symmetric about 0 so that 0 sits at the map's centre.
 #: Detector images, N_d/N_0 (sequential, dark = few electrons).
 CMAP_INTENSITY = "cmr.arctic"
-#: Signed quantities: M_x, M_y, gradients (diverging, light centre at 0).
-CMAP_DIVERGING = "cmr.fusion_r"
+#: Signed quantities: M_x, M_y, gradients (diverging, light centre at 0). ColorBrewer's RdBu
+#: (reversed: blue < 0 < red): its two ends differ in hue along the blue-yellow axis that
+#: red-green colour-blind readers keep (ColorBrewer rates it colour-blind safe), where CMasher's
+#: fusion ends in two dark purples that nobody tells apart.
+CMAP_DIVERGING = "RdBu_r"
 #: Height maps Z (sequential).
 CMAP_HEIGHT = "cmr.rainforest"
 #: Histograms and reflectance maps (sequential, black at 0).
 CMAP_SEQUENTIAL = "cmr.ember"
 #: Signed errors and differences (diverging, dark centre at 0: small errors fade out).
 CMAP_ERROR = "cmr.iceburn"
-#: Masked (untrusted) pixels, one flat colour (green as in Fig. 14b).
-MASK_COLOUR = "#1ad933"
+#: Masked (untrusted) pixels, one flat mid grey: at least 0.3 (RGB distance) from every colour of
+#: the maps above, so a masked pixel never reads as a value (the green of Fig. 14b is in
+#: CMAP_HEIGHT).
+MASK_COLOUR = "#808080"
+#: Smallest half-range of a gradient panel's colour scale (mm/mm, a slope of 0.6 deg): the noise
+#: of a flat plate's gradient (quadrature and shot noise) is below it, so a flat panel stays light.
+GRADIENT_MIN_SCALE = 0.01
 
 
 def _figure(ncols=1, width=5.2, height=4.4):
@@ -54,34 +64,55 @@ def _extent(shape, field_mm):
     return (-fx / 2, fx / 2, -fy / 2, fy / 2)
 
 
-def _draw_image(fig, ax, image, field_mm, *, title, label, cmap, symmetric=False, mask=None, clip_percent=0.5):
+def colour_limits(image, *, mask=None, symmetric=False, clip_percent=0.5, min_scale=0.0):
+    """The colour scale ``(lo, hi, note)`` of an image as :func:`preview_image` draws it.
+
+    ``lo``/``hi`` span the ``clip_percent`` .. ``100 - clip_percent`` percentiles of the finite
+    unmasked values (a few hot pixels do not flatten the scale); ``symmetric`` makes them
+    ``-m, m`` with ``m`` the larger magnitude, at least ``min_scale``. ``note`` is text for the
+    title when ``min_scale`` held the scale (the values are below it: noise level), else "".
+    """
+    img = np.asarray(image, dtype=float)
+    shown = img if mask is None else np.where(mask, np.nan, img)
+    vals = shown[np.isfinite(shown)]
+    lo, hi = np.percentile(vals, [clip_percent, 100 - clip_percent]) if vals.size else (0.0, 1.0)
+    note = ""
+    if symmetric:
+        m = max(abs(float(lo)), abs(float(hi)))
+        if m < min_scale:
+            top = float(np.max(np.abs(vals))) if vals.size else 0.0
+            note = f"noise level: |value| \u2264 {top:.2g}, scale \u00b1{min_scale:g}"
+            m = min_scale
+        hi = max(m, 1e-12)
+        lo = -hi
+    if hi <= lo:
+        hi = lo + 1e-12
+    return float(lo), float(hi), note
+
+
+def _draw_image(fig, ax, image, field_mm, *, title, label, cmap, symmetric=False, mask=None, clip_percent=0.5,
+                min_scale=0.0):
     from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
 
     img = np.asarray(image, dtype=float)
     shown = np.where(np.isfinite(img), img, np.nan)
     if mask is not None:
         shown = np.where(mask, np.nan, shown)
-    vals = shown[np.isfinite(shown)]
-    if vals.size:
-        # Clip a few outliers so that one hot pixel does not flatten the colour scale.
-        lo, hi = np.percentile(vals, [clip_percent, 100 - clip_percent])
-    else:
-        lo, hi = 0.0, 1.0
-    if symmetric:
-        hi = max(abs(lo), abs(hi), 1e-12)
-        lo = -hi
-    if hi <= lo:
-        hi = lo + 1e-12
+    lo, hi, note = colour_limits(shown, symmetric=symmetric, clip_percent=clip_percent, min_scale=min_scale)
+    if note:
+        title = f"{title}\n({note})"
     ext = _extent(img.shape, field_mm)
     im = ax.imshow(shown, cmap=cmap, vmin=lo, vmax=hi, extent=ext, origin="upper", interpolation="nearest")
     if mask is not None and np.any(mask):
         overlay = np.where(mask, 1.0, np.nan)
         ax.imshow(overlay, cmap=ListedColormap([MASK_COLOUR]), extent=ext, origin="upper",
                   interpolation="nearest", vmin=0, vmax=1)
-        title = f"{title}\n(green: masked, {100 * np.mean(mask):.1f} %)"
+        ax.legend(handles=[Patch(color=MASK_COLOUR, label=f"masked ({100 * np.mean(mask):.1f} %)")],
+                  loc="lower right", fontsize=8, framealpha=0.8)
     ax.set_xlabel("x / mm")
     ax.set_ylabel("y / mm")
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
     cb.set_label(label)
     return im
@@ -89,7 +120,7 @@ def _draw_image(fig, ax, image, field_mm, *, title, label, cmap, symmetric=False
 
 def preview_image(image, field_mm, path, *, title="", label="", cmap=CMAP_INTENSITY, symmetric=False,
                   mask=None, clip_percent=0.5, overwrite=False) -> Path:
-    """One image with colour bar (``label`` gives the unit), axes in mm, masked pixels green.
+    """One image with colour bar (``label`` gives the unit), axes in mm, masked pixels grey.
 
     The colour scale spans the ``clip_percent`` .. ``100 - clip_percent`` percentiles."""
     fig, (ax,) = _figure()
@@ -100,18 +131,24 @@ def preview_image(image, field_mm, path, *, title="", label="", cmap=CMAP_INTENS
 
 def preview_gradient(dzdx, dzdy, field_mm, path, *, mask=None, title="Surface gradient (Eq. 26)",
                      overwrite=False) -> Path:
-    """dZ/dx and dZ/dy side by side (shared symmetric colour scale, mm/mm)."""
+    """dZ/dx and dZ/dy side by side, mm/mm: each panel its own colour scale, symmetric about 0 and
+    at least :data:`GRADIENT_MIN_SCALE` (a panel at noise level says so in its title)."""
     fig, axes = _figure(2)
     for ax, img, name in ((axes[0], dzdx, "dZ/dx"), (axes[1], dzdy, "dZ/dy")):
         _draw_image(fig, ax, img, field_mm, title=f"{title}: {name}", label=f"{name} / (mm/mm)",
-                    cmap=CMAP_DIVERGING, symmetric=True, mask=mask)
+                    cmap=CMAP_DIVERGING, symmetric=True, mask=mask, min_scale=GRADIENT_MIN_SCALE)
     return _save(fig, path, overwrite)
 
 
 def preview_height(height, field_mm, path, *, mask=None, title="Height map", overwrite=False) -> Path:
-    """Height map Z(x, y) in mm (relative: up to a constant)."""
-    return preview_image(height, field_mm, path, title=title, label="Z / mm (relative)", cmap=CMAP_HEIGHT,
-                         mask=mask, clip_percent=0.0, overwrite=overwrite)
+    """Height map Z(x, y) in mm (relative: up to a constant); ``title`` names how it was made (the
+    method), a second line the quantity, unit and the range over the measured pixels."""
+    h = np.asarray(height, dtype=float)
+    valid = np.isfinite(h) if mask is None else np.isfinite(h) & ~np.asarray(mask, bool)
+    span = float(np.ptp(h[valid])) if valid.any() else 0.0
+    return preview_image(h, field_mm, path, title=f"{title}\nZ in mm, relative (zero mean); range {span:.3g} mm",
+                         label="Z / mm (relative)", cmap=CMAP_HEIGHT, mask=mask, clip_percent=0.0,
+                         overwrite=overwrite)
 
 
 def _pq_extent(p, q):

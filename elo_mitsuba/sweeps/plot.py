@@ -1,4 +1,8 @@
-"""A sweep metric over one swept parameter (a line per detector) or two (a heat map), as PNG."""
+"""A sweep metric over one swept parameter (a line per detector) or two (a heat map), as PNG.
+
+Values that vary by less than :data:`SMALL_SPAN` of their magnitude are named as such in the
+title (and the colour bar's label): the axis and colour scale stretch any range over the plot.
+"""
 
 from __future__ import annotations
 
@@ -30,6 +34,27 @@ def _label(ds, dim) -> str:
     name = c.attrs.get("long_name", dim)
     units = c.attrs.get("units", "")
     return f"{name} ({units})" if units and units != "1" else name
+
+
+#: A plot whose values span less than this share of their mean magnitude says so: matplotlib
+#: stretches any range over the whole axis or colour map, so 0.3001 .. 0.3008 would look like a
+#: change from black to yellow.
+SMALL_SPAN = 0.01
+
+
+def span_note(values) -> str:
+    """``"span only 0.23 %: 0.3001 to 0.3008"`` when the finite ``values`` vary by less than
+    :data:`SMALL_SPAN` of their mean magnitude, else ""."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return ""
+    lo, hi = float(v.min()), float(v.max())
+    scale = float(np.mean(np.abs(v)))
+    if scale == 0 or (hi - lo) >= SMALL_SPAN * scale:
+        return ""
+    digits = max(3, int(np.ceil(-np.log10((hi - lo) / scale))) + 2) if hi > lo else 6
+    return f"span only {100 * (hi - lo) / scale:.2g} %: {lo:.{digits}g} to {hi:.{digits}g}"
 
 
 def _positions(ds, dim):
@@ -121,6 +146,9 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
             ax.plot(xs, da.transpose(dims[0]).values, "o-")
         if ticks:
             ax.set_xticks(xs, ticks)
+        note = span_note(da.values)
+        if note:
+            title += f"\n({note})"
         ax.set_xlabel(_label(ds, dims[0]))
         ax.set_ylabel(vlabel)
         ax.grid(alpha=0.3)
@@ -136,13 +164,19 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         mesh = ax.pcolormesh(np.arange(len(xs)), np.arange(len(ys)), z, cmap=CMAP_SEQUENTIAL, shading="nearest")
         ax.set_xticks(np.arange(len(xs)), xt or [f"{v:g}" for v in xs])
         ax.set_yticks(np.arange(len(ys)), yt or [f"{v:g}" for v in ys])
-        if z.size <= 64:  # small grids: the numbers in the cells
+        if z.size <= 64:  # small grids: the numbers in the cells, with the digits that differ
+            finite = z[np.isfinite(z)]
+            spread = float(np.ptp(finite)) / max(float(np.mean(np.abs(finite))), 1e-300) if finite.size else 1.0
+            digits = max(3, int(np.ceil(-np.log10(spread))) + 2) if spread > 0 else 3
             for j in range(z.shape[0]):
                 for i in range(z.shape[1]):
                     if np.isfinite(z[j, i]):
-                        ax.text(i, j, f"{z[j, i]:.3g}", ha="center", va="center", fontsize=8, color="0.5")
+                        ax.text(i, j, f"{z[j, i]:.{digits}g}", ha="center", va="center", fontsize=8, color="0.5")
         ax.set_xlabel(_label(ds, dims[0]))
         ax.set_ylabel(_label(ds, dims[1]))
-        fig.colorbar(mesh, ax=ax, label=vlabel)
-    ax.set_title(title)
+        note = span_note(z)
+        if note:
+            title += f"\n({note})"
+        fig.colorbar(mesh, ax=ax, label=vlabel + (f"\n(colours stretch a {note.split(': ')[0][5:]} range)" if note else ""))
+    ax.set_title(title, fontsize=10)
     return _save(fig, path, overwrite)
