@@ -129,3 +129,19 @@ def test_calibrate_cli(machine, tmp_path):
     assert main(["gradient", "--flat", str(tmp_path / "flat.exr"), str(tmp_path / "obj.exr"),
                  "--calibration", str(tmp_path / "bad.json"), "-o", str(tmp_path / "h.exr")]) == 2
     assert not (tmp_path / "h.exr").exists()
+
+
+def test_a_detector_at_the_drawn_position_is_reported_not_moved(mi, tmp_path, capsys):
+    """Issue 24: a noise-free flat at the drawn position fits 0.17-0.18 mm off (the fit's bias,
+    FIT_BIAS_MM); that is 'not moved', and a real displacement above bias and noise is 'moved'."""
+    import elo_mitsuba as em
+    from elo_mitsuba.analysis.calibration import FIT_BIAS_MM, describe_displacement
+    from elo_mitsuba.cli import main
+
+    assert describe_displacement(0.17, 0.0).startswith("not moved (within the fit's 0.2 mm bias")
+    assert describe_displacement(5.4, 0.05).startswith("moved 5.40 mm")
+    assert describe_displacement(FIT_BIAS_MM + 0.5, 0.3).startswith("not moved")  # within 2 sigma
+    em.load_scene("flat_plate", res=64).render(quality="default", events=1).write_exr(tmp_path / "flat.exr")
+    assert main(["calibrate", str(tmp_path / "flat.exr"), "-o", str(tmp_path / "c.json")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("not moved (within the fit's 0.2 mm bias") == 4 and "; moved" not in out

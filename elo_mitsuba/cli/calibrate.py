@@ -67,7 +67,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from ..analysis.calibration import calibrate, write_calibration
+    from ..analysis.calibration import calibrate, describe_displacement, write_calibration
     from ..analysis.chain import calibration_start, read_calibration_flats
     from ..files import check_output
 
@@ -87,8 +87,9 @@ def run(args) -> int:
         sig = [fit.sigma.get(k, 0.0) for k in ("cx", "cy", "cz")]
         tilt = np.degrees(np.arccos(np.clip(np.dot(fit.disc.normal, nominal.detectors[name].normal), -1, 1)))
         note = f"; not separable: {', '.join(fit.degenerate)}" if fit.degenerate else ""
-        print(f"  {name:6s} centre [{c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}] mm (+-{max(sig):.2f}; moved "
-              f"{np.linalg.norm(c - nom):.2f} mm), tilt {tilt:.2f} deg, gain {fit.gain:.5g}, "
+        moved = describe_displacement(float(np.linalg.norm(c - nom)), float(np.linalg.norm(sig)))
+        print(f"  {name:6s} centre [{c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}] mm (+-{max(sig):.2f}; {moved}), "
+              f"tilt {tilt:.2f} deg, gain {fit.gain:.5g}, "
               f"rms misfit {100 * fit.rms_residual:.3f} %{note}")
     print(f"wrote {out}")
     return 0
