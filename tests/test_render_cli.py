@@ -129,3 +129,18 @@ def test_render_prints_and_stores_the_error_estimate(tmp_path):
     plain = tmp_path / "plain.exr"
     assert run("render", "flat_plate", "-o", plain, "--resolution", 8, "--quiet").returncode == 0
     assert not any(name.endswith(".err") for name in read_exr(plain)[0])
+
+
+def test_halves_equal_to_rounding_read_deterministic():
+    """Issue 24: a channel whose halves differ by float32 summation order only is reported as
+    deterministic, not as '0.000244 %'."""
+    from types import SimpleNamespace
+
+    from elo_mitsuba.cli.render import error_lines
+
+    rounding = {"status": "estimated", "rms_rel": 2.44e-6, "p99_rel": 4e-6, "rms_abs": 1e-9}
+    noisy = {"status": "estimated", "rms_rel": 2e-3, "p99_rel": 6e-3, "rms_abs": 1e-4}
+    result = SimpleNamespace(detectors=["right"], error_summary=lambda: {"right": rounding, "right.e2": noisy})
+    lines = error_lines(result, "scene")
+    assert "right: deterministic (the halves agree to float32 rounding)" in lines[1]
+    assert "%" not in lines[1].split(";")[0] and "e2 0.2 % RMS" in lines[1]

@@ -170,16 +170,22 @@ def run(args) -> int:
 def error_lines(result, quality: str) -> list[str]:
     """The error estimate of a render as text: one line per detector (its total and each event),
     and a note when the worst total is above what the preset promises (QUALITY_ACCURACY)."""
-    from ..error_estimate import ESTIMATED, describe
+    from ..error_estimate import ESTIMATED, ROUNDING, describe
     from ..options import QUALITY_ACCURACY
+
+    def say(s: dict) -> str:
+        # halves that differ by float32 summation order only: no sampling error to report as "%"
+        if s.get("status") == ESTIMATED and s.get("p99_rel", 1.0) < ROUNDING:
+            return "deterministic (the halves agree to float32 rounding)"
+        return describe(s)
 
     summary = result.error_summary()
     if not summary:
         return []
     lines = ["estimated error per pixel (two independent halves of the samples; RMS over pixels, relative):"]
     for d in result.detectors:
-        parts = [f"{d}: {describe(summary[d])}"]
-        parts += [f"{name[len(d) + 1:]} {describe(summary[name])}" for name in summary if name.startswith(f"{d}.")]
+        parts = [f"{d}: {say(summary[d])}"]
+        parts += [f"{name[len(d) + 1:]} {say(summary[name])}" for name in summary if name.startswith(f"{d}.")]
         lines.append("  " + "; ".join(parts))
     totals = [(summary[d]["rms_rel"], d) for d in result.detectors if summary[d].get("status") == ESTIMATED]
     stated = QUALITY_ACCURACY.get(quality)
