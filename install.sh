@@ -12,8 +12,8 @@
 #   * an LLVM that Mitsuba's llvm variants run with (Debian's libllvm19; Debian 12's default
 #     LLVM 15/16 aborts them). Skipped when one is already present or DRJIT_LIBLLVM_PATH is set.
 #     Uses apt-get (update + install), through sudo when not root.
-#   * this package, editable, with its test extras, into the current python3:
-#     python3 -m pip install -e '.[test]'
+#   * this package, editable, with its test and sweep extras, into the current python3:
+#     python3 -m pip install -e '.[test,sweep]'
 #
 # Works unattended (CI=true, no stdin). Exits non-zero on any failure, including failing tests.
 # Environment: PYTHON (default python3), ELO_SKIP_APT=1 to never touch apt.
@@ -100,10 +100,10 @@ if ! "$PYTHON" -m pip --version >/dev/null 2>&1; then
     "$PYTHON" -m ensurepip --upgrade >/dev/null 2>&1 \
         || die "$PYTHON has no pip (on Debian: apt-get install python3-pip python3-venv)"
 fi
-PIP_ARGS=(install --disable-pip-version-check -q -e ".[test]")
+PIP_ARGS=(install --disable-pip-version-check -q -e ".[test,sweep]")
 pip_out=$(mktemp)
 trap 'rm -f "$pip_out"' EXIT
-say "pip install -e '.[test]' into $("$PYTHON" -c 'import sys; print(sys.executable)')"
+say "pip install -e '.[test,sweep]' into $("$PYTHON" -c 'import sys; print(sys.executable)')"
 if ! "$PYTHON" -m pip "${PIP_ARGS[@]}" 2>"$pip_out" </dev/null; then
     if grep -q externally-managed-environment "$pip_out"; then
         if [[ -n "${CI:-}" ]]; then
@@ -116,7 +116,7 @@ if ! "$PYTHON" -m pip "${PIP_ARGS[@]}" 2>"$pip_out" </dev/null; then
         fi
     else
         cat "$pip_out" >&2
-        die "pip install -e '.[test]' failed"
+        die "pip install -e '.[test,sweep]' failed"
     fi
 fi
 

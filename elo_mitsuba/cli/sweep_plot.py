@@ -48,7 +48,9 @@ def add_parser(subparsers):
 def run(args) -> int:
     from ..files import check_output
     from ..sweeps import plot_metric
+    from ..sweeps.extra import STORE_MODULES, require
 
+    require("elo-mitsuba sweep-plot", STORE_MODULES)
     check_output(args.output, (".png",), overwrite=args.overwrite, what="figure")
     select = dict(args.select)
     if len(select) < len(args.select):

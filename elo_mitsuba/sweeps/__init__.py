@@ -9,10 +9,12 @@ cluster, into one Zarr store readable by ``xarray.open_zarr``.
 * :mod:`.store`   the Zarr layout, per-point status, resume;
 * :mod:`.worker`  what a worker does: load once, re-render in place, write its own point;
 * :mod:`.run`     the client: cluster, tasks, progress (:func:`sweep`);
-* :mod:`.plot`    a metric over one or two swept parameters (:func:`plot_metric`).
+* :mod:`.plot`    a metric over one or two swept parameters (:func:`plot_metric`);
+* :mod:`.extra`   the optional packages a sweep needs (the ``sweep`` extra), checked first.
 
-Dask, xarray and Zarr are imported inside the functions that use them, so importing
-``elo_mitsuba`` stays fast.
+Dask, distributed, xarray and Zarr are the extra ``sweep`` (``pip install 'elo-mitsuba[sweep]'``),
+imported inside the functions that use them: importing ``elo_mitsuba`` neither needs them nor
+pays for them.
 """
 
 from .metrics import GRADIENT_METHODS, METRICS, register_gradient_method

@@ -24,6 +24,7 @@ from ..errors import EloInputError
 from . import store as zstore
 from .metrics import METRICS, applicable
 from .claims import Claims
+from .extra import require
 from .cost import check as estimate_cost
 from .spec import SweepSpec, load_spec
 from .validate import check_first_point, check_points
@@ -295,7 +296,10 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
     EloError
         The cluster failed during the sweep (scheduler or every worker lost): one line; what was
         stored is kept and a re-run resumes it.
+    EloEnvironmentError
+        The ``sweep`` extra (Dask, distributed, xarray, Zarr) is not installed: one line, before anything else.
     """
+    require("a sweep")
     workers, address, threads_per_worker = check_resources(workers, scheduler, threads_per_worker)
     if isinstance(worker_wait_s, bool) or not isinstance(worker_wait_s, (int, float)) or not worker_wait_s > 0:
         raise EloInputError(f"worker_wait_s={worker_wait_s!r}; must be a number of seconds > 0")
