@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from elo_mitsuba.schema import event_channel
+
 from .harness import DETS
 from .report import fmt, median, pct, table
 
@@ -35,7 +37,7 @@ def run(b):
                        "spp": 1, "options": OPTIONS, "seeds": [0, 1, 2]})
             costs.append(median(o["times"]))
         for k in range(1, 5):
-            ek = [sum(r[f"{d}.e{k}"].astype(np.float64) for d in DETS) for r in runs]
+            ek = [sum(r[event_channel(d, k)].astype(np.float64) for d in DETS) for r in runs]
             share = float((ek[0] + ek[1]).mean() / 2 / total.mean())
             noise = float(np.sqrt(np.mean(((ek[0] - ek[1]) / np.sqrt(2) / total) ** 2)) * np.sqrt(spp))
             max_share = float(np.percentile((ek[0] + ek[1]) / 2 / total, 99))

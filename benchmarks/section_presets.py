@@ -17,6 +17,8 @@ import time
 
 import numpy as np
 
+from elo_mitsuba.schema import event_channel
+
 from .harness import DETS, rel_error
 from .report import fmt, pct, table
 
@@ -93,7 +95,8 @@ def run(b):
     for r in results:
         for preset in PRESETS:
             p = r["presets"][preset]
-            kinds = [("total", "")] + [(f"e{k}", f".e{k}") for k in range(1, 5) if f"right.e{k}" in p["channels"]]
+            kinds = [("total", "")] + [(f"e{k}", event_channel("", k)) for k in range(1, 5)
+                                       if event_channel("right", k) in p["channels"]]
             for label, suffix in kinds:
                 rms, p99, worst, ratio, status = _worst(p, suffix)
                 est = ("deterministic" if status == "deterministic" else

@@ -184,22 +184,22 @@ def check_work(seconds: float, memory_bytes: float, force: bool = False, *, what
         available, source = memory_limit()
     hint = f"; {hint}" if hint else ""
     if available is not None and memory_bytes > available:
-        raise EloInputError(f"{what} needs about {_human_bytes(memory_bytes)} of memory, "
-                            f"{_human_bytes(available)} is {source}{hint}")
+        raise EloInputError(f"{what} needs about {human_bytes(memory_bytes)} of memory, "
+                            f"{human_bytes(available)} is {source}{hint}")
     if seconds > REFUSE_SECONDS and not force:
-        raise EloInputError(f"{what} would take about {_human_seconds(seconds)} (estimate; work over "
-                            f"{_human_seconds(REFUSE_SECONDS)} is refused as likely a mistake){hint}, or pass "
+        raise EloInputError(f"{what} would take about {human_seconds(seconds)} (estimate; work over "
+                            f"{human_seconds(REFUSE_SECONDS)} is refused as likely a mistake){hint}, or pass "
                             "--yes (Python: force=True) to run it anyway")
 
 
-def _human_bytes(n: float) -> str:
+def human_bytes(n: float) -> str:
     for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if n >= size:
             return f"{n / size:.3g} {unit}"
     return f"{n / 1e3:.3g} kB"
 
 
-def _human_seconds(s: float) -> str:
+def human_seconds(s: float) -> str:
     if s < 120:
         return f"{s:.0f} s"
     if s < 7200:
@@ -267,11 +267,11 @@ def check_render(resolution, channels: int, spp: int, traced_events: int, passes
     notes = []
     if est["compile_seconds"] > NOTE_SECONDS / 2:
         notes.append(f"{traced_events} traced events{points}: compiling the kernel takes about "
-                     f"{_human_seconds(est['compile_seconds'])} (it grows with events^2 and the detector points; "
+                     f"{human_seconds(est['compile_seconds'])} (it grows with events^2 and the detector points; "
                      "the event shares printed after a render show how many events matter)")
     if est["render_seconds"] > NOTE_SECONDS:
         notes.append(f"{est['samples']:.3g} samples ({w}x{h} px x {spp} spp x {traced_events} event(s)): up to about "
-                     f"{_human_seconds(est['render_seconds'])} (progress below; Ctrl-C stops it)")
+                     f"{human_seconds(est['render_seconds'])} (progress below; Ctrl-C stops it)")
     return notes
 
 

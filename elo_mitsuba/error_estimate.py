@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .options import half_budget
+from .schema import event_channel
 
 #: Relative errors are taken against ``max(|value|, FLOOR x the image mean of |value|)``, as in benchmarks/.
 FLOOR = 0.05
@@ -170,7 +171,7 @@ def later_events_error(errors, names, events: int) -> dict | None:
     for n in names:
         var = None
         for k in range(2, int(events) + 1):
-            e = errors.get(f"{n}.e{k}")
+            e = errors.get(event_channel(n, k))
             if e is not None:
                 found = True
                 var = np.asarray(e, float) ** 2 if var is None else var + np.asarray(e, float) ** 2

@@ -64,7 +64,7 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
     header = {
         "compression": OpenEXR.NO_COMPRESSION,  # see COMPRESSION_NOTE
         "type": OpenEXR.scanlineimage,
-        METADATA_ATTRIBUTE: _metadata_json(path, meta),
+        METADATA_ATTRIBUTE: metadata_json(path, meta),
     }
     for key in _PLAIN_ATTRIBUTES:
         if key in meta and isinstance(meta[key], (int, float, str)) and not isinstance(meta[key], bool):
@@ -152,7 +152,7 @@ def _library_output():
             lines.extend(sink.read().decode("utf-8", "replace").splitlines() + held.getvalue().splitlines())
 
 
-def _metadata_json(path, meta) -> str:
+def metadata_json(path, meta) -> str:
     """The header as strict JSON: NaN or Inf in the geometry is a defect to refuse, not to store."""
     try:
         return json.dumps(meta, default=_json_default, allow_nan=False)

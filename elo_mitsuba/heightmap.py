@@ -116,9 +116,9 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     else:
         import tifffile
 
-        from .exr import _metadata_json
+        from .exr import metadata_json
 
-        text = _metadata_json(path, meta)
+        text = metadata_json(path, meta)
         extra = {} if pixel is None else {"resolution": (10.0 / pixel, 10.0 / pixel), "resolutionunit": "CENTIMETER"}
         atomic_write(path, lambda tmp: tifffile.imwrite(tmp, stored.astype(np.float32), description=text, **extra))
     return path
@@ -126,7 +126,7 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
 
 def _gsf_bytes(path, stored, pixel_mm: float, meta: Mapping) -> bytes:
     """A Gwyddion Simple Field file of ``stored`` (mm, NaN = no height) in metres."""
-    from .exr import _metadata_json
+    from .exr import metadata_json
 
     h, w = stored.shape
     fx, fy = w * pixel_mm, h * pixel_mm
@@ -134,7 +134,7 @@ def _gsf_bytes(path, stored, pixel_mm: float, meta: Mapping) -> bytes:
              f"XReal = {fx * 1e-3!r}", f"YReal = {fy * 1e-3!r}",
              f"XOffset = {-fx / 2 * 1e-3!r}", f"YOffset = {-fy / 2 * 1e-3!r}",
              "XYUnits = m", "ZUnits = m", f"Title = {meta.get('quantity', 'height map')}",
-             f"ELOMitsuba = {_metadata_json(path, meta)}"]
+             f"ELOMitsuba = {metadata_json(path, meta)}"]
     head = ("\n".join(line.replace("\n", " ").replace("\0", "") for line in lines) + "\n").encode("utf-8")
     head += b"\0" * (4 - len(head) % 4)  # one to four NUL bytes
     return head + (stored * 1e-3).astype("<f4").tobytes()

@@ -32,6 +32,7 @@ from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS,
 from .progress import RenderProgress
 from .result import NEGLIGIBLE_EVENT_SHARE, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
+from .schema import signal_units
 from .scene_files import (check_detector_placement, declared_parameters, explain_mitsuba_error,
                           resolve_scene_path, scene_values)
 
@@ -154,7 +155,7 @@ class EloScene:
             "generator": f"elo-mitsuba {__version__}",
             "scene": str(self.path),
             "parameters": self.params,
-            "units": "V" if self.integrator.units == "voltage" else "N_d/N_0",
+            "units": signal_units(self.integrator.units),
             "field_mm": [s.field, s.field_y],
             "resolution": list(s.resolution),
             "pixel_size_mm": s.field / s.resolution[0],

@@ -13,6 +13,7 @@ import numpy as np
 
 from .error_estimate import DETERMINISTIC
 from .exr import write_exr
+from .schema import error_channel, event_channel
 
 #: An event order adding less than this share of the signal in 99 % of the pixels is reported as
 #: negligible (0.1 %: below the default preset's per-pixel error of events >= 2, 0.2 %).
@@ -52,9 +53,9 @@ class RenderResult:
             summary = self.error_summary()
             for name, img in self.channels.items():
                 if name in self.errors:
-                    channels[f"{name}.err"] = self.errors[name]
+                    channels[error_channel(name)] = self.errors[name]
                 elif summary.get(name, {}).get("status") == DETERMINISTIC:
-                    channels[f"{name}.err"] = np.zeros_like(img)
+                    channels[error_channel(name)] = np.zeros_like(img)
         return write_exr(path, channels, self.metadata, overwrite=overwrite)
 
     def event_shares(self) -> list[dict]:
@@ -69,7 +70,7 @@ class RenderResult:
         signal = float(total.sum())
         out = []
         for k in range(1, events + 1):
-            ek = sum(self.channels[f"{d}.e{k}"].astype(np.float64) for d in self.detectors)
+            ek = sum(self.channels[event_channel(d, k)].astype(np.float64) for d in self.detectors)
             mean = float(ek.sum()) / signal if signal > 0 else 0.0
             p99 = float(np.percentile(ek[lit] / total[lit], 99)) if np.any(lit) else 0.0
             out.append({"event": k, "mean": mean, "p99": p99})

@@ -185,7 +185,7 @@ def fwhm_to_sigma(fwhm_mm: float) -> float:
     >>> round(fwhm_to_sigma(0.27), 5)
     0.11466
     """
-    return float(fwhm_mm) / FWHM_PER_SIGMA
+    return float(float(fwhm_mm) / FWHM_PER_SIGMA)
 
 
 # -- the geometry header --

@@ -84,6 +84,7 @@ from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.film import film_tensor, raw_planes
 from elo_mitsuba.options import EloOptions, parameter_table
 from elo_mitsuba.physics.solid_angle import vos_denominator
+from elo_mitsuba.schema import event_channel, event_channels
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
@@ -189,11 +190,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         for name, _ in self.detectors:
             names.append(name)
             if self.events > 1:
-                names += [f"{name}.e{k}" for k in range(1, self.events + 1)]
+                names += event_channels([name], self.events)
         return names
 
     def _bounce_channels(self):
-        return [f"{d}.e{k}" for d, _ in self.detectors for k in range(2, self.events + 1)]
+        return event_channels([d for d, _ in self.detectors], self.events, first=2)
 
     def _filters_bounces(self):
         return self.bounce_filter > 0 and self.traced_events() > 1
@@ -317,9 +318,9 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _totals(self, planes, index):
         """Each detector's total from its event channels (in place)."""
         for d, _ in self.detectors:
-            total = planes[index[f"{d}.e1"]]
+            total = planes[index[event_channel(d, 1)]]
             for e in range(2, self.events + 1):
-                total = total + planes[index[f"{d}.e{e}"]]
+                total = total + planes[index[event_channel(d, e)]]
             planes[index[d]] = total
 
     # ---- the estimator --------------------------------------------------------------------------

@@ -25,8 +25,8 @@ import numpy as np
 from elo_mitsuba.constants import FIELD_MM, WORK_DISTANCE_MM
 from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.grid import film_to_plane
+from elo_mitsuba.schema import fwhm_to_sigma
 
-_FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 #: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
 #: aimed exactly at a vertex or edge of a mesh built on the same grid as the scan (a height map
 #: rendered at its own resolution) can pass through the surface, and with fwhm = 0 every sample of
@@ -72,7 +72,7 @@ class EloBeam(mi.Sensor):
         pitch = (self.field / self.resolution[0], self.field_y / self.resolution[1])
         #: (dx, dy) mm: the beam aims at every pixel centre plus this (recorded in output headers)
         self.aim_offset_mm = tuple(min(f * p, cap) for f, p, cap in zip(_AIM_NUDGE, pitch, _AIM_NUDGE_MAX_MM))
-        self.sigma = mi.Float(self.fwhm * _FWHM_TO_SIGMA)
+        self.sigma = mi.Float(fwhm_to_sigma(self.fwhm))
         self._wd = mi.Float(self.wd)
         self._field = mi.Vector2f(self.field, self.field_y)
         dr.make_opaque(self.sigma, self._wd, self._field)

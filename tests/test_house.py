@@ -87,3 +87,70 @@ def test_only_render_py_moves_a_detector():
     bad = [f"{p.relative_to(ROOT)}:{n}" for p in _sources("elo_mitsuba", "plugins", "validation", "benchmarks")
            if p != owner for n in _writes_to_world(p)]
     assert not bad, "to_world written outside elo_mitsuba/render.py: " + ", ".join(bad)
+
+
+# -- the inverse wing's rules (issue 24) --
+def _private_imports(path: Path) -> set[str]:
+    """``from X import _name`` of another module's private function (``__future__`` and dunders aside)."""
+    bad = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+            bad |= {f"{node.module}.{a.name}" for a in node.names if a.name.startswith("_") and not a.name.startswith("__")}
+    return bad
+
+
+def test_no_cli_module_imports_another_except_args():
+    """The commands are thin over the API: shared argument types live in cli/_args.py, the pipeline
+    in the library (analysis/chain.py), never in another command's module."""
+    for path in _sources("elo_mitsuba/cli"):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                names = [node.module] if node.module else [a.name for a in node.names]
+                bad = [n for n in names if n.split(".")[0] not in ("_args", "checkout")]
+                assert not bad, f"{path.relative_to(ROOT)} imports cli module(s) {bad}"
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("elo_mitsuba.cli."):
+                assert node.module == "elo_mitsuba.cli._args", f"{path.relative_to(ROOT)} imports {node.module}"
+
+
+#: Private imports left to the owners of these files (to be made public there).
+PRIVATE_IMPORTS_PENDING = {"elo_mitsuba/sweeps/plot.py": {"analysis.plots._figure", "analysis.plots._save"}}
+
+
+def test_no_module_imports_another_modules_private_names():
+    found = {}
+    for path in _sources("elo_mitsuba", "plugins"):
+        bad = {n.lstrip(".") for n in _private_imports(path)}
+        bad -= PRIVATE_IMPORTS_PENDING.get(str(path.relative_to(ROOT)), set())
+        if bad:
+            found[str(path.relative_to(ROOT))] = sorted(bad)
+    assert not found, f"private names imported across modules: {found}"
+
+
+def test_event_channel_names_are_built_in_schema_only():
+    """``<id>.e<k>`` has one builder (elo_mitsuba.schema.event_channel)."""
+    pattern = re.compile(r"""f["'][^"']*\.e\{""")
+    for path in _sources("elo_mitsuba", "plugins", "validation", "benchmarks"):
+        if path == ROOT / "elo_mitsuba" / "schema.py":
+            continue
+        assert not pattern.search(path.read_text()), f"{path.relative_to(ROOT)} builds '<id>.e<k>' itself"
+
+
+def test_one_reader_of_the_geometry_header():
+    """Only schema.read_geometry reads the header's geometry keys; the old second reader is gone."""
+    keys = re.compile(r"""(?:\.get\(|\[)["'](detectors|work_distance_mm|beam_aim_offset_mm)["']""")
+    for path in _sources("elo_mitsuba/analysis", "elo_mitsuba/cli"):
+        if path.name == "calibration.py":
+            continue  # CALIB.json's own detectors, not an image header
+        text = path.read_text()
+        assert "def geometry_from_metadata" not in text, f"{path.relative_to(ROOT)}: a second header reader"
+        assert not keys.search(text), f"{path.relative_to(ROOT)} reads geometry keys of a header itself"
+    defs = [p for p in _sources("elo_mitsuba") if "def from_metadata(" in p.read_text()]
+    assert [p.name for p in defs] == ["scan_geometry.py"]
+    assert "read_geometry(" in (ROOT / "elo_mitsuba" / "analysis" / "scan_geometry.py").read_text()
+
+
+def test_fwhm_to_sigma_is_written_once():
+    pattern = re.compile(r"sqrt\(2(\.0)? \* np\.log\(2")
+    hits = [p for p in _sources("elo_mitsuba", "plugins", "validation", "benchmarks") if pattern.search(p.read_text())]
+    assert [p.name for p in hits] == ["schema.py"], hits

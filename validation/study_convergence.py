@@ -8,6 +8,8 @@ import time
 
 import numpy as np
 
+from elo_mitsuba.schema import event_channels
+
 from .report import Row, StudyResult, fmt, verdict_from
 
 TITLE = "Convergence: error vs spp per event order and vs detector samples; settings for 1 % and 0.1 %"
@@ -30,7 +32,7 @@ def run(ctx):
                                     "(Sec. 2.1.1, Appendix A)")
     r = ctx.renderer
     kw = dict(res=res, field=FIELD)
-    chans = [f"right.e{k}" for k in range(1, events + 1)] + ["right"]
+    chans = event_channels(["right"], events) + ["right"]
     labels = {c: (f"event {c[-1]}" if ".e" in c else "total") for c in chans}
     r.render("athene_flat", spp=1, events=events, seed=999, **kw)  # compile the kernel before timing
     t0 = time.perf_counter()

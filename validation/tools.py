@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+from elo_mitsuba.schema import FWHM_PER_SIGMA  # re-exported for the studies
 
 
 def half_asymmetry(img_a, img_b, y):

@@ -46,6 +46,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..grid import pixel_coordinates, pixel_size
+from ..schema import fwhm_to_sigma
 from .detector_model import DEFAULT_NODES, FacetModel
 
 #: The stencil of one pixel's facet: its four corners (top = the +y side, row i of the corner grid).
@@ -57,7 +58,6 @@ SHADOW_STEP_PX = 0.5
 MAX_SHADOW_STEPS = 4096
 #: A beam FWHM below this many pixels is not convolved (the Gaussian would be a delta on the grid).
 MIN_BLUR_PX = 0.25
-FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 
 # ---- the stencil, as linear maps of the height array (and their transposes) ----------------------
@@ -157,7 +157,7 @@ def pixels_from_corners(g) -> np.ndarray:
 def blur_sigma_px(fwhm_mm: float, shape, field_mm) -> tuple[float, float]:
     """Standard deviation of the beam profile in pixels (rows, columns); (0, 0) below :data:`MIN_BLUR_PX`."""
     dx, dy = pixel_size(shape, field_mm)
-    sigma = float(fwhm_mm) / FWHM_PER_SIGMA
+    sigma = fwhm_to_sigma(fwhm_mm)
     if not np.isfinite(sigma) or sigma < 0:
         raise EloInputError(f"beam fwhm {fwhm_mm!r} mm: must be a finite number >= 0")
     if fwhm_mm / max(dx, dy) < MIN_BLUR_PX:

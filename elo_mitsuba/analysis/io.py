@@ -25,6 +25,7 @@ from ..errors import EloInputError
 from ..exr import read_exr, write_exr
 from ..files import check_output
 from ..grid import field_xy
+from ..schema import error_channels, event_channel, grid_header
 from ..heightmap import HEIGHT_SUFFIXES, write_height
 
 IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
@@ -89,7 +90,7 @@ def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
 def read_detector_exr(path, event: int | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """The four detector images of a forward-model EXR (channels ``right`` ... or ``right.e<K>``)."""
     channels, meta = read_exr(path)
-    names = {n: n if event is None else f"{n}.e{int(event)}" for n in DETECTOR_NAMES}
+    names = {n: n if event is None else event_channel(n, event) for n in DETECTOR_NAMES}
     missing = [c for c in names.values() if c not in channels]
     if missing:
         raise EloInputError(
@@ -168,8 +169,7 @@ def read_later_errors(path) -> dict | None:
     from ..error_estimate import later_events_error
 
     channels, meta = read_exr(path)
-    errors = {name[:-len(".err")]: v for name, v in channels.items() if name.endswith(".err")}
-    return later_events_error(errors, DETECTOR_NAMES, int(meta.get("events", 1)))
+    return later_events_error(error_channels(channels), DETECTOR_NAMES, int(meta.get("events", 1)))
 
 
 def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, str]) -> None:
@@ -233,8 +233,7 @@ def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, sts
     meta = {
         "quantity": METHOD_QUANTITY[method],
         "method": method,
-        "field_mm": list(field_xy(field_mm, (h, w))),
-        "resolution": [w, h],
+        **grid_header(field_mm, (h, w)),
         "d_h_mm": d_h,
         "d_w_mm": d_w,
         "units": "mm/mm",

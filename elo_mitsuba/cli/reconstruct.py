@@ -85,18 +85,19 @@ def run(args) -> int:
     from ..analysis.integrate import reconstruction_quality, resolve_method
     from ..analysis.io import read_gradient
     from ..analysis.plots import preview_height
+    from ..schema import PROJECTION, WORK_DISTANCE
 
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
     field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
     method = resolve_method(args.method, grad["dzdx"], grad["dzdy"], mask)  # what runs is what is reported
     gx, gy = grad["dzdx"], grad["dzdy"]
-    perspective = meta.get("projection") == "perspective" and meta.get("work_distance_mm")
+    perspective = meta.get(PROJECTION) == "perspective" and meta.get(WORK_DISTANCE)
     if perspective:
         # the slopes are those where each pixel's beam lands; the height over the scan grid has
         # the gradient of scan_grid_gradient (else a zero-mean relief integrates to a bowl)
         from ..analysis.integrate import scan_grid_gradient
 
-        gx, gy = scan_grid_gradient(gx, gy, field, meta["work_distance_mm"])
+        gx, gy = scan_grid_gradient(gx, gy, field, meta[WORK_DISTANCE])
         gx = np.where(mask, 0.0, gx) if mask is not None else gx
         gy = np.where(mask, 0.0, gy) if mask is not None else gy
     height, mask_out = integrate_gradient(gx, gy, field, method=method,

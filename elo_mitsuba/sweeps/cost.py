@@ -73,7 +73,7 @@ def estimate(spec, probe, layout: dict, workers: int) -> dict:
 def check(spec, probe, layout: dict, output, *, workers: int, force: bool = False) -> dict:
     """Refuse a sweep whose estimate is out of bounds (see the module docstring); returns the
     estimate. Raises EloInputError (one line with the figures)."""
-    from ..budget import _human_bytes, _human_seconds
+    from ..budget import human_bytes, human_seconds
 
     try:
         from ..budget import REFUSE_SECONDS, memory_limit
@@ -88,22 +88,22 @@ def check(spec, probe, layout: dict, output, *, workers: int, force: bool = Fals
     est = estimate(spec, probe, layout, workers)
     w, h = est["resolution"]
     figures = (f"{est['points']} points at {w}x{h} px, {est['spp']} spp, {est['events']} event(s): about "
-               f"{_human_seconds(est['seconds'])} on this machine, {_human_bytes(est['memory_bytes'])} of memory, "
-               f"a store of {_human_bytes(est['store_bytes'])} in {est['files']:,} files")
+               f"{human_seconds(est['seconds'])} on this machine, {human_bytes(est['memory_bytes'])} of memory, "
+               f"a store of {human_bytes(est['store_bytes'])} in {est['files']:,} files")
     hint = "lower the points, spp or resolution (or split the sweep)"
     available, source = memory_limit()
     if available is not None and est["memory_bytes"] > available:
-        raise EloInputError(f"{spec.source}: {figures}; {_human_bytes(available)} of memory is {source}; {hint}")
+        raise EloInputError(f"{spec.source}: {figures}; {human_bytes(available)} of memory is {source}; {hint}")
     try:
         free = shutil.disk_usage(output.parent).free
     except OSError:
         free = None
     if free is not None and est["store_bytes"] > free:
-        raise EloInputError(f"{spec.source}: {figures}; {_human_bytes(free)} is free in {output.parent}; {hint}")
+        raise EloInputError(f"{spec.source}: {figures}; {human_bytes(free)} is free in {output.parent}; {hint}")
     if force:
         return est
     if est["seconds"] > REFUSE_SECONDS:
-        why = f"work over {_human_seconds(REFUSE_SECONDS)} is refused as likely a mistake"
+        why = f"work over {human_seconds(REFUSE_SECONDS)} is refused as likely a mistake"
     elif est["files"] > MAX_FILES:
         why = f"a store of over {MAX_FILES:,} files is refused as likely a mistake"
     else:

@@ -20,8 +20,9 @@ import numpy as np
 #: applies it to STSA-corrected images (flat plate = 1); the field mean stands in for the flat
 #: (a median would be more robust but costs 10 ms per detector at 512^2, 10 % of a render).
 DARK_FRACTION = 0.02
-#: The units of a metric in the render's own units (the render metadata's ``units``: N_d/N_0, or V
-#: with ``units = "voltage"``); the store labels it with them (one source for the label).
+#: The units of a metric in the render's own units (the render metadata's ``units``, labelled by
+#: :func:`elo_mitsuba.schema.signal_units`: N_d/N_0, or V with ``units = "voltage"``); the store
+#: labels it with them (one source for the label).
 SIGNAL_UNITS = "signal"
 
 

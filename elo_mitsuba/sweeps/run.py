@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import EloInputError
+from ..schema import UNITS, event_channels
 from . import store as zstore
 from .metrics import METRICS, applicable
 from .claims import Claims
@@ -88,7 +89,7 @@ def prepare(spec, output, *, overwrite: bool = False, workers: int = 1, force: b
     ctx = {"events": min(events), "surface": spec.surface is not None, "detectors": dets}
     metrics = spec.metrics if spec.metrics is not None else applicable(ctx)
     if spec.channels == "all":
-        channels = list(dets) + ([f"{d}.e{k}" for d in dets for k in range(1, min(events) + 1)] if min(events) > 1 else [])
+        channels = list(dets) + (event_channels(dets, min(events)) if min(events) > 1 else [])
     else:
         channels = list(spec.channels)
     w, h = (int(x) for x in probe.sensor.resolution)
@@ -108,7 +109,7 @@ def prepare(spec, output, *, overwrite: bool = False, workers: int = 1, force: b
         "channels": channels,
         "image_shape": (h // f, w // f),
         "pixel_axes": pixel_axes((h // f, w // f), meta["field_mm"]),
-        "units": meta["units"],
+        "units": meta[UNITS],
         "geometry": geometry,
     }
     estimate_cost(spec, probe, layout, path, workers=workers, force=force)

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import EloInputError
+from ..schema import event_channels
 from ..options import MAX_EVENTS
 
 #: Top-level keys of a spec.
@@ -517,7 +518,7 @@ def check_against_scene(spec: SweepSpec, scene) -> None:
                 _fail(src, f"{m.key}: the scene's detectors are not disks; they cannot be moved")
     events = [spec.events] + [v for a in spec.axes for m in a.members if m.key == "events" for v in m.values]
     if spec.channels and spec.channels != "all":
-        allowed = set(dets) | {f"{d}.e{k}" for d in dets for k in range(1, min(events) + 1)} if min(events) > 1 else set(dets)
+        allowed = set(dets) | set(event_channels(dets, min(events))) if min(events) > 1 else set(dets)
         bad = [c for c in spec.channels if c not in allowed]
         if bad:
             _fail(src, f"keep.channels: unknown channel {bad[0]!r}; channels: {', '.join(sorted(allowed))}")
