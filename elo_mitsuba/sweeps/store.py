@@ -229,12 +229,6 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}"
 
 
-def read_errors(path) -> np.ndarray:
-    import zarr
-
-    return np.asarray(zarr.open_group(str(path), mode="r")["error"][...])
-
-
 class PointWriter:
     """Writes one point's results into its own chunks (used on the workers).
 
