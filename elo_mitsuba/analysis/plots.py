@@ -43,7 +43,7 @@ MASK_COLOUR = "#808080"
 GRADIENT_MIN_SCALE = 0.01
 
 
-def _figure(ncols=1, width=5.2, height=4.4):
+def new_figure(ncols=1, width=5.2, height=4.4):
     import cmasher  # noqa: F401  (registers the cmr.* colour maps)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -54,7 +54,7 @@ def _figure(ncols=1, width=5.2, height=4.4):
     return fig, axes
 
 
-def _save(fig, path, overwrite):
+def save_figure(fig, path, overwrite):
     path = check_output(path, (".png",), overwrite=overwrite, what="figure")
     return atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120))
 
@@ -123,21 +123,21 @@ def preview_image(image, field_mm, path, *, title="", label="", cmap=CMAP_INTENS
     """One image with colour bar (``label`` gives the unit), axes in mm, masked pixels grey.
 
     The colour scale spans the ``clip_percent`` .. ``100 - clip_percent`` percentiles."""
-    fig, (ax,) = _figure()
+    fig, (ax,) = new_figure()
     _draw_image(fig, ax, image, field_mm, title=title, label=label, cmap=cmap, symmetric=symmetric, mask=mask,
                 clip_percent=clip_percent)
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)
 
 
 def preview_gradient(dzdx, dzdy, field_mm, path, *, mask=None, title="Surface gradient (Eq. 26)",
                      overwrite=False) -> Path:
     """dZ/dx and dZ/dy side by side, mm/mm: each panel its own colour scale, symmetric about 0 and
     at least :data:`GRADIENT_MIN_SCALE` (a panel at noise level says so in its title)."""
-    fig, axes = _figure(2)
+    fig, axes = new_figure(2)
     for ax, img, name in ((axes[0], dzdx, "dZ/dx"), (axes[1], dzdy, "dZ/dy")):
         _draw_image(fig, ax, img, field_mm, title=f"{title}: {name}", label=f"{name} / (mm/mm)",
                     cmap=CMAP_DIVERGING, symmetric=True, mask=mask, min_scale=GRADIENT_MIN_SCALE)
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)
 
 
 def preview_height(height, field_mm, path, *, mask=None, title="Height map", overwrite=False) -> Path:
@@ -160,7 +160,7 @@ def plot_reflectance_maps(p, q, g_full, g_diffuse, masked, d_pq, path, *, title=
     detector direction marked with a white cross. Inputs from :func:`~.design.reflectance_map`."""
     from matplotlib import rc_context
 
-    fig, axes = _figure(2)
+    fig, axes = new_figure(2)
     ext = _pq_extent(p, q)
     vmax = float(max(np.max(g_full), np.max(g_diffuse), 1e-12))
     for ax, g, name in ((axes[0], g_full, "full $g_{BSE}$ (Eq. 13)"), (axes[1], g_diffuse, "diffuse part only")):
@@ -186,7 +186,7 @@ def plot_reflectance_maps(p, q, g_full, g_diffuse, masked, d_pq, path, *, title=
         cb.set_label("$g_{BSE}$ / sr$^{-1}$")
     if title:
         fig.suptitle(title, fontsize=10)
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)
 
 
 def plot_normal_histogram(hist, p_edges, q_edges, path, *, lines: Mapping | None = None,
@@ -197,7 +197,7 @@ def plot_normal_histogram(hist, p_edges, q_edges, path, *, lines: Mapping | None
     """
     from matplotlib.colors import LogNorm
 
-    fig, (ax,) = _figure(1, width=6.0, height=5.2)
+    fig, (ax,) = new_figure(1, width=6.0, height=5.2)
     h = np.asarray(hist, dtype=float)
     shown = np.where(h > 0, h, np.nan)
     vmax = max(np.nanmax(shown) if np.isfinite(shown).any() else 1.0, 1.0)
@@ -222,13 +222,13 @@ def plot_normal_histogram(hist, p_edges, q_edges, path, *, lines: Mapping | None
         ax.legend(loc="upper right", fontsize=8)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
     cb.set_label("pixels per bin")
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)
 
 
 def plot_image_histograms(stats: Mapping[str, dict], path, *, unit="N_d/N_0", title="Image histograms",
                           overwrite=False) -> Path:
     """Fig. 15: histograms of several images (``{label: image_statistics(...)}``), mean dashed."""
-    fig, (ax,) = _figure(1, width=6.5, height=4.2)
+    fig, (ax,) = new_figure(1, width=6.5, height=4.2)
     for k, (label, s) in enumerate(stats.items()):
         edges = np.asarray(s["bin_edges"])
         ax.stairs(s["hist"], edges, color=f"C{k}",
@@ -238,7 +238,7 @@ def plot_image_histograms(stats: Mapping[str, dict], path, *, unit="N_d/N_0", ti
     ax.set_ylabel("pixels")
     ax.set_title(title)
     ax.legend(fontsize=8)
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)
 
 
 def preview_detectors(channels: Mapping[str, np.ndarray], field_mm, path, *, unit="N_d/N_0", title="",
@@ -250,8 +250,8 @@ def preview_detectors(channels: Mapping[str, np.ndarray], field_mm, path, *, uni
     names = [n for n in channels if "." not in n]
     if not names:
         raise EloInputError(f"{path}: no detector channels to preview")
-    fig, axes = _figure(len(names), width=4.4, height=3.9)
+    fig, axes = new_figure(len(names), width=4.4, height=3.9)
     for ax, name in zip(axes, names):
         _draw_image(fig, ax, channels[name], field_mm, title=f"{title}{name}", label=unit,
                     cmap=CMAP_INTENSITY, clip_percent=0.0)
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)

@@ -92,7 +92,7 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
     -------
     Path
     """
-    from ..analysis.plots import CMAP_SEQUENTIAL, _figure, _save
+    from ..analysis.plots import CMAP_SEQUENTIAL, new_figure, save_figure
 
     ds = _open(store)
     if metric not in ds.data_vars or {"y", "x"} & set(ds[metric].dims) or metric in ("error", "worker"):
@@ -134,7 +134,7 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         dims.insert(0, x)
     units = ds[metric].attrs.get("units", "")
     vlabel = f"{metric} ({units})" if units and units != "1" else metric
-    fig, axes = _figure()
+    fig, axes = new_figure()
     ax = axes[0]
     if len(dims) == 1:
         xs, ticks = _positions(ds, dims[0])
@@ -179,4 +179,4 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
             title += f"\n({note})"
         fig.colorbar(mesh, ax=ax, label=vlabel + (f"\n(colours stretch a {note.split(': ')[0][5:]} range)" if note else ""))
     ax.set_title(title, fontsize=10)
-    return _save(fig, path, overwrite)
+    return save_figure(fig, path, overwrite)
