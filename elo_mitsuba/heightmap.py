@@ -6,21 +6,21 @@ A height map is a 2-D array ``height[i, j]`` in millimetres in the package's ima
 
 What :func:`write_height` stores, by suffix (``reconstruct`` and ``invert`` write these):
 
-``.exr``   float32 channels ``height`` (mm) and ``mask`` (1 = no height measured / untrusted,
-           0 = measured), the metadata as JSON in the header. The height channel holds 0 (not
-           NaN) at masked pixels: the package's EXR writer refuses non-finite values, a guard
-           against defects that every EXR reader here relies on, and the mask channel says
-           where. :func:`read_heightmap` reads those pixels as NaN.
-``.tif``   float32 height in mm (NaN where no height), the metadata as JSON in the
-           ImageDescription, the pixel size in the resolution tags (pixels per centimetre,
-           ResolutionUnit CENTIMETER: the unit of baseline TIFF that metrology readers take).
-``.npy``   float64 height in mm (NaN where no height); no metadata, no pixel size.
-``.gsf``   Gwyddion Simple Field: the ASCII header (XRes, YRes, XReal, YReal, XOffset, YOffset,
-           XYUnits = m, ZUnits = m: Gwyddion asks for base SI units, so lengths and heights are
-           in metres there), one to four NUL bytes to a multiple of 4, then little-endian float32
-           heights row by row, row 0 first (NaN where no height). Gwyddion's y runs down the
-           rows, so its y is the scene's -y (XOffset/YOffset put the map's centre at 0). The
-           package metadata is the one-line JSON field ``ELOMitsuba``.
+* ``.exr``: float32 channels ``height`` (mm) and ``mask`` (1 = no height measured / untrusted,
+  0 = measured), the metadata as JSON in the header. The height channel holds 0 (not
+  NaN) at masked pixels: the package's EXR writer refuses non-finite values, a guard
+  against defects that every EXR reader here relies on, and the mask channel says
+  where. :func:`read_heightmap` reads those pixels as NaN.
+* ``.tif``: float32 height in mm (NaN where no height), the metadata as JSON in the
+  ImageDescription, the pixel size in the resolution tags (pixels per centimetre,
+  ResolutionUnit CENTIMETER: the unit of baseline TIFF that metrology readers take).
+* ``.npy``: float64 height in mm (NaN where no height); no metadata, no pixel size.
+* ``.gsf``: Gwyddion Simple Field: the ASCII header (XRes, YRes, XReal, YReal, XOffset, YOffset,
+  XYUnits = m, ZUnits = m: Gwyddion asks for base SI units, so lengths and heights are
+  in metres there), one to four NUL bytes to a multiple of 4, then little-endian float32
+  heights row by row, row 0 first (NaN where no height). Gwyddion's y runs down the
+  rows, so its y is the scene's -y (XOffset/YOffset put the map's centre at 0). The
+  package metadata is the one-line JSON field ``ELOMitsuba``.
 
 Untrusted pixels hold NaN, not 0, in TIFF, NPY and GSF (they have no mask: a 0 would read as a
 measured height); the EXR holds 0 with its ``mask`` channel. ISO 25178-72 ``.x3p`` is not written:

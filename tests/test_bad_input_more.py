@@ -128,6 +128,12 @@ CLI_CASES = [
      "field 40x40 mm contradicts the header's field_mm 80x80 mm"),
     ("reflectance-map --work-distance without pivot", ["reflectance-map", "--zeta", "50", "-o", "{d}/m.png",
                                                        "--work-distance", "300"], "add --beam pivot"),
+    ("reflectance-map --layout and --zeta", ["reflectance-map", "--layout", "zeta50", "--zeta", "50", "-o",
+                                             "{d}/m.png"], "--layout zeta50 and --zeta 50 both set the layout"),
+    ("reflectance-map --layout and --dh", ["reflectance-map", "--layout", "zeta50", "--dh", "100", "-o", "{d}/m.png"],
+     "--layout zeta50 sets dh and dw; --dh 100 contradicts it"),
+    ("reflectance-map --layout unknown", ["reflectance-map", "--layout", "zeta33", "-o", "{d}/m.png"],
+     "unknown detector layout 'zeta33'"),
     # -- 9: parsing never tracebacks
     ("invert --init garbage npy", [*INV, "--init", "{d}/garbage.npy"], "--init {d}/garbage.npy: not a readable .npy"),
     ("invert --init pickled npy", [*INV, "--init", "{d}/pickled.npy"], "cannot be loaded when allow_pickle=False"),

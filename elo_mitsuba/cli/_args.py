@@ -116,7 +116,7 @@ def add_scan_arguments(p):
     geo.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
     geo.add_argument("--radius", type=positive_float, metavar="MM",
                      help="detector disc radius (model method, without a header; default 25)")
-    geo.add_argument("--wd", type=positive_float, metavar="MM",
+    geo.add_argument("--wd", "--work-distance", dest="wd", type=positive_float, metavar="MM",
                      help="work distance: beam pivot height (model method, without a header; default 400)")
     geo.add_argument("--projection", choices=("perspective", "orthographic"),
                      help="beam from the pivot or parallel to -z (model method, without a header)")

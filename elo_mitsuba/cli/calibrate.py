@@ -54,7 +54,8 @@ def add_parser(subparsers):
     geo.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
     geo.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
     geo.add_argument("--radius", type=positive_float, metavar="MM", help="detector disc radius (default 25)")
-    geo.add_argument("--wd", type=positive_float, metavar="MM", help="work distance (default: header, else 400)")
+    geo.add_argument("--wd", "--work-distance", dest="wd", type=positive_float, metavar="MM",
+                     help="work distance (default: header, else 400)")
     geo.add_argument("--projection", choices=("perspective", "orthographic"), help="beam projection")
     geo.add_argument("--material", metavar="NAME", help="plate material (default: header, else Ti-6Al-4V)")
     fit = p.add_argument_group("fit")

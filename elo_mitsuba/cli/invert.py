@@ -98,6 +98,7 @@ def add_parser(subparsers):
                           "error on the melt plate in the chamber (validation row I5), costs one render")
     p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.add_argument("--quiet", action="store_true", help="no progress (the steps) on stderr; the summary still prints")
     add_yes(p)
     p.set_defaults(run=run, event=None, min_corrected=None, min_sum=None)
     return p
@@ -144,13 +145,16 @@ def run(args) -> int:
     t0 = time.perf_counter()
 
     def progress(step):
+        if args.quiet:
+            return
         at = f"scale 1/{step['scale']} " if step.get("scale", 1) > 1 else ""
         print(f"  {at}step {step['iteration']:2d}: objective {step['objective']:.6g}, misfit rms {step['rms']:.4g}, "
               f"{step['seconds']:.1f} s", file=sys.stderr, flush=True)
 
     res = chain.invert(
         scan, geometry, fwhm_mm=fwhm, start=start, second_event=args.second_event, chamber_later=args.chamber_later,
-        notify=lambda line: print(line, file=sys.stderr, flush=True), alpha=args.alpha,
+        notify=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True)),
+        alpha=args.alpha,
         scales=inversion.SCALES if args.scales is None else args.scales, noise=args.noise, shadows=not args.no_shadows,
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,

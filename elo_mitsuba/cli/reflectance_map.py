@@ -18,14 +18,14 @@ right detector seen from (x, y)). Left panel: full g_BSE; right panel: its diffu
 Hatched: normals for which the detector is geometrically masked, p d_x + q d_y + 1 <= 0
 (for the right detector at the origin: p <= -d_h/d_w). The white cross marks d.
 
-The layout is --dh/--dw in mm or --zeta, an inclination of Table 1
+The layout is --dh/--dw in mm or --layout zetaNN (or --zeta NN), an inclination of Table 1
 ({', '.join(f'{z} deg: d_h={dh:g}, d_w={dw:g}' for z, (dh, dw) in TABLE1_LAYOUTS.items())}).
 """
 
 EPILOG = """\
 examples:
   elo-mitsuba reflectance-map --dh 272 --dw 127 -o fig12.png            # zeta = 25 deg
-  elo-mitsuba reflectance-map --zeta 50 -o fig13.png --data fig13.npz
+  elo-mitsuba reflectance-map --layout zeta50 -o fig13.png --data fig13.npz
   elo-mitsuba reflectance-map --zeta 25 --detector back --at 30,-20 --beam pivot -o map.png
 """
 
@@ -40,6 +40,13 @@ def _xy_arg(text):
     return tuple(vals)
 
 
+def _both(layout, given, flag, value):
+    if given is not None:
+        raise EloInputError(f"--layout {layout} sets dh and dw; {flag} {given:g} contradicts it: give the layout or "
+                            "--dh/--dw, not both")
+    return value
+
+
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "reflectance-map", help="g_BSE over the (p, q) plane of normals, masked region hatched",
@@ -48,15 +55,17 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, metavar="MAP.png", help="PNG to write")
     p.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
     p.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
+    p.add_argument("--layout", metavar="zetaNN", help="a Table 1 detector layout instead of --dh/--dw: "
+                   + ", ".join(f"zeta{z}" for z in TABLE1_LAYOUTS) + " (as render --layout)")
     p.add_argument("--zeta", type=float, choices=[float(z) for z in TABLE1_LAYOUTS], metavar="DEG",
-                   help="a Table 1 layout instead of --dh/--dw: " + ", ".join(map(str, TABLE1_LAYOUTS)))
+                   help="the same by its inclination in degrees: " + ", ".join(map(str, TABLE1_LAYOUTS)))
     p.add_argument("--detector", choices=DETECTOR_NAMES, default="right", help="which detector (default right)")
     p.add_argument("--at", type=_xy_arg, default=(0.0, 0.0), metavar="X,Y",
                    help="surface position in mm the detector is seen from (default 0,0)")
     p.add_argument("--material", default=None, help="preset or composition, e.g. Ti-6Al-4V or 'Ti:0.9,Al:0.1'")
     p.add_argument("--beam", choices=("vertical", "pivot"), default="vertical",
-                   help="vertical beam (paper) or deflected from the gun pivot at --work-distance")
-    p.add_argument("--work-distance", type=positive_float, default=None, metavar="MM",
+                   help="vertical beam (paper) or deflected from the gun pivot at --wd")
+    p.add_argument("--wd", "--work-distance", dest="work_distance", type=positive_float, default=None, metavar="MM",
                    help=f"pivot height for --beam pivot (default {WORK_DISTANCE_MM:g} mm)")
     p.add_argument("--range", type=positive_float, default=3.0, metavar="R", help="plot -R <= p, q <= R (default 3)")
     p.add_argument("--samples", type=int, default=301, metavar="N", help="samples along p and q (default 301)")
@@ -75,10 +84,18 @@ def run(args) -> int:
     out = check_output(args.output, (".png",), overwrite=args.overwrite)
     if args.data:
         check_output(args.data, (".npz",), overwrite=args.overwrite, what="--data")
+    if args.layout is not None:
+        from ..scene_files import layout_parameters
+
+        if args.zeta is not None:
+            raise EloInputError(f"--layout {args.layout} and --zeta {args.zeta:g} both set the layout; give one")
+        layout = layout_parameters(args.layout)
+        args.dh, args.dw = (_both(args.layout, args.dh, "--dh", layout["dh"]),
+                            _both(args.layout, args.dw, "--dw", layout["dw"]))
     if args.zeta is not None and (args.dh is not None or args.dw is not None):
         raise EloInputError("give either --zeta or --dh/--dw, not both")
     if args.work_distance is not None and args.beam != "pivot":
-        raise EloInputError(f"--work-distance {args.work_distance:g} sets the pivot of --beam pivot; with --beam "
+        raise EloInputError(f"--wd {args.work_distance:g} sets the pivot of --beam pivot; with --beam "
                             f"{args.beam} (parallel to -z) it would change nothing: add --beam pivot or leave it out")
     work_distance = WORK_DISTANCE_MM if args.work_distance is None else args.work_distance
     d_h, d_w = layout_geometry(args.zeta, args.dh, args.dw)

@@ -58,7 +58,8 @@ def add_parser(subparsers):
                    help="run a sweep whose estimate (printed when refused) is over the limits: above 4 h on this "
                         "machine or 2 million store files")
     p.add_argument("--overwrite", action="store_true", help="replace an existing store (else it is resumed)")
-    p.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
+    p.add_argument("--quiet", "--no-progress", dest="no_progress", action="store_true",
+                   help="no progress line on stderr")
     p.set_defaults(run=run)
     return p
 

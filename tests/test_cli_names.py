@@ -1,0 +1,57 @@
+"""One name for one thing across the commands (issue 24): the work distance is --wd (with
+--work-distance as its long form) wherever a command takes it, a Table 1 layout is --layout zetaNN
+wherever one is chosen, every command that prints progress has --quiet, and every command that
+writes one main file takes it as -o."""
+
+import argparse
+
+import pytest
+
+from elo_mitsuba.cli import build_parser
+
+
+def _commands():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices
+
+
+def _flags(p):
+    return {s for a in p._actions for s in a.option_strings}
+
+
+COMMANDS = _commands()
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_the_same_thing_has_the_same_name(name):
+    flags = _flags(COMMANDS[name])
+    if flags & {"--wd", "--work-distance"}:
+        assert {"--wd", "--work-distance"} <= flags, f"{name}: work distance as {sorted(flags & {'--wd', '--work-distance'})}"
+    if "--zeta" in flags or "--dh" in flags and name in ("render", "reflectance-map"):
+        assert "--layout" in flags, f"{name}: a Table 1 layout without --layout"
+
+
+@pytest.mark.parametrize("name", ["render", "invert", "sweep"])
+def test_commands_with_progress_have_quiet(name):
+    assert "--quiet" in _flags(COMMANDS[name])
+
+
+@pytest.mark.parametrize("name", ["render", "gradient", "reconstruct", "invert", "calibrate", "mesh",
+                                  "reflectance-map", "sweep", "sweep-plot"])
+def test_the_main_output_is_dash_o(name):
+    assert "-o" in _flags(COMMANDS[name])
+
+
+def test_both_spellings_do_the_same(tmp_path, capsys):
+    from elo_mitsuba.cli import main
+
+    base = ["reflectance-map", "--beam", "pivot", "--samples", "21", "--at", "20,0"]
+    assert main([*base, "--layout", "zeta50", "--wd", "300", "-o", str(tmp_path / "a.png"), "--data",
+                 str(tmp_path / "a.npz")]) == 0
+    assert main([*base, "--zeta", "50", "--work-distance", "300", "-o", str(tmp_path / "b.png"), "--data",
+                 str(tmp_path / "b.npz")]) == 0
+    import numpy as np
+
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    assert all(np.array_equal(a[k], b[k]) for k in a.files)
