@@ -34,17 +34,17 @@ def test_gradient_preview_titles_and_limits(tmp_path):
     mask = np.zeros((32, 32), bool)
     mask[:4] = True
     fig_axes = {}
-    original = plots._save
+    original = plots.save_figure
 
     def keep(fig, path, overwrite):
         fig_axes["axes"] = [a for a in fig.axes if a.images]
         return original(fig, path, overwrite)
 
-    plots._save = keep
+    plots.save_figure = keep
     try:
         plots.preview_gradient(gx, gy, 16.0, tmp_path / "g.png", mask=mask)
     finally:
-        plots._save = original
+        plots.save_figure = original
     ax_x, ax_y = fig_axes["axes"]
     assert ax_x.images[0].get_clim() == (-1.0, 1.0)
     assert ax_y.images[0].get_clim() == (-plots.GRADIENT_MIN_SCALE, plots.GRADIENT_MIN_SCALE)
@@ -65,8 +65,8 @@ def test_diverging_ends_differ_and_mask_grey_is_in_no_map():
 
 def test_height_preview_title_says_method_and_unit(tmp_path, monkeypatch):
     titles = []
-    original = plots._save
-    monkeypatch.setattr(plots, "_save", lambda fig, path, ow: (titles.extend(a.get_title() for a in fig.axes),
+    original = plots.save_figure
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path, ow: (titles.extend(a.get_title() for a in fig.axes),
                                                                 original(fig, path, ow))[1])
     h = np.outer(np.linspace(-1, 1, 16), np.ones(16)) * 0.05
     plots.preview_height(h, 16.0, tmp_path / "h.png", title="Height map by normal integration ('dct' solver)")
@@ -85,10 +85,10 @@ def test_sweep_plot_names_a_tiny_span(tmp_path):
                     coords={"a": [10.0, 20.0, 30.0], "b": [1.0, 2.0, 3.0, 4.0]})
     ds.to_zarr(tmp_path / "s.zarr", zarr_format=2)
     titles = []
-    original = plots._save
+    original = plots.save_figure
     try:
-        plots._save = lambda fig, path, ow: (titles.extend(a.get_title() for a in fig.axes), original(fig, path, ow))[1]
+        plots.save_figure = lambda fig, path, ow: (titles.extend(a.get_title() for a in fig.axes), original(fig, path, ow))[1]
         plot_metric(tmp_path / "s.zarr", "signal_mean", tmp_path / "p.png")
     finally:
-        plots._save = original
+        plots.save_figure = original
     assert any("span only 0.2" in t for t in titles)

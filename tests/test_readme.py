@@ -92,7 +92,10 @@ def test_pages_run_top_to_bottom_in_an_empty_folder(page, tmp_path, monkeypatch,
             done = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
             assert done.returncode == 0, f"{page.name}: {argv[0]} {argv[1][:200]}: {done.stderr[-2000:]}"
             continue
-        rc = main(small(argv))
+        try:
+            rc = main(small(argv))
+        except SystemExit as exc:  # --help ends through argparse
+            rc = exc.code
         err = capsys.readouterr().err
         assert rc == 0, f"{page.name}: elo-mitsuba {' '.join(argv)}: {err}"
 
