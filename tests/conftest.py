@@ -124,3 +124,14 @@ def make_bsdf(mi):
         return mi.load_dict(d)
 
     return make
+
+
+def one_line_error(call) -> str:
+    """The message of the EloInputError that ``call()`` raises, checked to be one line."""
+    from elo_mitsuba import EloInputError
+
+    with pytest.raises(EloInputError) as err:
+        call()
+    message = str(err.value)
+    assert "\n" not in message, message
+    return message
