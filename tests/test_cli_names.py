@@ -55,3 +55,18 @@ def test_both_spellings_do_the_same(tmp_path, capsys):
 
     a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
     assert all(np.array_equal(a[k], b[k]) for k in a.files)
+
+
+def test_the_lists_of_shipped_scenes_agree():
+    """render --help, new-scene --help, the guide and scenes_xml/README.md name every shipped scene."""
+    from pathlib import Path
+
+    from elo_mitsuba.scene_files import shipped_scenes
+
+    root = Path(__file__).resolve().parents[1]
+    texts = {"render --help": COMMANDS["render"].format_help(), "new-scene --help": COMMANDS["new-scene"].format_help(),
+             "docs/rendering.md": (root / "docs" / "rendering.md").read_text(),
+             "scenes_xml/README.md": (root / "scenes_xml" / "README.md").read_text()}
+    missing = [f"{where}: {name}" for name in shipped_scenes() for where, text in texts.items()
+               if name not in " ".join(text.split())]
+    assert not missing, "shipped scenes not named: " + "; ".join(missing)

@@ -10,6 +10,7 @@ from pathlib import Path
 from ..errors import EloInputError
 from ..files import check_output
 from ..constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
+from ..scene_files import shipped_scenes
 from ._args import add_yes, define, number, positive_int, seed
 
 #: How messages name the settings of this command's flags.
@@ -73,7 +74,8 @@ def add_parser(subparsers):
         "render", help=HELP, description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("scene", metavar="SCENE", help="XML scene file, or a shipped scene name (flat_plate, athene_flat, corrugated_sheet, melt_plate)")
+    p.add_argument("scene", metavar="SCENE", help="XML scene file, or a shipped scene name ("
+                   + ", ".join(shipped_scenes()) + ")")
     p.add_argument("-o", "--output", required=True, metavar="OUT.exr", help="EXR file to write")
     p.add_argument("--spp", type=positive_int, help="beam samples per pixel (default: the quality preset's, 1 without a beam profile and "
                    "4 / 16 / 256 with one; with --quality scene the scene file's sampler)")
