@@ -141,18 +141,25 @@ def run_benchmarks(sections=SECTIONS, quick=False, fresh=False, out=None, overwr
     return out
 
 
-def main(argv=None) -> int:
-    """``python -m benchmarks [--quick] [--out FILE] [--only SECTION ...] [--fresh]``; exit status."""
-    ap = argparse.ArgumentParser(prog="python -m benchmarks", description=DESCRIPTION,
+def build_parser() -> argparse.ArgumentParser:
+    from elo_mitsuba.cli._args import OneLineParser  # a usage error is one line, not the usage
+
+    ap = OneLineParser(prog="python -m benchmarks", description=DESCRIPTION,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smaller resolutions and fewer samples (minutes)")
-    ap.add_argument("--out", help="markdown file to write (default RESULTS.md in the current folder; with --quick "
+    ap.add_argument("-o", "--out", dest="out", help="markdown file to write (default RESULTS.md in the current folder; with --quick "
                     "RESULTS-quick.md)")
     ap.add_argument("--update-report", action="store_true",
                     help="write the committed benchmarks/RESULTS.md of the checkout (full run only)")
     ap.add_argument("--only", nargs="+", choices=SECTIONS, help="run only these sections")
     ap.add_argument("--fresh", action="store_true", help="recompute cached references")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    return ap
+
+
+def main(argv=None) -> int:
+    """``python -m benchmarks [--quick] [-o FILE] [--only SECTION ...] [--fresh]``; exit status."""
+    ap = build_parser()
     args = ap.parse_args(argv)
     out = args.out
     if args.update_report:

@@ -43,6 +43,26 @@ def test_the_main_output_is_dash_o(name):
     assert "-o" in _flags(COMMANDS[name])
 
 
+@pytest.mark.parametrize("module", ["validation.runner", "benchmarks.runner"])
+def test_validate_and_benchmark_take_dash_o(module):
+    """The checkout's commands: -o names the report folder (validate) or file (benchmark)."""
+    import importlib
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    try:
+        runner = importlib.import_module(module)
+    finally:
+        sys.path.pop(0)
+    if module == "validation.runner":
+        parser = argparse.ArgumentParser()
+        runner.add_arguments(parser)
+        assert parser.parse_args(["-o", "x"]).output_dir == "x"
+    else:
+        assert runner.build_parser().parse_args(["-o", "x.md"]).out == "x.md"
+
+
 def test_both_spellings_do_the_same(tmp_path, capsys):
     from elo_mitsuba.cli import main
 
@@ -70,3 +90,14 @@ def test_the_lists_of_shipped_scenes_agree():
     missing = [f"{where}: {name}" for name in shipped_scenes() for where, text in texts.items()
                if name not in " ".join(text.split())]
     assert not missing, "shipped scenes not named: " + "; ".join(missing)
+
+
+def test_benchmark_usage_errors_are_one_line(capsys):
+    from elo_mitsuba.cli import main
+
+    try:
+        rc = main(["benchmark", "--bogus"])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--bogus" in err[0], err

@@ -216,7 +216,7 @@ def add_arguments(parser):
     parser.add_argument("--quick", action="store_true",
                         help="tiny resolutions (about 40 s on 2 cores; for CI). Default: the full settings "
                              "(about 4-7 min on 2 cores)")
-    parser.add_argument("--output-dir", metavar="DIR", default=None,
+    parser.add_argument("-o", "--output-dir", dest="output_dir", metavar="DIR", default=None,
                         help="where REPORT.md and figures/ go (default, in the current folder: validation-report/, "
                              "validation-quick/ with --quick, validation-partial/ with --only)")
     parser.add_argument("--update-report", action="store_true",
