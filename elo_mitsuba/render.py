@@ -32,7 +32,8 @@ from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS,
 from .progress import RenderProgress
 from .result import NEGLIGIBLE_EVENT_SHARE, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
-from .schema import signal_units
+from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
+                     signal_units)
 from .scene_files import (check_detector_placement, declared_parameters, explain_mitsuba_error,
                           resolve_scene_path, scene_values)
 
@@ -151,18 +152,18 @@ class EloScene:
     def metadata(self, spp: int, seed: int) -> dict:
         s = self.sensor
         geometry = self.detector_geometry()
+        w, h = s.resolution
         meta = {
             "generator": f"elo-mitsuba {__version__}",
             "scene": str(self.path),
             "parameters": self.params,
-            "units": signal_units(self.integrator.units),
-            "field_mm": [s.field, s.field_y],
-            "resolution": list(s.resolution),
+            UNITS: signal_units(self.integrator.units),
+            **grid_header((s.field, s.field_y), (h, w)),  # the key names of schema.py, its one writer
             "pixel_size_mm": s.field / s.resolution[0],
-            "work_distance_mm": s.wd,
-            "projection": s.projection,
-            "beam_fwhm_mm": s.fwhm,
-            "beam_aim_offset_mm": list(s.aim_offset_mm),
+            WORK_DISTANCE: s.wd,
+            PROJECTION: s.projection,
+            BEAM_FWHM: s.fwhm,
+            AIM_OFFSET: list(s.aim_offset_mm),
             "events": self.integrator.events,
             "detector_samples": self.integrator.detector_samples,
             "quality": self.quality,
@@ -170,8 +171,8 @@ class EloScene:
             "notes": list(getattr(self.integrator, "notes", [])) + self._material_notes(),
             "spp": int(spp),
             "seed": int(seed),
-            "detectors": geometry,
-            "materials": self.materials(),
+            DETECTORS: geometry,
+            MATERIALS: self.materials(),
             "orientation": ORIENTATION,
             "variant": self.mi.variant(),
         }
