@@ -403,6 +403,62 @@ def gradient(scan: Scan, *, method: str = "model", geometry=None, iterations: in
     return res, kw
 
 
+def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection: str | None = None,
+            work_distance_mm: float | None = None, min_component_size: int | None = None) -> dict:
+    """The height map of a gradient by normal integration, with how far it can be trusted: the
+    ``reconstruct`` command's computation.
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        The surface gradient (mm/mm) where each pixel's beam lands; NaN or ``mask`` where unknown.
+    field_mm : float or (float, float)
+        Scan field (mm).
+    mask : ndarray of bool, optional
+        Untrusted gradient pixels (True).
+    method : str
+        Solver of :func:`~.integrate.integrate_gradient` (``"auto"``: ``masked`` where a pixel is
+        masked or not finite, else ``dct``).
+    projection, work_distance_mm : str, float, optional
+        The scan's beam (``perspective`` from a pivot ``work_distance_mm`` above the plate, or
+        ``orthographic``). A perspective scan's slopes are converted to the scan grid first
+        (:func:`~.integrate.scan_grid_gradient`): integrated as they are, a zero-mean relief
+        becomes a bowl.
+    min_component_size : int, optional
+        ``masked`` solver: trusted regions with fewer pixels are dropped.
+
+    Returns
+    -------
+    dict
+        ``height`` (mm, zero mean over the measured pixels), ``mask`` (True: no height),
+        ``method`` (the solver that ran), ``quality`` (:func:`~.integrate.reconstruction_quality`:
+        integrability residual, masked share, bowl, relief, warnings) and ``grid`` (what pixel
+        (i, j) holds).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> out = heights(0.1 * np.ones((32, 32)), np.zeros((32, 32)), 16.0)
+    >>> out["method"], round(float(out["height"][0, -1] - out["height"][0, 0]), 3)
+    ('dct', 1.55)
+    """
+    from .integrate import integrate_gradient, reconstruction_quality, resolve_method, scan_grid_gradient
+
+    method = resolve_method(method, dzdx, dzdy, mask)  # what runs is what is reported
+    gx, gy = dzdx, dzdy
+    perspective = projection == "perspective" and bool(work_distance_mm)
+    if perspective:
+        gx, gy = scan_grid_gradient(gx, gy, field_mm, work_distance_mm)
+        if mask is not None:
+            gx, gy = np.where(mask, 0.0, gx), np.where(mask, 0.0, gy)
+    kw = {} if min_component_size is None else {"min_component_size": min_component_size}
+    height, mask_out = integrate_gradient(gx, gy, field_mm, method=method, mask=mask, **kw)
+    return {"height": height, "mask": mask_out, "method": method,
+            "quality": reconstruction_quality(gx, gy, field_mm, height, mask_out),
+            "grid": ("scan grid of a perspective scan: pixel (i, j) holds the height where its beam lands "
+                     "(slopes converted, analysis.integrate.scan_grid_gradient)") if perspective else "scan grid"}
+
+
 def read_start(path, shape, field_mm):
     """Starting heights (mm, zero mean) or a gradient to integrate, from a file: a gradient EXR
     (channels dzdx, dzdy), a height EXR (channel height) or a ``.npy`` of heights on the scan grid."""

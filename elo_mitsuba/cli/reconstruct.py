@@ -81,28 +81,17 @@ def run(args) -> int:
     if not Path(args.gradient).is_file():
         raise EloInputError(f"{args.gradient}: no such file")
 
-    from ..analysis import integrate_gradient
-    from ..analysis.integrate import reconstruction_quality, resolve_method
+    from ..analysis.chain import heights
     from ..analysis.io import read_gradient
     from ..analysis.plots import preview_height
     from ..schema import PROJECTION, WORK_DISTANCE
 
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
-    field, mask, meta = grad["field_mm"], grad["mask"], grad["metadata"]
-    method = resolve_method(args.method, grad["dzdx"], grad["dzdy"], mask)  # what runs is what is reported
-    gx, gy = grad["dzdx"], grad["dzdy"]
-    perspective = meta.get(PROJECTION) == "perspective" and meta.get(WORK_DISTANCE)
-    if perspective:
-        # the slopes are those where each pixel's beam lands; the height over the scan grid has
-        # the gradient of scan_grid_gradient (else a zero-mean relief integrates to a bowl)
-        from ..analysis.integrate import scan_grid_gradient
-
-        gx, gy = scan_grid_gradient(gx, gy, field, meta[WORK_DISTANCE])
-        gx = np.where(mask, 0.0, gx) if mask is not None else gx
-        gy = np.where(mask, 0.0, gy) if mask is not None else gy
-    height, mask_out = integrate_gradient(gx, gy, field, method=method,
-                                          mask=mask, min_component_size=args.min_component)
-    quality = reconstruction_quality(gx, gy, field, height, mask_out)
+    field, meta = grad["field_mm"], grad["metadata"]
+    rec = heights(grad["dzdx"], grad["dzdy"], field, mask=grad["mask"], method=args.method,
+                  projection=meta.get(PROJECTION), work_distance_mm=meta.get(WORK_DISTANCE),
+                  min_component_size=args.min_component)
+    height, mask_out, method, quality = rec["height"], rec["mask"], rec["method"], rec["quality"]
     out_meta = {
         "quantity": "height map (relative, zero mean)",
         "units": "mm",
@@ -112,8 +101,7 @@ def run(args) -> int:
         "mask": "1 = no height measured, 0 = measured",
         "source": str(args.gradient),
         "quality": quality,
-        "grid": ("scan grid of a perspective scan: pixel (i, j) holds the height where its beam lands "
-                 "(slopes converted, analysis.integrate.scan_grid_gradient)") if perspective else "scan grid",
+        "grid": rec["grid"],
     }
     for key in ("d_h_mm", "d_w_mm", "material", "projection", "work_distance_mm"):
         if key in meta:
