@@ -178,6 +178,15 @@ def check_work(seconds: float, memory_bytes: float, force: bool = False, *, what
     EloInputError
         Memory above what is available (naming what sets the limit), or, without ``force``, time
         above :data:`REFUSE_SECONDS`.
+
+    Examples
+    --------
+    >>> check_work(10.0, 1e6, available=10**9)                 # 10 s, 1 MB: fine
+    >>> check_work(1e6, 1e6, what="a long sweep", hint="fewer points", available=10**9)
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: ...
+    >>> check_work(1e6, 1e6, force=True, available=10**9)     # asked for: allowed
     """
     source = "available"
     if available is None:
@@ -226,7 +235,34 @@ def detector_points(integrator) -> tuple[int, int]:
 def estimate(resolution, channels: int, spp: int, traced_events: int, passes: int,
              detector_points: tuple[int, int] = (0, 1)) -> dict:
     """Memory (bytes), samples and seconds (render, kernel compilation) of one render;
-    ``detector_points``: :func:`detector_points` of its integrator."""
+    ``detector_points``: :func:`detector_points` of its integrator.
+
+    Parameters
+    ----------
+    resolution : (int, int)
+        Film size (W, H) in pixels.
+    channels : int
+        Film channels (detector channels + 1).
+    spp : int
+        Samples per pixel.
+    traced_events : int
+        Scattering events traced per sample.
+    passes : int
+        Passes of the kernel.
+    detector_points : (int, int)
+        :func:`detector_points` of the integrator.
+
+    Returns
+    -------
+    dict
+        ``memory_bytes`` (bytes), ``samples``, ``render_seconds`` and ``compile_seconds`` (s).
+
+    Examples
+    --------
+    >>> work = estimate((64, 64), channels=5, spp=16, traced_events=1, passes=1)
+    >>> work["samples"], work["memory_bytes"] > 0, work["render_seconds"] < 1
+    (65536, True, True)
+    """
     w, h = (int(v) for v in resolution)
     pixels = w * h
     unrolled, per_path = (int(v) for v in detector_points)

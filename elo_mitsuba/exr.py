@@ -42,6 +42,45 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
 
     Refuses NaN/Inf (names the channel) and an existing file unless ``overwrite``. The file is
     written to a temporary name first and renamed, so a failure never leaves a partial result.
+
+    Parameters
+    ----------
+    path : str or Path
+        The EXR file.
+    channels : mapping of str to ndarray (H, W)
+        Images of one shape (stored as float32), e.g. detector images in N_d/N_0.
+    metadata : mapping, optional
+        JSON-serialisable header (geometry in mm, units, ...).
+    overwrite : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    EloInputError
+        A path not ending in ``.exr``, no channels, channels that are not 2-D images of one
+        shape, NaN/Inf in a channel, or an existing file without ``overwrite``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from elo_mitsuba.errors import EloInputError
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = write_exr(Path(folder) / "a.exr", {"left": np.zeros((2, 2))}, {"units": "N_d/N_0"})
+    ...     try:
+    ...         write_exr(path, {"left": np.zeros((2, 2))})
+    ...     except EloInputError:
+    ...         print("refused: the file exists")
+    ...     path = write_exr(path, {"left": np.ones((2, 2))}, overwrite=True)
+    ...     print(path.name, read_exr(path)[0]["left"].tolist())
+    refused: the file exists
+    a.exr [[1.0, 1.0], [1.0, 1.0]]
     """
     import OpenEXR
 
@@ -78,7 +117,36 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
 
 
 def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
-    """Read all channels (float32 arrays) and the metadata dict (empty if not ours)."""
+    """Read all channels (float32 arrays) and the metadata dict (empty if not ours).
+
+    Parameters
+    ----------
+    path : str or Path
+        An EXR file.
+
+    Returns
+    -------
+    channels : dict of str to ndarray (H, W)
+        float32 images by channel name.
+    metadata : dict
+        The JSON header elo-mitsuba wrote (``{}`` for another EXR).
+
+    Raises
+    ------
+    EloInputError
+        A missing or unreadable file.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = write_exr(Path(folder) / "a.exr", {"right": np.full((2, 3), 0.5)}, {"field_mm": [3.0, 2.0]})
+    ...     channels, meta = read_exr(path)
+    >>> channels["right"].dtype, channels["right"].shape, meta["field_mm"]
+    (dtype('float32'), (2, 3), [3.0, 2.0])
+    """
     import OpenEXR
 
     path = Path(path)

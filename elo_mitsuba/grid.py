@@ -28,7 +28,34 @@ ORIENTATION = "row 0 = +y edge, columns towards +x (plate seen from above, +y up
 def field_xy(field_mm, shape=None) -> tuple[float, float]:
     """Return ``(field_x, field_y)`` in mm from a pair, or from a scalar width: with the image
     ``shape`` (H, W) the field is then ``(field, field H / W)`` (square pixels, as the beam
-    scans), without it square. Validated > 0."""
+    scans), without it square. Validated > 0.
+
+    Parameters
+    ----------
+    field_mm : float or (float, float)
+        Scan field in mm: width, or (width x, height y).
+    shape : (int, int), optional
+        Image shape (H, W), for a scalar field.
+
+    Returns
+    -------
+    (float, float)
+        ``(field_x, field_y)`` in mm.
+
+    Raises
+    ------
+    EloInputError
+        A field that is not finite and > 0.
+
+    Examples
+    --------
+    >>> field_xy(80)
+    (80.0, 80.0)
+    >>> field_xy(80, shape=(32, 64))           # H = 32 rows, W = 64 columns
+    (80.0, 40.0)
+    >>> field_xy((80, 60))
+    (80.0, 60.0)
+    """
     arr = np.atleast_1d(np.asarray(field_mm, dtype=float)).ravel()
     if arr.size == 1:
         arr = np.array([arr[0], arr[0] if shape is None else arr[0] * shape_hw(shape)[0] / shape_hw(shape)[1]])
@@ -46,7 +73,27 @@ def shape_hw(shape) -> tuple[int, int]:
 
 
 def pixel_size(shape, field_mm) -> tuple[float, float]:
-    """Pixel pitch ``(dx, dy)`` in mm of an image of ``shape`` (H, W) covering ``field_mm``."""
+    """Pixel pitch ``(dx, dy)`` in mm of an image of ``shape`` (H, W) covering ``field_mm``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Image shape (H, W).
+    field_mm : float or (float, float)
+        Scan field in mm; a scalar is the width (square pixels).
+
+    Returns
+    -------
+    (float, float)
+        ``(dx, dy)`` in mm.
+
+    Examples
+    --------
+    >>> pixel_size((4, 8), 80.0)
+    (10.0, 10.0)
+    >>> pixel_size((4, 8), (80.0, 20.0))
+    (10.0, 5.0)
+    """
     h, w = shape_hw(shape)
     fx, fy = field_xy(field_mm, shape)
     return fx / w, fy / h
@@ -68,6 +115,12 @@ def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
         x of each column, growing with the column index, centred on 0.
     ys : ndarray, shape (H,)
         y of each row, *decreasing* with the row index (row 0 is the +y edge), centred on 0.
+
+    Examples
+    --------
+    >>> xs, ys = pixel_axes((2, 4), 80.0)
+    >>> xs.tolist(), ys.tolist()
+    ([-30.0, -10.0, 10.0, 30.0], [10.0, -10.0])
     """
     h, w = shape_hw(shape)
     fx, fy = field_xy(field_mm, shape)
@@ -77,7 +130,26 @@ def pixel_axes(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pixel_coordinates(shape, field_mm) -> tuple[np.ndarray, np.ndarray]:
-    """The 2-D grids ``(x, y)`` (each of shape (H, W)) of :func:`pixel_axes` (same parameters)."""
+    """The 2-D grids ``(x, y)`` (each of shape (H, W)) of :func:`pixel_axes` (same parameters).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Image shape (H, W).
+    field_mm : float or (float, float)
+        Scan field in mm; a scalar is the width (square pixels).
+
+    Returns
+    -------
+    x, y : ndarray (H, W)
+        Position of each pixel centre in mm (row 0 = +y edge).
+
+    Examples
+    --------
+    >>> x, y = pixel_coordinates((2, 4), 80.0)
+    >>> x.shape, x[0].tolist(), y[:, 0].tolist()
+    ((2, 4), [-30.0, -10.0, 10.0, 30.0], [10.0, -10.0])
+    """
     return tuple(np.meshgrid(*pixel_axes(shape, field_mm)))
 
 

@@ -88,6 +88,42 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     Pixels where ``mask`` is True (no height measured, untrusted) are stored as NaN (EXR: 0 and
     the mask channel). The pixel size comes from the metadata's ``field_mm`` (the scan field,
     mm); TIFF and GSF record it (GSF needs it). Heights at trusted pixels must be finite.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file; its suffix (``.exr``, ``.npy``, ``.tif``/``.tiff``, ``.gsf``) picks the format.
+    height : ndarray (H, W)
+        Heights in mm, package orientation (row 0 = +y edge).
+    mask : ndarray of bool (H, W), optional
+        True = no height measured or untrusted.
+    metadata : mapping, optional
+        Header entries; ``field_mm`` (scan field, mm) gives the pixel size.
+    overwrite : bool
+        Replace an existing file (otherwise refused).
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    EloInputError
+        An unknown suffix, an existing file, non-finite trusted heights, or GSF without a field.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> height = np.array([[0.0, 0.1, 0.2], [0.0, 0.1, 0.2]])        # mm
+    >>> mask = np.array([[False, False, False], [True, False, False]])
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = write_height(Path(folder) / "height.exr", height, mask, metadata={"field_mm": [3.0, 2.0]})
+    ...     back = read_heightmap(path, allow_nan=True)
+    >>> path.name, back.pixel_size_mm, np.isnan(back.height).tolist()
+    ('height.exr', 1.0, [[False, False, False], [True, False, False]])
     """
     path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
     height = np.asarray(height, dtype=float)
@@ -173,6 +209,41 @@ def read_heightmap(path, units: str | None = None, *, allow_nan: bool = False) -
     heights' unit where the file records none (default mm); a file that records its unit refuses
     another. NaN heights (unmeasured pixels) are refused by :func:`validate_heightmap` unless
     ``allow_nan``.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.exr``, ``.npy``, ``.tif``/``.tiff``, ``.gsf`` or ``.csv`` file.
+    units : {"mm", "um"}, optional
+        Unit of the heights where the file records none (default mm).
+    allow_nan : bool
+        Accept NaN heights (unmeasured pixels).
+
+    Returns
+    -------
+    HeightFile
+        ``height`` (float64, mm), ``pixel_size_mm`` (mm, or None) and ``pixel_source``.
+
+    Raises
+    ------
+    EloInputError
+        A missing or unreadable file, an unknown extension or unit, a unit other than the
+        file's, a non-2-D array, or NaN heights without ``allow_nan``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = write_height(Path(folder) / "h.exr", np.zeros((2, 3)), metadata={"field_mm": [3.0, 2.0]})
+    ...     exr = read_heightmap(path)
+    ...     np.save(Path(folder) / "h.npy", np.full((2, 3), 50.0))     # micrometres, no pixel size
+    ...     npy = read_heightmap(Path(folder) / "h.npy", units="um")
+    >>> exr.height.shape, exr.pixel_size_mm, exr.pixel_source
+    ((2, 3), 1.0, 'EXR header')
+    >>> npy.height.round(4).tolist()[0], npy.pixel_size_mm
+    ([0.05, 0.05, 0.05], None)
     """
     path = Path(path)
     if units is not None and units not in HEIGHT_UNITS:
@@ -295,8 +366,34 @@ def _tiff_resolution(path, tags) -> float | None:
 def load_heightmap(path, units: str = "mm") -> np.ndarray:
     """The heights (float64 mm) of a height map file (:func:`read_heightmap`, without the pixel size).
 
-    Raises :class:`EloInputError` (one line) for a missing file, an unknown extension or units, an
-    unreadable file, a non-2-D array or non-finite heights.
+    Parameters
+    ----------
+    path : str or Path
+        A ``.npy``, ``.tif``/``.tiff``, ``.csv``, ``.exr`` or ``.gsf`` file.
+    units : {"mm", "um"}
+        Unit of the heights where the file records none.
+
+    Returns
+    -------
+    ndarray (H, W)
+        Heights in mm (float64).
+
+    Raises
+    ------
+    EloInputError
+        (one line) for a missing file, an unknown extension or units, an unreadable file, a
+        non-2-D array or non-finite heights.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     np.savetxt(Path(folder) / "h.csv", [[0.0, 0.5], [1.0, 1.5]], delimiter=",")
+    ...     height = load_heightmap(Path(folder) / "h.csv")
+    >>> height.dtype, height.tolist()
+    (dtype('float64'), [[0.0, 0.5], [1.0, 1.5]])
     """
     return read_heightmap(path, units).height
 

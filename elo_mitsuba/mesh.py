@@ -77,6 +77,18 @@ def heightmap_to_mesh(
     trimesh.Trimesh
         Vertices in scene coordinates (x right, y up, z = height), faces wound so that the normals
         point to +z (outwards); the top surface's face normals are ``[-dZ/dx, -dZ/dy, 1]`` normalised.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> height = np.array([[0.0, 0.1, 0.2], [0.0, 0.1, 0.2]])       # mm, 1 mm pixels
+    >>> mesh = heightmap_to_mesh(height, 1.0)
+    >>> mesh.vertices.shape, mesh.faces.shape
+    ((6, 3), (4, 3))
+    >>> mesh.bounds.round(4).tolist()
+    [[-1.0, -0.5, 0.0], [1.0, 0.5, 0.2]]
+    >>> heightmap_to_mesh(height, 1.0, base_mm=-1.0).is_watertight
+    True
     """
     import trimesh
 

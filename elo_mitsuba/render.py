@@ -1,13 +1,15 @@
 """Python API of the forward model: load a scene once, render detector images many times.
 
->>> import elo_mitsuba as em
->>> scene = em.load_scene("athene_flat", dh=272, dw=127)   # shipped scene name or XML path
->>> scene = em.load_scene("melt_plate", detector_layout="zeta50")  # Table 1 layout
->>> result = scene.render(spp=64, events=2)                 # numpy channels + metadata
->>> result.channels["right"].shape, result.channels["right.e2"].mean()
->>> scene.set_detector("right", center=(150, 0, 250))       # move a detector: same kernel
->>> scene.set_material("plate", "316L")                     # change a material: same kernel
->>> result.write_exr("right.exr")
+A session (not run as a doctest; each function's Examples section runs)::
+
+    import elo_mitsuba as em
+    scene = em.load_scene("athene_flat", dh=272, dw=127)   # shipped scene name or XML path
+    scene = em.load_scene("melt_plate", detector_layout="zeta50")  # Table 1 layout
+    result = scene.render(spp=64, events=2)                 # numpy channels + metadata
+    result.channels["right"].shape, result.channels["right.e2"].mean()
+    scene.set_detector("right", center=(150, 0, 250))       # move a detector: same kernel
+    scene.set_material("plate", "316L")                     # change a material: same kernel
+    result.write_exr("right.exr")
 
 Channels are float32 images in the package orientation (:mod:`elo_mitsuba.grid`: row 0 at the
 +y edge, columns towards +x): ``<id>`` is the total over the counted events, ``<id>.e<k>`` event k
@@ -66,6 +68,22 @@ class EloScene:
     **params
         Values for the scene's ``<default>`` parameters (``dh``, ``dw``, ``wd``, ``field``,
         ``res``, ...), as ``-D name=value`` does on the command line.
+
+    Attributes
+    ----------
+    path : Path
+        The scene file.
+    params : dict of str to str
+        The scene's ``<default>`` parameters with the values given.
+
+    Examples
+    --------
+    >>> import elo_mitsuba as em
+    >>> scene = em.EloScene("flat_plate", res=4)       # shipped scene, 4 x 4 pixels
+    >>> scene.detector_names
+    ['right', 'left', 'back', 'front']
+    >>> scene.params["res"], scene.quality
+    ('4', 'scene')
     """
 
     def __init__(self, scene, variant: str | None = None, detector_layout: str | None = None, **params):
@@ -118,7 +136,29 @@ class EloScene:
         return [name for name, _ in self.integrator.detectors]
 
     def detector_geometry(self) -> dict[str, dict]:
-        """Centre, unit normal (front face) and equivalent radius of each detector, in mm."""
+        """Centre, unit normal (front face) and equivalent radius of each detector, in mm.
+
+        Returns
+        -------
+        dict of str to dict
+            Per detector id: ``center`` (x, y, z in mm), ``normal`` (unit vector of the front face,
+            towards the field), ``radius`` (mm; of a disc of the same area) and ``area_mm2`` (mm^2).
+
+        Raises
+        ------
+        EloInputError
+            A detector of zero area (a scale of 0 in its transform).
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> right = scene.detector_geometry()["right"]
+        >>> [round(v, 4) for v in right["center"]], [round(v, 4) for v in right["normal"]]
+        ([127.0, 0.0, 272.0], [-0.4231, 0.0, -0.9061])
+        >>> round(right["radius"], 4), round(right["area_mm2"], 1)
+        (25.0, 1963.5)
+        """
         from .plugins._detectors import detector_geometry  # Mitsuba is imported by now
 
         out = {}
@@ -193,7 +233,31 @@ class EloScene:
 
     def configure(self, **changes) -> EloOptions:
         """Change integrator options for the following renders (validated; same kernel where only
-        values change), e.g. ``scene.configure(units="voltage", detector_samples=4)``."""
+        values change), e.g. ``scene.configure(units="voltage", detector_samples=4)``.
+
+        Parameters
+        ----------
+        **changes
+            Fields of :class:`~elo_mitsuba.options.EloOptions` and their new values (``events``,
+            ``units``, ``detector_samples``, ...). Options that depend on the scene (``front_only``,
+            ``detector_sampling``, ``quadrature_triangles``) are checked against it at once; a refused
+            change leaves the options as they were.
+
+        Returns
+        -------
+        EloOptions
+            The options the next render uses.
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> options = scene.configure(units="voltage", detector_samples=4)
+        >>> options.units, options.detector_samples
+        ('voltage', 4)
+        >>> scene.render(spp=4).metadata["units"]
+        'V'
+        """
         saved = self.integrator.options
         self.integrator.configure(saved.replace(**changes))
         if _NEEDS_THE_SCENE.intersection(changes):  # checked against the scene now, not at render
@@ -211,7 +275,32 @@ class EloScene:
         self.configure(events=events)
 
     def set_material(self, shape_id: str, material) -> None:
-        """Give the ``elo_bse`` BSDF of shape ``shape_id`` another material (same kernel)."""
+        """Give the ``elo_bse`` BSDF of shape ``shape_id`` another material (same kernel).
+
+        Parameters
+        ----------
+        shape_id : str
+            The ``id`` of a shape with an ``elo_bse`` BSDF (e.g. ``"plate"``).
+        material : str, mapping or Material
+            A preset name (``"316L"``, ``"ti64"``, ...), a composition (``"Fe:0.7,Cr:0.3"`` or
+            ``{"Fe": 0.7, "Cr": 0.3}``, weight fractions) or a
+            :class:`~elo_mitsuba.physics.materials.Material`.
+
+        Raises
+        ------
+        EloInputError
+            No shape of that id, or the shape has no ``elo_bse`` BSDF.
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> scene.materials()
+        {'plate': 'Ti-6Al-4V (Ti:0.9,Al:0.06,V:0.04)'}
+        >>> scene.set_material("plate", "316L")
+        >>> scene.materials()["plate"]
+        '316L (Fe:0.655,...)'
+        """
         for shape in self.scene.shapes():
             if shape.id() == shape_id:
                 bsdf = shape.bsdf()
@@ -228,7 +317,36 @@ class EloScene:
 
         Without ``normal`` the detector faces the origin, also when only the radius changes: the
         result depends on the arguments alone, not on earlier moves (a sweep's point equals a
-        fresh scene with the same call, bit for bit)."""
+        fresh scene with the same call, bit for bit).
+
+        Parameters
+        ----------
+        name : str
+            Detector id (a disk detector of the scene), e.g. ``"right"``.
+        center : (float, float, float), optional
+            New centre (x, y, z) in mm; default: the current centre. The origin is refused.
+        radius : float, optional
+            New radius in mm (> 0); default: the current radius.
+        normal : (float, float, float), optional
+            Front normal, towards the field (any length > 0); default: towards the origin.
+
+        Raises
+        ------
+        EloInputError
+            Unknown detector, a detector that is not a disk, or a placement refused by the scene's
+            checks (the detector then stays where it was).
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> scene.set_detector("right", center=(150, 0, 250), radius=20)
+        >>> right = scene.detector_geometry()["right"]
+        >>> [round(v, 4) for v in right["center"]], round(right["radius"], 4)
+        ([150.0, 0.0, 250.0], 20.0)
+        >>> [round(v, 4) for v in right["normal"]]      # faces the origin
+        [-0.5145, 0.0, -0.8575]
+        """
         mi = self.mi
         key = f"{name}.to_world"
         if name not in self.detector_names:
@@ -269,7 +387,27 @@ class EloScene:
         The transform is rebuilt from its float32 values, so its inverse may differ in the last bit
         from a fresh load's (up to 2e-7 relative in the images): a caller that needs a fresh
         load's numbers bit for bit moves the detector again with :meth:`set_detector` (computed
-        afresh, as in a new scene) or loads the scene anew."""
+        afresh, as in a new scene) or loads the scene anew.
+
+        Parameters
+        ----------
+        names : iterable of str, optional
+            Detector ids; default: every detector the scene file placed by a transform.
+
+        Raises
+        ------
+        EloInputError
+            A name that is not a placed detector.
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> scene.set_detector("right", center=(150, 0, 250))
+        >>> scene.restore_detectors(["right"])
+        >>> [round(v, 4) for v in scene.detector_geometry()["right"]["center"]]
+        [127.0, 0.0, 272.0]
+        """
         names = list(self._loaded) if names is None else list(names)
         unknown = [n for n in names if n not in self._loaded]
         if unknown:
@@ -284,7 +422,34 @@ class EloScene:
         resolution, events and beam, for this and every later render; returns its spp. ``scene``:
         the scene file's sampler count, and the fields a preset sets as they were before a preset
         overwrote them (the scene file's, with what :meth:`configure` changed); ``custom``: the
-        options as they are, the scene file's spp."""
+        options as they are, the scene file's spp.
+
+        Parameters
+        ----------
+        quality : str
+            ``"draft"``, ``"default"``, ``"reference"`` (:data:`~elo_mitsuba.options.QUALITY_PRESETS`),
+            ``"scene"`` or ``"custom"``.
+
+        Returns
+        -------
+        int
+            Samples per pixel of that quality (the scene file's for ``scene`` and ``custom``).
+
+        Raises
+        ------
+        EloInputError
+            An unknown quality.
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> scene.set_quality("scene")                   # the scene file's sampler count
+        16
+        >>> spp = scene.set_quality("draft")
+        >>> scene.quality, spp >= 1
+        ('draft', True)
+        """
         if quality not in QUALITIES + ("custom",):
             raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
         if quality in ("scene", "custom"):
@@ -319,6 +484,47 @@ class EloScene:
         per 10 % once the render has run for :data:`~elo_mitsuba.progress.PROGRESS_AFTER_S`; True always, False never
         (no notes either). ``force=True`` (CLI ``--yes``) lets a render estimated to run longer than
         :data:`~elo_mitsuba.budget.REFUSE_SECONDS` start; memory beyond what is available is refused always.
+
+        Parameters
+        ----------
+        spp : int, optional
+            Samples per pixel (>= 1); default: the quality's.
+        seed : int
+            Seed of the samplers, in [0, 2^32 - 1]; the same seed gives the same images.
+        events : int, optional
+            Scattering events to trace (as :meth:`configure` ``events=``, kept for later renders).
+        progress : bool, optional
+            None: progress for multi-pass renders; True: always; False: never (no notes either).
+        quality : str, optional
+            A preset, ``"scene"`` or ``"custom"`` (:meth:`set_quality`), for this and later renders.
+        force : bool
+            Start a render estimated to run longer than :data:`~elo_mitsuba.budget.REFUSE_SECONDS`.
+
+        Returns
+        -------
+        RenderResult
+            Channels ``<id>`` (and ``<id>.e<k>`` with ``events > 1``) as float32 (H, W) images in
+            N_d/N_0 (V with ``units="voltage"``), metadata and per-pixel standard errors.
+
+        Raises
+        ------
+        EloInputError
+            A bad argument, or a render that would not fit in memory (or run too long without
+            ``force``).
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> scene = em.load_scene("flat_plate", res=4)
+        >>> result = scene.render(spp=4, events=2, progress=False)
+        >>> result.detectors, result.channels["right"].shape, result.channels["right"].dtype
+        (['right', 'left', 'back', 'front'], (4, 4), dtype('float32'))
+        >>> sorted(n for n in result.channels if n.startswith("right"))
+        ['right', 'right.e1', 'right.e2']
+        >>> result.metadata["units"], result.metadata["spp"], result.metadata["events"]
+        ('N_d/N_0', 4, 2)
+        >>> bool(0 < result.channels["right"].mean() < 1)
+        True
         """
         seed = _whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
         if spp is not None:
@@ -416,7 +622,38 @@ def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
 
 
 def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:
-    """Load an XML scene (path or shipped name) for repeated rendering; see :class:`EloScene`."""
+    """Load an XML scene (path or shipped name) for repeated rendering; see :class:`EloScene`.
+
+    Parameters
+    ----------
+    scene : str or Path
+        XML file, or the name of a shipped scene (``"flat_plate"``, ``"melt_plate"``, ...).
+    variant : str, optional
+        ``llvm_ad_mono`` (default) or ``cuda_ad_mono``; also ``$ELO_MITSUBA_VARIANT``.
+    detector_layout : str, optional
+        A Table 1 detector layout (``"zeta25"`` ... ``"zeta75"``), same as giving its dh and dw (mm).
+    **params
+        Values of the scene's ``<default>`` parameters (``dh``, ``dw``, ``wd``, ``field`` in mm;
+        ``res`` in pixels; ``spp``, ...).
+
+    Returns
+    -------
+    EloScene
+
+    Raises
+    ------
+    EloInputError
+        An unknown scene or parameter, or a scene Mitsuba cannot load.
+
+    Examples
+    --------
+    >>> import elo_mitsuba as em
+    >>> scene = em.load_scene("flat_plate", res=4, detector_layout="zeta50")
+    >>> scene.params["dh"], scene.params["dw"], scene.params["res"]
+    ('192.7', '229.6', '4')
+    >>> [round(v, 1) for v in scene.detector_geometry()["right"]["center"]]
+    [229.6, 0.0, 192.7]
+    """
     return EloScene(scene, variant=variant, detector_layout=detector_layout, **params)
 
 
@@ -424,7 +661,34 @@ def render(scene, spp: int | None = None, events: int | None = None, seed: int =
            variant: str | None = None, detector_layout: str | None = None, force: bool = False,
            **params) -> RenderResult:
     """Render a scene (path, shipped name or :class:`EloScene`) and return its detector images
-    (``force``: see :meth:`EloScene.render`)."""
+    (``force``: see :meth:`EloScene.render`).
+
+    Parameters
+    ----------
+    scene : str, Path or EloScene
+        XML file, shipped scene name, or a loaded scene.
+    spp, events, seed, force :
+        As :meth:`EloScene.render`.
+    variant, detector_layout, **params :
+        As :func:`load_scene` (only when ``scene`` is not loaded yet).
+
+    Returns
+    -------
+    RenderResult
+
+    Raises
+    ------
+    EloInputError
+        Scene parameters given with a loaded :class:`EloScene`, or as :func:`load_scene` and
+        :meth:`EloScene.render`.
+
+    Examples
+    --------
+    >>> import elo_mitsuba as em
+    >>> result = em.render("flat_plate", spp=4, res=4)
+    >>> sorted(result.channels), result.channels["left"].shape
+    (['back', 'front', 'left', 'right'], (4, 4))
+    """
     if not isinstance(scene, EloScene):
         scene = load_scene(scene, variant=variant, detector_layout=detector_layout, **params)
     elif params or detector_layout:

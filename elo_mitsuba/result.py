@@ -30,6 +30,31 @@ class RenderResult:
     ``metadata["error_estimate"]["channels"]`` summarises every channel (``status``: estimated,
     deterministic or not estimated; ``rms_rel``, ``p99_rel``, ``rms_abs``); see
     :meth:`error_summary`.
+
+    Parameters
+    ----------
+    channels : dict of str to ndarray (H, W)
+        ``<id>``: a detector's image (total over the events); ``<id>.e<k>``: event k alone. N_d/N_0,
+        or V with ``units="voltage"``.
+    metadata : dict
+        The render's header (geometry in mm, options, spp, seed, error summary).
+    errors : dict of str to ndarray (H, W)
+        Per-pixel standard error of the channels that have one (same units).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from elo_mitsuba import RenderResult
+    >>> result = RenderResult({"right": np.full((2, 3), 0.01, np.float32)}, {"events": 1})
+    >>> result.detectors, result.channels["right"].shape
+    (['right'], (2, 3))
+
+    A render returns one:
+
+    >>> import elo_mitsuba as em
+    >>> result = em.load_scene("flat_plate", res=4).render(spp=4)
+    >>> type(result).__name__, result.detectors
+    ('RenderResult', ['right', 'left', 'back', 'front'])
     """
 
     channels: dict[str, np.ndarray]
@@ -37,17 +62,70 @@ class RenderResult:
     errors: dict[str, np.ndarray] = field(default_factory=dict)
 
     def error_summary(self) -> dict[str, dict]:
-        """Per channel: the summary of its error estimate (empty if the render made none)."""
+        """Per channel: the summary of its error estimate (empty if the render made none).
+
+        Returns
+        -------
+        dict of str to dict
+            ``{channel: {"status": ..., "rms_rel": ..., "p99_rel": ..., "rms_abs": ...}}``: ``status``
+            is ``estimated``, ``deterministic`` or ``not estimated``; ``rms_rel`` and ``p99_rel`` are
+            relative (RMS and 99th percentile over the pixels), ``rms_abs`` in the channel's unit.
+
+        Examples
+        --------
+        >>> import elo_mitsuba as em
+        >>> result = em.load_scene("flat_plate", res=4).render(spp=4)
+        >>> summary = result.error_summary()
+        >>> summary["right"]["status"], bool(0 < summary["right"]["rms_rel"] < 1)
+        ('estimated', True)
+        """
         return dict(self.metadata.get("error_estimate", {}).get("channels", {}))
 
     @property
     def detectors(self) -> list[str]:
+        """The detector ids: the channels without an event or error suffix, in render order.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> image = np.zeros((2, 2), np.float32)
+        >>> RenderResult({"right": image, "right.e1": image, "left": image}).detectors
+        ['right', 'left']
+        """
         return [name for name in self.channels if "." not in name]
 
     def write_exr(self, path, overwrite: bool = False, error_channels: bool = False) -> Path:
         """Write the channels and metadata (error summary included) to an EXR; with
         ``error_channels`` also each channel's per-pixel standard error as ``<name>.err`` (zero
-        for a deterministic channel; none where it is not estimated)."""
+        for a deterministic channel; none where it is not estimated).
+
+        Parameters
+        ----------
+        path : str or Path
+            The EXR file to write.
+        overwrite : bool
+            Replace an existing file (otherwise refused).
+        error_channels : bool
+            Also write ``<name>.err`` channels.
+
+        Returns
+        -------
+        Path
+            The file written.
+
+        Examples
+        --------
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import elo_mitsuba as em
+        >>> from elo_mitsuba.exr import read_exr
+        >>> result = em.load_scene("flat_plate", res=4).render(spp=4)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = result.write_exr(Path(folder) / "plate.exr", error_channels=True)
+        ...     channels, header = read_exr(path)
+        >>> sorted(channels)[:4], header["units"]
+        (['back', 'back.err', 'front', 'front.err'], 'N_d/N_0')
+        """
         channels = dict(self.channels)
         if error_channels:
             summary = self.error_summary()
@@ -61,7 +139,21 @@ class RenderResult:
     def event_shares(self) -> list[dict]:
         """What each scattering event adds: per event k (1-based), ``mean`` = its share of the
         signal summed over detectors and pixels, and ``p99`` = the 99th percentile over pixels of
-        its share of that pixel's total (where the total is > 0). Empty with one event."""
+        its share of that pixel's total (where the total is > 0). Empty with one event.
+
+        Returns
+        -------
+        list of dict
+            ``[{"event": k, "mean": float, "p99": float}, ...]``, shares as fractions (0..1).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> e1, e2 = np.full((2, 2), 0.03), np.full((2, 2), 0.01)
+        >>> result = RenderResult({"right": e1 + e2, "right.e1": e1, "right.e2": e2}, {"events": 2})
+        >>> [(s["event"], round(s["mean"], 4), round(s["p99"], 4)) for s in result.event_shares()]
+        [(1, 0.75, 0.75), (2, 0.25, 0.25)]
+        """
         events = int(self.metadata.get("events", 1))
         if events < 2:
             return []
@@ -79,7 +171,30 @@ class RenderResult:
     def negligible_events(self, threshold: float = NEGLIGIBLE_EVENT_SHARE, shares=None) -> int | None:
         """The number of events that would do: the smallest n such that every event above n adds
         less than ``threshold`` of the signal in 99 % of the pixels (None if all are needed).
-        ``shares``: :meth:`event_shares` if already computed."""
+        ``shares``: :meth:`event_shares` if already computed.
+
+        Parameters
+        ----------
+        threshold : float
+            Share of the signal (fraction, default :data:`NEGLIGIBLE_EVENT_SHARE` = 0.1 %).
+        shares : list of dict, optional
+            The result of :meth:`event_shares`.
+
+        Returns
+        -------
+        int or None
+            The number of events that would do, or None.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> e1, e2 = np.full((2, 2), 0.03), np.full((2, 2), 1e-6)
+        >>> result = RenderResult({"right": e1 + e2, "right.e1": e1, "right.e2": e2}, {"events": 2})
+        >>> result.negligible_events()
+        1
+        >>> print(result.negligible_events(threshold=1e-6))
+        None
+        """
         shares = self.event_shares() if shares is None else shares
         n = len(shares)
         while n > 1 and shares[n - 1]["p99"] < threshold:

@@ -112,6 +112,29 @@ def ensure_variant(variant: str | None = None):
     """Check the environment, set the Mitsuba variant and register our plugins; return ``mi``.
 
     If a supported variant is already active and no variant is requested, it is kept.
+
+    Parameters
+    ----------
+    variant : str, optional
+        ``llvm_ad_mono`` or ``cuda_ad_mono``; None: ``$ELO_MITSUBA_VARIANT`` if set, else the
+        active supported variant, else the default of :func:`resolve_variant`.
+
+    Returns
+    -------
+    module
+        The ``mitsuba`` module, with the variant set and the plugins registered.
+
+    Raises
+    ------
+    EloEnvironmentError
+        The machine cannot run the variant (LLVM missing or too old, no CUDA).
+
+    Examples
+    --------
+    >>> import elo_mitsuba as em
+    >>> mi = em.ensure_variant()
+    >>> mi.variant() in ("llvm_ad_mono", "cuda_ad_mono")
+    True
     """
     import_backend()  # first import (the CLI defers it to here): Dr.Jit's LLVM noise held back
     import mitsuba as mi

@@ -61,10 +61,25 @@ def test_every_cited_document_is_in_the_repository():
     assert not missing, "cited files not in the repository: " + "; ".join(missing)
 
 
+def _docstring_lines(path: Path) -> set[int]:
+    """Line numbers of the module's, classes' and functions' docstrings."""
+    lines = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                lines.update(range(first.lineno, first.end_lineno + 1))
+    return lines
+
+
 def test_render_py_stays_one_concept():
-    """render.py is EloScene (load once, render many): its helpers live in their own modules."""
-    lines = len((ROOT / "elo_mitsuba" / "render.py").read_text().splitlines())
-    assert lines <= 450, f"elo_mitsuba/render.py has {lines} lines (at most 450)"
+    """render.py is EloScene (load once, render many): its helpers live in their own modules.
+
+    Counted without docstrings (their numpydoc Parameters and Examples are documentation, not
+    concepts): 360 lines of code when the docstrings grew (issue 24)."""
+    path = ROOT / "elo_mitsuba" / "render.py"
+    lines = len(path.read_text().splitlines()) - len(_docstring_lines(path))
+    assert lines <= 380, f"elo_mitsuba/render.py has {lines} lines outside docstrings (at most 380)"
 
 
 def _writes_to_world(path: Path) -> list[int]:
@@ -163,3 +178,51 @@ def test_every_link_of_the_readme_and_the_guide_resolves():
             if not (page.parent / target).exists():
                 missing.append(f"{page.relative_to(ROOT)}: {target}")
     assert not missing, "links to nothing: " + "; ".join(missing)
+
+
+#: Public names whose docstrings are another session's to write (the sweep package's own docs).
+EXAMPLES_ELSEWHERE = {"sweep"}
+#: Methods of the public classes a user calls.
+PUBLIC_METHODS = {
+    "EloScene": ("render", "configure", "set_detector", "set_material", "set_quality", "restore_detectors",
+                 "detector_geometry"),
+    "RenderResult": ("write_exr", "error_summary", "event_shares", "negligible_events", "detectors"),
+}
+
+
+def _public_api():
+    """(qualified name, object) of every callable the package and ``elo_mitsuba.analysis`` export,
+    and of the public classes' methods."""
+    import elo_mitsuba as em
+    import elo_mitsuba.analysis as ea
+
+    out = []
+    for package in (em, ea):
+        for name in package.__all__:
+            if name in EXAMPLES_ELSEWHERE:
+                continue
+            obj = getattr(package, name)
+            if callable(obj):
+                out.append((f"{package.__name__}.{name}", obj))
+    for cls, methods in PUBLIC_METHODS.items():
+        for method in methods:
+            attr = getattr(getattr(em, cls), method)
+            out.append((f"elo_mitsuba.{cls}.{method}", attr.fget if isinstance(attr, property) else attr))
+    return out
+
+
+def test_every_public_name_has_a_numpydoc_example_that_a_test_runs():
+    """Issue 24: each exported function, class and public method has an ``Examples`` section,
+    and its module is one tests/test_doctests.py runs (so the example is run, not only shown)."""
+    import inspect
+
+    from test_doctests import MODULES
+
+    missing, unrun = [], []
+    for name, obj in _public_api():
+        if not re.search(r"^Examples\n--------$", inspect.getdoc(obj) or "", re.M):
+            missing.append(name)
+        elif obj.__module__ not in MODULES:
+            unrun.append(f"{name} ({obj.__module__})")
+    assert not missing, "no Examples section: " + ", ".join(missing)
+    assert not unrun, "Examples that tests/test_doctests.py does not run: " + ", ".join(unrun)

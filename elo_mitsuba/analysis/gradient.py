@@ -45,7 +45,27 @@ MIN_DENOMINATOR = 0.05
 
 
 def eq26_denominator(mx, my, x, y, d_w):
-    """The denominator of Eq. 26, d_w + x M_x + y M_y (mm)."""
+    """The denominator of Eq. 26, d_w + x M_x + y M_y (mm).
+
+    Parameters
+    ----------
+    mx, my : ndarray (H, W)
+        Normalised differences (Eq. 15, dimensionless).
+    x, y : ndarray (H, W)
+        Pixel positions in mm (:func:`pixel_coordinates`).
+    d_w : float
+        Detector distance from the z-axis (mm).
+
+    Returns
+    -------
+    ndarray (H, W)
+        d_w + x M_x + y M_y in mm.
+
+    Examples
+    --------
+    >>> float(eq26_denominator(0.1, 0.2, 10.0, -5.0, 127.0))
+    127.0
+    """
     return d_w + np.asarray(x) * mx + np.asarray(y) * my
 
 
@@ -71,6 +91,14 @@ def gradient_from_differences(mx, my, field_mm, d_h, d_w, *, min_denominator: fl
         dZ/dx and dZ/dy (dimensionless, mm/mm); 0 at masked pixels.
     mask : ndarray of bool (H, W)
         True = untrusted.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> mx = np.full((2, 2), -0.0467)          # Eq. 24 of dZ/dx = 0.1 at the field centre (d_w/d_h = 0.467)
+    >>> dzdx, dzdy, mask = gradient_from_differences(mx, np.zeros((2, 2)), 0.01, 272.0, 127.0)
+    >>> round(float(dzdx.mean()), 3), float(np.abs(dzdy).max()), bool(mask.any())
+    (0.1, 0.0, False)
     """
     d_h, d_w = check_detector_geometry(d_h, d_w)
     mx = np.asarray(mx, dtype=float)
@@ -92,6 +120,27 @@ def raw_gradient(mx, my, d_h=None, d_w=None):
     Without ``d_h``, ``d_w``: dZ/dx ~ -M_x, dZ/dy ~ -M_y, which by Eq. 24 underestimates the slope
     by about d_w/d_h and depends on the position (x, y). With both: the first-order rescaling
     -M d_h/d_w, exact only at x = y = 0. Non-finite M gives 0.
+
+    Parameters
+    ----------
+    mx, my : ndarray (H, W)
+        Normalised differences (Eq. 15, dimensionless).
+    d_h, d_w : float, optional
+        Detector height and distance from the z-axis (mm), both or neither.
+
+    Returns
+    -------
+    dzdx, dzdy : ndarray (H, W)
+        Estimated gradient (mm/mm).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> mx = np.array([[-0.0467]])
+    >>> [round(float(g[0, 0]) + 0.0, 4) for g in raw_gradient(mx, np.zeros((1, 1)))]
+    [0.0467, 0.0]
+    >>> round(float(raw_gradient(mx, np.zeros((1, 1)), 272.0, 127.0)[0][0, 0]), 3)
+    0.1
     """
     scale = 1.0
     if d_h is not None or d_w is not None:
@@ -114,6 +163,26 @@ def detector_masking(dzdx, dzdy, field_mm, d_h, d_w, *, margin: float = 0.0,
     -------
     dict of str to ndarray of bool (H, W)
         True where the detector sees the surface element at or behind its tangent plane.
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        Surface gradient (mm/mm), package orientation.
+    field_mm : float or (float, float)
+        Scan field in mm.
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+    margin : float
+        0: masked at and behind the tangent plane; > 0 also flags grazing directions.
+    detectors : iterable of str
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx = np.array([[0.0, 3.0]])       # flat, and steep rising towards +x (faces away from right)
+    >>> masks = detector_masking(dzdx, np.zeros_like(dzdx), (20.0, 10.0), 272.0, 127.0)
+    >>> masks["right"].tolist(), masks["left"].tolist()
+    ([[False, True]], [[False, False]])
     """
     dzdx = np.asarray(dzdx, dtype=float)
     x, y = pixel_coordinates(dzdx.shape, field_mm)
@@ -140,6 +209,16 @@ class GradientResult:
         OR of :data:`MASK_BITS`.
     corrected : dict
         STSA-corrected images R^C, L^C, B^C, F^C.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from elo_mitsuba.analysis import flat_plate_images, point_detector_images
+    >>> flats = flat_plate_images((4, 4), 20.0, 272.0, 127.0)
+    >>> images = point_detector_images(np.full((4, 4), 0.1), np.zeros((4, 4)), 20.0, 272.0, 127.0)
+    >>> result = surface_gradient(images, flats, 20.0, 272.0, 127.0)
+    >>> type(result).__name__, result.dzdx.shape, sorted(result.corrected)
+    ('GradientResult', (4, 4), ['back', 'front', 'left', 'right'])
     """
 
     dzdx: np.ndarray
@@ -182,6 +261,19 @@ def surface_gradient(images: Mapping, flats: Mapping | None, field_mm, d_h, d_w,
     Returns
     -------
     GradientResult
+
+    Examples
+    --------
+    A tilted plane dZ/dx = 0.1 seen by point detectors (Lambert model, for which Eq. 26 is exact):
+
+    >>> import numpy as np
+    >>> from elo_mitsuba.analysis import flat_plate_images, point_detector_images
+    >>> shape, field, d_h, d_w = (4, 4), 20.0, 272.0, 127.0
+    >>> flats = flat_plate_images(shape, field, d_h, d_w, model="lambert")
+    >>> images = point_detector_images(np.full(shape, 0.1), np.zeros(shape), field, d_h, d_w, model="lambert")
+    >>> result = surface_gradient(images, flats, field, d_h, d_w)
+    >>> round(float(result.dzdx.mean()), 4), round(float(np.abs(result.dzdy).max()), 4), bool(result.mask.any())
+    (0.1, 0.0, False)
     """
     if flats is None:
         corrected = check_images(images, "corrected images")

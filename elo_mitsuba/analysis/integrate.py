@@ -73,6 +73,15 @@ def integrate_fft(dzdx, dzdy, field_mm, *, mirror: bool = True) -> np.ndarray:
     -------
     ndarray (H, W)
         Height in mm with zero mean.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> height = np.outer(np.ones(8), np.sin(np.linspace(0, np.pi, 8)))
+    >>> dzdx, dzdy = height_gradient(height, 8.0)
+    >>> z = integrate_fft(dzdx, dzdy, 8.0)
+    >>> z.shape, bool(abs(z.mean()) < 1e-12)
+    ((8, 8), True)
     """
     from scipy import fft as sfft
 
@@ -121,6 +130,13 @@ def integrate_dct(dzdx, dzdy, field_mm) -> np.ndarray:
     -------
     ndarray (H, W)
         Height in mm with zero mean.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx, dzdy = np.full((3, 4), 0.5), np.zeros((3, 4))    # 1 mm pixels
+    >>> integrate_dct(dzdx, dzdy, (4.0, 3.0)).round(4).tolist()[0]
+    [-0.75, -0.25, 0.25, 0.75]
     """
     from scipy import fft as sfft
 
@@ -203,6 +219,15 @@ def integrate_masked(dzdx, dzdy, field_mm, mask=None, *, min_component_size: int
         Height in mm, zero mean per component, 0 at masked pixels.
     mask_out : ndarray of bool (H, W)
         The pixels that have no height (input mask, non-finite gradients, small components).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx, dzdy = np.full((2, 3), 0.5), np.zeros((2, 3))    # 1 mm pixels
+    >>> mask = np.array([[False, False, False], [True, False, False]])
+    >>> height, mask_out = integrate_masked(dzdx, dzdy, (3.0, 2.0), mask)
+    >>> height.round(4).tolist(), mask_out.tolist()
+    ([[-0.6, -0.1, 0.4], [0.0, -0.1, 0.4]], [[False, False, False], [True, False, False]])
     """
     from scipy import ndimage, sparse
 
@@ -265,12 +290,18 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
 
     Parameters
     ----------
+    dzdx, dzdy : ndarray (H, W)
+        Gradient (mm/mm), package orientation.
+    field_mm : float or (float, float)
+        Scan field in mm.
     method : {"auto", "dct", "fft", "masked"}
         ``"auto"`` uses ``"masked"`` when any pixel is masked (or a gradient is non-finite) and
         ``"dct"`` otherwise. ``"dct"``/``"fft"`` use every pixel and take masked gradients as 0
         (a flat patch), which biases the surrounding heights.
     mask : ndarray of bool, optional
         True = untrusted.
+    min_component_size : int
+        For ``"masked"``: smaller trusted components are masked too.
 
     Returns
     -------
@@ -278,6 +309,18 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
         Height in mm (zero mean over the trusted pixels, per component for ``"masked"``).
     mask_out : ndarray of bool (H, W)
         Pixels whose height is not measured (the input mask, grown by the masked solver).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx, dzdy = np.full((3, 4), 0.5), np.zeros((3, 4))    # 1 mm pixels
+    >>> height, mask_out = integrate_gradient(dzdx, dzdy, (4.0, 3.0))
+    >>> height.round(4).tolist()[0], bool(mask_out.any())
+    ([-0.75, -0.25, 0.25, 0.75], False)
+    >>> mask = np.zeros((3, 4), bool); mask[:, 0] = True       # a column not measured
+    >>> height, mask_out = integrate_gradient(dzdx, dzdy, (4.0, 3.0), mask=mask)
+    >>> (height.round(4) + 0.0).tolist()[0], mask_out[:, 0].tolist()
+    ([0.0, -0.5, 0.0, 0.5], [True, True, True])
     """
     dzdx, dzdy, bad = _checked_inputs(dzdx, dzdy, mask)
     method = resolve_method(method, dzdx, dzdy, bad)
@@ -401,6 +444,26 @@ def height_gradient(height, field_mm):
 
     The inverse of the integrators, for histograms of normals (Fig. 14a) and tests. Rows run
     towards -y, hence the sign of dZ/dy.
+
+    Parameters
+    ----------
+    height : ndarray (H, W)
+        Heights in mm, package orientation.
+    field_mm : float or (float, float)
+        Scan field in mm.
+
+    Returns
+    -------
+    dzdx, dzdy : ndarray (H, W)
+        Gradient in mm/mm.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> height = np.tile(0.5 * np.arange(4.0), (3, 1))     # rises by 0.5 mm per 1 mm pixel towards +x
+    >>> dzdx, dzdy = height_gradient(height, (4.0, 3.0))
+    >>> dzdx.round(4).tolist()[0], float(np.abs(dzdy).max())
+    ([0.5, 0.5, 0.5, 0.5], 0.0)
     """
     height = np.asarray(height, dtype=float)
     dx, dy = pixel_size(height.shape, field_mm)

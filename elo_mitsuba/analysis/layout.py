@@ -26,7 +26,28 @@ GEOMETRY_RTOL = 1e-3
 
 
 def check_detector_geometry(d_h, d_w) -> tuple[float, float]:
-    """Validate the detector height ``d_h`` and distance ``d_w`` (mm, finite, > 0)."""
+    """Validate the detector height ``d_h`` and distance ``d_w`` (mm, finite, > 0).
+
+    Parameters
+    ----------
+    d_h, d_w : float
+        Detector height above the build plane and distance from the z-axis (mm).
+
+    Returns
+    -------
+    (float, float)
+        ``(d_h, d_w)`` as floats.
+
+    Raises
+    ------
+    EloInputError
+        A value that is not finite and > 0.
+
+    Examples
+    --------
+    >>> check_detector_geometry(272, 127)
+    (272.0, 127.0)
+    """
     out = []
     for name, val in (("d_h", d_h), ("d_w", d_w)):
         try:
@@ -55,6 +76,12 @@ def detector_vectors(x, y, d_h, d_w, detectors=DETECTOR_NAMES) -> dict[str, np.n
     -------
     dict
         ``{name: d}`` with ``d`` of shape (..., 3): [(d_w e_x - x)/d_h, (d_w e_y - y)/d_h, 1].
+
+    Examples
+    --------
+    >>> d = detector_vectors(0.0, 0.0, 272.0, 127.0, detectors=("right", "back"))
+    >>> d["right"].round(4).tolist(), d["back"].round(4).tolist()
+    ([0.4669, 0.0, 1.0], [0.0, 0.4669, 1.0])
     """
     d_h, d_w = check_detector_geometry(d_h, d_w)
     x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
@@ -110,12 +137,48 @@ def masking_condition(p, q, d_x, d_y, margin=0.0):
     p,q-form; the condition means n_S . d <= 0, i.e. the detector lies at or below the local
     tangent plane (alpha >= 90 deg) and no electron of the 1st scattering event reaches it.
     A positive ``margin`` also flags grazing directions. Returns a boolean array.
+
+    Parameters
+    ----------
+    p, q : array_like
+        n_Sx = -dZ/dx and n_Sy = -dZ/dy (mm/mm).
+    d_x, d_y : array_like
+        Detector vector in p,q-form (:func:`detector_vectors`; unitless).
+    margin : float
+        0: masked exactly at and behind the tangent plane.
+
+    Returns
+    -------
+    ndarray of bool
+        True = masked (the detector does not see the surface element).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> masking_condition(np.array([0.0, -2.0, -3.0]), 0.0, 127 / 272, 0.0).tolist()
+    [False, False, True]
     """
     return np.asarray(p) * d_x + np.asarray(q) * d_y + 1.0 <= margin
 
 
 def zeta_deg(d_h, d_w) -> float:
-    """Detector inclination zeta = atan(d_w / d_h) in degrees (Table 1)."""
+    """Detector inclination zeta = atan(d_w / d_h) in degrees (Table 1).
+
+    Parameters
+    ----------
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+
+    Returns
+    -------
+    float
+        zeta in degrees.
+
+    Examples
+    --------
+    >>> round(zeta_deg(272, 127), 2)
+    25.03
+    """
     d_h, d_w = check_detector_geometry(d_h, d_w)
     return float(np.degrees(np.arctan2(d_w, d_h)))
 
@@ -141,6 +204,13 @@ def symmetric_layout(header, *, d_h=None, d_w=None) -> dict:
     -------
     dict
         ``{"field_mm": (fx, fy), "d_h": float, "d_w": float, "resolution": (W, H) or None}``.
+
+    Examples
+    --------
+    >>> from elo_mitsuba.schema import read_geometry
+    >>> header = read_geometry({"field_mm": 80, "resolution": [4, 4]})
+    >>> symmetric_layout(header, d_h=272, d_w=127)
+    {'field_mm': (80.0, 80.0), 'd_h': 272.0, 'd_w': 127.0, 'resolution': (4, 4)}
     """
     source = header.source
     if d_h is None or d_w is None:

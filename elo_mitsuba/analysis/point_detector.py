@@ -40,6 +40,26 @@ def beam_directions(x, y, beam="vertical", work_distance_mm=WORK_DISTANCE_MM) ->
 
     ``"vertical"``: [0, 0, -1] everywhere (Sec. 4.3). ``"pivot"``: from the gun pivot
     (0, 0, w_d) to (x, y, 0), i.e. [x, y, -w_d].
+
+    Parameters
+    ----------
+    x, y : array_like
+        Surface positions in mm (broadcast together).
+    beam : {"vertical", "pivot"}
+    work_distance_mm : float
+        Height of the gun pivot above the build plane (mm), for ``"pivot"``.
+
+    Returns
+    -------
+    ndarray (..., 3)
+        p_E (mm for ``"pivot"``; unitless for ``"vertical"``).
+
+    Examples
+    --------
+    >>> beam_directions(10.0, 0.0).tolist()
+    [0.0, 0.0, -1.0]
+    >>> beam_directions(10.0, -5.0, beam="pivot").tolist()
+    [10.0, -5.0, -400.0]
     """
     x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
     if beam == "vertical":
@@ -80,6 +100,14 @@ def point_detector_images(dzdx, dzdy, field_mm, d_h, d_w, *, model="lambert", ma
     dict of str to ndarray (H, W)
         ``{"right": R, "left": L, "back": B, "front": F}``, >= 0 (0 where a detector is
         geometrically masked, n_S . d <= 0, or the beam meets the element from behind).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx = np.full((2, 2), -0.1)                     # rising towards -x: faces the right detector
+    >>> images = point_detector_images(dzdx, np.zeros((2, 2)), 20.0, 272.0, 127.0, model="lambert")
+    >>> bool(np.all(images["right"] > images["left"])), images["back"].shape
+    (True, (2, 2))
     """
     if model not in MODELS:
         raise EloInputError(f"model={model!r}: choose one of {', '.join(MODELS)}")
@@ -109,14 +137,61 @@ def point_detector_images(dzdx, dzdy, field_mm, d_h, d_w, *, model="lambert", ma
 
 
 def flat_plate_images(shape, field_mm, d_h, d_w, **kwargs) -> dict[str, np.ndarray]:
-    """STSA correction images (Eq. 20): :func:`point_detector_images` of a plane plate (n_C = e_z)."""
+    """STSA correction images (Eq. 20): :func:`point_detector_images` of a plane plate (n_C = e_z).
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Image shape (H, W).
+    field_mm : float or (float, float)
+        Scan field in mm.
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+    **kwargs
+        As :func:`point_detector_images` (``model``, ``material``, ``beam``, ...).
+
+    Returns
+    -------
+    dict of str to ndarray (H, W)
+        ``{"right": C_R, "left": C_L, "back": C_B, "front": C_F}`` (1/sr, or N_d/N_0 with
+        ``detector_radius_mm``).
+
+    Examples
+    --------
+    >>> flats = flat_plate_images((3, 3), 20.0, 272.0, 127.0)
+    >>> sorted(flats), flats["right"].shape
+    (['back', 'front', 'left', 'right'], (3, 3))
+    >>> bool(flats["right"][1, 2] > flats["right"][1, 0])  # brighter on the right detector's side
+    True
+    """
     zeros = np.zeros(tuple(shape)[:2])
     return point_detector_images(zeros, zeros, field_mm, d_h, d_w, **kwargs)
 
 
 def point_solid_angle(x, y, detector, d_h, d_w, radius_mm):
     """Solid angle (sr) of a small disc of radius ``radius_mm`` at Eq. 17's detector position,
-    its normal pointing at the origin (Sec. 2.2), seen from (x, y, 0): pi r^2 cos(psi) / dist^2."""
+    its normal pointing at the origin (Sec. 2.2), seen from (x, y, 0): pi r^2 cos(psi) / dist^2.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Surface position in mm.
+    detector : {"right", "left", "back", "front"}
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+    radius_mm : float
+        Disc radius in mm.
+
+    Returns
+    -------
+    ndarray
+        Solid angle in sr.
+
+    Examples
+    --------
+    >>> round(float(point_solid_angle(0.0, 0.0, "right", 272.0, 127.0, 25.0)), 5)
+    0.02179
+    """
     r = float(radius_mm)
     if not (np.isfinite(r) and r > 0):
         raise EloInputError(f"detector_radius_mm={radius_mm!r}: must be finite and > 0")
@@ -135,6 +210,26 @@ def eq24_differences(n_sx, n_sy, x, y, d_h, d_w):
 
     M_x = n_Sx d_w / (d_h - (n_Sx x + n_Sy y)),   M_y = n_Sy d_w / (d_h - (n_Sx x + n_Sy y)).
     All inputs broadcast; lengths in mm.
+
+    Parameters
+    ----------
+    n_sx, n_sy : array_like
+        Surface normal components -dZ/dx, -dZ/dy (mm/mm).
+    x, y : array_like
+        Surface position in mm.
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+
+    Returns
+    -------
+    mx, my : ndarray
+        M_x, M_y (dimensionless).
+
+    Examples
+    --------
+    >>> mx, my = eq24_differences(0.1, 0.0, 0.0, 0.0, 272.0, 127.0)
+    >>> round(float(mx), 4), round(float(my), 4)
+    (0.0467, 0.0)
     """
     d_h, d_w = check_detector_geometry(d_h, d_w)
     den = d_h - (np.asarray(n_sx) * x + np.asarray(n_sy) * y)

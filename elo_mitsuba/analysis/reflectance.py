@@ -27,13 +27,52 @@ from .integrate import height_gradient
 
 
 def detector_pq(d_h, d_w, detector="right", x=0.0, y=0.0) -> tuple[float, float]:
-    """p,q-form (d_x, d_y) of a detector vector seen from (x, y, 0) (Eq. 17); mm in, unitless out."""
+    """p,q-form (d_x, d_y) of a detector vector seen from (x, y, 0) (Eq. 17); mm in, unitless out.
+
+    Parameters
+    ----------
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+    detector : {"right", "left", "back", "front"}
+    x, y : float
+        Surface position in mm.
+
+    Returns
+    -------
+    (float, float)
+        ``(d_x, d_y)``, unitless.
+
+    Examples
+    --------
+    >>> [round(v, 4) for v in detector_pq(272, 127)]
+    [0.4669, 0.0]
+    >>> [round(v, 4) for v in detector_pq(272, 127, "front", x=10.0)]
+    [-0.0368, -0.4669]
+    """
     d = detector_vectors(np.asarray(x, float), np.asarray(y, float), d_h, d_w, (detector,))[detector]
     return float(d[..., 0]), float(d[..., 1])
 
 
 def pq_grid(p_range=(-3.0, 3.0), q_range=(-3.0, 3.0), n=301):
-    """Sample the (p, q) plane: returns ``(P, Q)`` of shape (n_q, n_p), row 0 = largest q."""
+    """Sample the (p, q) plane: returns ``(P, Q)`` of shape (n_q, n_p), row 0 = largest q.
+
+    Parameters
+    ----------
+    p_range, q_range : (float, float)
+        Sampled window of p = n_Sx and q = n_Sy (unitless).
+    n : int or (int, int)
+        Number of samples (n_p, n_q).
+
+    Returns
+    -------
+    P, Q : ndarray (n_q, n_p)
+
+    Examples
+    --------
+    >>> P, Q = pq_grid((-1.0, 1.0), (-1.0, 1.0), n=3)
+    >>> P[0].tolist(), Q[:, 0].tolist()
+    ([-1.0, 0.0, 1.0], [1.0, 0.0, -1.0])
+    """
     n_p, n_q = (n, n) if np.isscalar(n) else n
     if int(n_p) < 2 or int(n_q) < 2:
         raise EloInputError(f"n={n!r}: need at least 2 samples along p and q")
@@ -70,6 +109,14 @@ def reflectance_map(d_pq, *, beam_dir=(0.0, 0.0, -1.0), material=None, lobe=True
         g_BSE per steradian; 0 in the masked region.
     masked : ndarray of bool (n_q, n_p)
         p d_x + q d_y + 1 <= 0: the detector is behind the tangent plane (geometric masking).
+
+    Examples
+    --------
+    >>> p, q, g, masked = reflectance_map(detector_pq(272, 127), n=5)
+    >>> g.shape, bool(masked[2, 0]), bool(masked[2, 2])    # p = -3: masked; the flat normal: not
+    ((5, 5), True, False)
+    >>> round(float(g[2, 2]), 4)                            # g_BSE of a flat plate (1/sr)
+    0.0693
     """
     d_x, d_y = (float(v) for v in d_pq)
     p, q = pq_grid(p_range, q_range, n)
@@ -93,6 +140,12 @@ def masking_lines(layouts: Mapping | None = None, detectors=DETECTOR_NAMES) -> d
     -------
     dict
         ``{label: {detector: (d_x, d_y)}}``. For the right detector the line is p = -d_h/d_w.
+
+    Examples
+    --------
+    >>> lines = masking_lines({"zeta25": (272.0, 127.0)}, detectors=("right",))
+    >>> [round(v, 4) for v in lines["zeta25"]["right"]]
+    [0.4669, 0.0]
     """
     layouts = TABLE1_LAYOUTS if layouts is None else layouts
     return {label: {det: detector_pq(dh, dw, det) for det in detectors} for label, (dh, dw) in layouts.items()}
@@ -124,6 +177,14 @@ def normal_histogram(height, field_mm, *, bins=201, p_range=(-2.0, 2.0), q_range
         ``extent=(p0, p1, q0, q1)``).
     p_edges, q_edges : ndarray
         Bin edges (ascending).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> height = np.tile(np.arange(4.0), (3, 1))      # a ramp, dZ/dx = 1 mm/mm (1 mm pixels)
+    >>> hist, p_edges, q_edges = normal_histogram(height, (4.0, 3.0), bins=4)
+    >>> hist.shape, int(hist.sum()), int(hist[:, 1].sum())    # every normal at p = -1
+    ((4, 4), 12, 12)
     """
     dzdx, dzdy = height_gradient(height, field_mm)
     p, q = -dzdx, -dzdy
@@ -141,6 +202,31 @@ def masked_normal_fraction(dzdx, dzdy, field_mm, d_h, d_w, *, detectors=DETECTOR
 
     Uses the detector vector at each pixel's position (Eq. 17), so it is the position-exact
     version of counting the normals of :func:`normal_histogram` beyond a masking line.
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        Surface gradient (mm/mm), package orientation.
+    field_mm : float or (float, float)
+        Scan field in mm.
+    d_h, d_w : float
+        Detector height and distance from the z-axis (mm).
+    detectors : iterable of str
+    mask : ndarray of bool, optional
+        True = leave the pixel out.
+
+    Returns
+    -------
+    dict of str to float
+        ``{detector: fraction, ..., "any": fraction}`` (0..1) of the pixels counted.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx = np.array([[0.0, 3.0]])           # a flat pixel and a steep one facing -x
+    >>> fractions = masked_normal_fraction(dzdx, np.zeros_like(dzdx), (20.0, 10.0), 272, 127)
+    >>> {k: round(v, 4) for k, v in fractions.items()}
+    {'right': 0.5, 'left': 0.0, 'back': 0.0, 'front': 0.0, 'any': 0.5}
     """
     masks = detector_masking(dzdx, dzdy, field_mm, d_h, d_w, detectors=detectors)
     keep = np.ones(np.shape(dzdx), dtype=bool) if mask is None else ~np.asarray(mask, dtype=bool)
@@ -174,6 +260,14 @@ def image_statistics(image, *, mask=None, zero_threshold=0.0, bins=100, value_ra
         ``masked_fraction``, ``masked`` (bool image), ``mean``, ``std``, ``cv`` (std/mean),
         ``min``, ``max``, ``p05``, ``p50``, ``p95``, ``hist``, ``bin_edges``. Statistics use all
         finite pixels not excluded by ``mask`` (masked pixels included, as in Fig. 15).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> image = np.array([[0.0, 0.1], [0.2, 0.3]])
+    >>> s = image_statistics(image, bins=3)
+    >>> s["masked_fraction"], round(s["mean"], 4), round(s["max"], 4), s["hist"].tolist()
+    (0.25, 0.15, 0.3, [1, 1, 2])
     """
     img = np.asarray(image, dtype=float)
     if img.ndim != 2:
@@ -199,7 +293,27 @@ def image_statistics(image, *, mask=None, zero_threshold=0.0, bins=100, value_ra
 
 
 def layout_geometry(zeta=None, d_h=None, d_w=None) -> tuple[float, float]:
-    """(d_h, d_w) in mm from a Table 1 inclination ``zeta`` (deg) or explicit lengths."""
+    """(d_h, d_w) in mm from a Table 1 inclination ``zeta`` (deg) or explicit lengths.
+
+    Parameters
+    ----------
+    zeta : float, optional
+        Table 1 inclination in degrees (25, 50 or 75 ...).
+    d_h, d_w : float, optional
+        Detector height and distance from the z-axis (mm), instead of ``zeta``.
+
+    Returns
+    -------
+    (float, float)
+        ``(d_h, d_w)`` in mm.
+
+    Examples
+    --------
+    >>> layout_geometry(zeta=50)
+    (192.7, 229.6)
+    >>> layout_geometry(d_h=272, d_w=127)
+    (272.0, 127.0)
+    """
     if zeta is not None:
         key = int(round(float(zeta)))
         if key not in TABLE1_LAYOUTS or abs(float(zeta) - key) > 1e-9:

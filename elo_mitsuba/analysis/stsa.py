@@ -58,6 +58,16 @@ def mean_flat(recordings: Sequence[Mapping], what: str = "flat-plate images") ->
     -------
     dict of str to ndarray (H, W)
         The mean image of each detector (float64).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> names = ("right", "left", "back", "front")
+    >>> first = {d: np.full((2, 2), 1.0) for d in names}
+    >>> second = {d: np.full((2, 2), 3.0) for d in names}      # a beam current 3 times the first's
+    >>> flat = mean_flat([first, second])
+    >>> sorted(flat), flat["right"].tolist()
+    (['back', 'front', 'left', 'right'], [[2.0, 2.0], [2.0, 2.0]])
     """
     sets = [check_images(r, f"{what} (recording {i + 1})" if len(recordings) > 1 else what)
             for i, r in enumerate(recordings)]
@@ -91,6 +101,15 @@ def stsa_correct(images: Mapping, flats: Mapping, *, min_flat_fraction: float = 
         R^C = R / C_R etc. (dimensionless; 1 for the flat plate itself, Eq. 21).
     mask : ndarray of bool (H, W)
         True where any detector's flat or object pixel is not usable; corrected images hold 0 there.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> flats = {d: np.full((2, 2), 0.002) for d in ("right", "left", "back", "front")}
+    >>> images = {d: 1.5 * f for d, f in flats.items()}
+    >>> corrected, mask = stsa_correct(images, flats)
+    >>> corrected["right"].round(4).tolist(), bool(mask.any())
+    ([[1.5, 1.5], [1.5, 1.5]], False)
     """
     img = check_images(images, "object images")
     flat = check_images(flats, "flat-plate images")
@@ -123,6 +142,25 @@ def sum_images(corrected: Mapping) -> tuple[np.ndarray, np.ndarray]:
     In the point-detector Lambert model both equal ``(eta/eta_C) 2/|n_S| [1 - (n_Sx x + n_Sy y)/d_h]``.
     Non-finite inputs give 0 (callers use the masks of :func:`stsa_correct` /
     :func:`normalised_differences`).
+
+    Parameters
+    ----------
+    corrected : mapping of str to ndarray (H, W)
+        STSA-corrected images (:func:`stsa_correct`), dimensionless.
+
+    Returns
+    -------
+    sum_x, sum_y : ndarray (H, W)
+        R^C + L^C and B^C + F^C (2 on the flat plate).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> corrected = {"right": np.array([[1.2]]), "left": np.array([[0.8]]),
+    ...              "back": np.array([[1.1]]), "front": np.array([[np.nan]])}
+    >>> sx, sy = sum_images(corrected)
+    >>> round(float(sx[0, 0]), 4), float(sy[0, 0])
+    (2.0, 0.0)
     """
     c = check_images(corrected, "corrected images")
     s_x = np.nan_to_num(c["right"] + c["left"], nan=0.0, posinf=0.0, neginf=0.0)
@@ -149,6 +187,15 @@ def normalised_differences(corrected: Mapping, *, min_sum: float = MIN_SUM):
         In [-1, 1] wherever both corrected images are >= 0; 0 at masked pixels.
     mask : ndarray of bool (H, W)
         True where either sum is below ``min_sum`` or not finite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> corrected = {"right": np.array([[1.2]]), "left": np.array([[0.8]]),
+    ...              "back": np.array([[1.0]]), "front": np.array([[1.0]])}
+    >>> mx, my, mask = normalised_differences(corrected)
+    >>> round(float(mx[0, 0]), 4), round(float(my[0, 0]), 4), bool(mask[0, 0])
+    (0.2, 0.0, False)
     """
     c = check_images(corrected, "corrected images")
     d_x = c["right"] - c["left"]

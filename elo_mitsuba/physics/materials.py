@@ -171,6 +171,34 @@ def get_material(spec: "str | Mapping[str, float] | Material | None" = None) -> 
 
     ``None`` gives the default Ti-6Al-4V. Preset names are matched case-insensitively
     (``"ti64"``, ``"steel"`` = 316L, ``"in718"`` ...). A string with ``:`` is a composition.
+
+    Parameters
+    ----------
+    spec : str, mapping, Material or None
+        A preset name, a composition string (``"Fe:0.7,Cr:0.3"``, weight fractions) or a mapping
+        ``{symbol: weight fraction}``; fractions summing to 1 within the measured tolerance are
+        normalised (noted in ``note``).
+
+    Returns
+    -------
+    Material
+
+    Raises
+    ------
+    EloInputError
+        An unknown preset, or an invalid composition.
+
+    Examples
+    --------
+    >>> m = get_material()
+    >>> m.describe(), round(m.eta0, 4)
+    ('Ti-6Al-4V (Ti:0.9,Al:0.06,V:0.04)', 0.2402)
+    >>> get_material("steel").name
+    '316L'
+    >>> round(get_material("Fe:0.7,Cr:0.3").eta0, 4)
+    0.2745
+    >>> round(float(get_material({"Ti": 1.0}).eta(0.5)), 4)     # theta = 0.5 rad
+    0.2873
     """
     from ..constants import DEFAULT_MATERIAL
 
