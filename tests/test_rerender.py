@@ -82,7 +82,7 @@ def test_sweep_points_with_the_scene_quality_equal_direct_renders(tmp_path):
         scene = em.load_scene("flat_plate", res=8)
         scene.set_detector("right", radius=r)
         direct = scene.render(quality="scene", progress=False).channels["right"]
-        assert np.array_equal(ds["image_right"].sel({"right.radius": r}).values, direct), r
+        assert np.array_equal(ds["image_right"].sel(right_radius=r).values, direct), r
 
 
 def test_scene_quality_keeps_what_configure_set_before_a_preset():

@@ -97,7 +97,7 @@ def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
     ds = xr.open_zarr(out)
     assert ds["status"].values.tolist() == [[1, 1], [1, 1]]
     assert set(ds["worker"].values.ravel()) <= {"w1", "w2"}
-    assert ds["dh"].attrs["units"] == "mm" and ds["right.radius"].attrs["units"] == "mm"
+    assert ds["dh"].attrs["units"] == "mm" and ds["right_radius"].attrs["units"] == "mm"
     geometry = json.loads(ds.attrs["scan_geometry"])
     assert geometry["field_mm"] == [80.0, 80.0] and geometry["resolution"] == [32, 32]
     assert "dh" in ds.attrs["spec_toml"]
@@ -158,7 +158,7 @@ spp = 1
     ds = xr.open_zarr(out)
     assert ds["status"].values.tolist() == [1, 1, 2]
     assert "EloInputError" in str(ds["error"].values[2]) and "below" in str(ds["error"].values[2])
-    assert ds["right.center_xyz"].values[1].tolist() == [150, 0, 250]
+    assert ds["right_center_xyz"].values[1].tolist() == [150, 0, 250]
     first = ds["render_seconds"].values.copy()
     mean = ds["signal_mean"].values.copy()
     # an interrupted run: point 1 never finished
@@ -328,9 +328,9 @@ object = "corrugated_sheet"
     out = tmp_path / "z.zarr"
     assert _cli("sweep", spec, "-o", out, "--workers", "0", "--no-progress") == 0
     ds = xr.open_zarr(out)
-    assert dict(ds.sizes) == {"position": 2, "detectors.radius": 2, "right.normal": 1, "detector": 4, "xyz": 3}
+    assert dict(ds.sizes) == {"position": 2, "detectors_radius": 2, "right_normal": 1, "detector": 4, "xyz": 3}
     assert ds["dw"].dims == ("position",) and ds["dw"].values.tolist() == [127, 150]
-    assert ds["right.normal_xyz"].values.tolist() == [[-127, 0, -272]]
+    assert ds["right_normal_xyz"].values.tolist() == [[-127, 0, -272]]
     assert set(ds.data_vars) >= {"gradient_rms_eq26", "masked_fraction", "signal_mean", "signal_spread"}
     # point (position 1, radius 30): recompute the metric from direct renders
     kw = {"field": 20, "res": 32, "dh": 250, "dw": 150}
@@ -348,7 +348,7 @@ object = "corrugated_sheet"
     truth = true_gradient({"object": "corrugated_sheet"}, (32, 32), (20.0, 20.0))
     assert abs(truth[0]).max() == pytest.approx(1.0)  # the flanks' slope, where a pixel lies on one
     expected = gradient_rms(g.dzdx, g.dzdy, g.mask, truth)
-    at = {"position": 1, "detectors.radius": 1, "right.normal": 0}
+    at = {"position": 1, "detectors_radius": 1, "right_normal": 0}
     assert float(ds["gradient_rms_eq26"].isel(at)) == pytest.approx(expected, rel=1e-12)
     assert float(ds["masked_fraction"].isel(at)) == pytest.approx(float(g.mask.mean()))
     # the model method's metric: the same computation on the point's renders and its own discs

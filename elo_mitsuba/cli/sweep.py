@@ -14,7 +14,9 @@ Render a scene over a grid of parameters (a TOML spec: the scene, fixed and swep
 render settings, what to keep) and store per point the chosen detector images and design metrics
 (per-detector mean and spread, share of events >= 2, masked fraction, gradient error on a test
 surface) in one Zarr store: xarray.open_zarr(OUT.zarr), one variable per metric/channel, dims =
-the swept parameters. The spec format: examples/sweep_layouts.toml and README ("Design sweeps").
+the swept parameters, named as the spec names them with '.' as '_' (right.radius: right_radius,
+ds.sel(right_radius=25); a [zip.NAME] group: NAME). The spec format: examples/sweep_layouts.toml
+and README ("Design sweeps").
 
 Each worker loads a scene once per combination of load-time parameters (XML <default>s such as
 layout, dh, dw, res) and re-renders it in place for spp, events, quality and detector moves

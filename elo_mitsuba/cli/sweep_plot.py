@@ -12,14 +12,16 @@ DESCRIPTION = """\
 Plot a metric of a sweep store (elo-mitsuba sweep): over one swept parameter a line (one per
 detector for per-detector metrics), over two a heat map (per-detector metrics: --detector, or
 the mean over detectors). Axes are labelled with the parameters and their units; failed or
-missing points are left out. Further swept dimensions are fixed with --select DIM=VALUE.
+missing points are left out. Further swept dimensions are fixed with --select DIM=VALUE. A
+dimension is named as in the store, the spec key with '.' as '_' (right_radius, the name
+xarray's ds.sel(right_radius=25) takes), or as the spec writes it (right.radius); --x likewise.
 """
 
 EPILOG = """\
 examples:
   elo-mitsuba sweep-plot layouts.zarr gradient_rms_eq26 -o rms.png
   elo-mitsuba sweep-plot layouts.zarr signal_mean -o mean.png --detector right
-  elo-mitsuba sweep-plot layouts.zarr signal_spread -o spread.png --select detectors.radius=25
+  elo-mitsuba sweep-plot layouts.zarr signal_spread -o spread.png --select detectors_radius=25
 """
 
 
@@ -38,7 +40,7 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, metavar="PNG", help="figure to write")
     p.add_argument("--detector", help="one detector of a per-detector metric")
     p.add_argument("--select", type=_selection, action="append", default=[], metavar="DIM=VALUE",
-                   help="fix a swept dimension (repeatable)")
+                   help="fix a swept dimension: right_radius=25 or right.radius=25 (repeatable)")
     p.add_argument("--x", metavar="DIM", help="the dimension along the horizontal axis")
     p.add_argument("--overwrite", action="store_true", help="replace an existing PNG")
     p.set_defaults(run=run)

@@ -1,7 +1,9 @@
 """Design sweeps: many renders of one scene over a grid of parameters, on this machine or a Dask
 cluster, into one Zarr store readable by ``xarray.open_zarr``.
 
-* :mod:`.spec`    the TOML spec, validated before any render (:func:`load_spec`);
+* :mod:`.spec`    the TOML spec, validated before any render (:func:`load_spec`), and
+  :func:`dimension_name`, the store's name of a swept key (``right.radius`` -> ``right_radius``,
+  so that ``ds.sel(right_radius=25)``);
 * :mod:`.validate` every point's values checked against the scene, without rendering;
 * :mod:`.cost`    the sweep's estimate (time, memory, store size); unbounded work refused;
 * :mod:`.claims`  per-point claims: two clients resuming one store never render a point twice;
@@ -20,7 +22,7 @@ pays for them.
 from .metrics import GRADIENT_METHODS, METRICS, register_gradient_method
 from .plot import plot_metric
 from .run import SweepSummary, sweep
-from .spec import SweepSpec, load_spec
+from .spec import SweepSpec, dimension_name, load_spec
 
-__all__ = ["GRADIENT_METHODS", "METRICS", "SweepSpec", "SweepSummary", "load_spec", "plot_metric",
-           "register_gradient_method", "sweep"]
+__all__ = ["GRADIENT_METHODS", "METRICS", "SweepSpec", "SweepSummary", "dimension_name", "load_spec",
+           "plot_metric", "register_gradient_method", "sweep"]

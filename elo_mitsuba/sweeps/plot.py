@@ -1,5 +1,9 @@
 """A sweep metric over one swept parameter (a line per detector) or two (a heat map), as PNG.
 
+Dimensions are named as the store names them (:func:`.spec.dimension_name`, ``right_radius``);
+``select`` and ``x`` take that name or the spec's key (``right.radius``). A store written before the
+names were identifiers (dotted dimensions) is read with its names mapped the same way.
+
 Values that vary by less than :data:`SMALL_SPAN` of their magnitude are named as such in the
 title (and the colour bar's label): the axis and colour scale stretch any range over the plot.
 """
@@ -11,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EloInputError
+from .spec import dimension_name
 
 
 def _open(store):
@@ -26,7 +31,19 @@ def _open(store):
         raise EloInputError(f"{path}: cannot read the sweep store ({type(exc).__name__}: {text})") from None
     if "status" not in ds.data_vars:
         raise EloInputError(f"{path} is a Zarr store but not a sweep's (no status variable)")
+    old = {n: dimension_name(n) for n in list(ds.variables) + list(ds.dims) if dimension_name(n) != n}
+    if old and not set(old.values()) & (set(ds.variables) | set(ds.dims)):  # a store with dotted names
+        ds = ds.rename(old)
     return ds
+
+
+def _dimension(given, swept, what: str, store) -> str:
+    """The store's dimension for ``given`` (its name or the spec key, :func:`dimension_name`);
+    ``what`` opens the message (``--select right.radius=25``)."""
+    dim = dimension_name(given)
+    if dim not in swept:
+        raise EloInputError(f"{what}: {dim} is not swept in {store} (swept: {', '.join(swept) or 'none'})")
+    return dim
 
 
 def _label(ds, dim) -> str:
@@ -82,9 +99,10 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         the mean over detectors).
     select : dict, optional
         ``{dim: value}`` for swept dimensions beyond the one or two plotted (a value of the
-        sweep: numbers equal to 1e-9 relative, strings exactly).
+        sweep: numbers equal to 1e-9 relative, strings exactly); ``dim`` is the store's name
+        (``right_radius``) or the spec's key (``right.radius``).
     x : str, optional
-        The dimension along the horizontal axis (default: the first one left).
+        The dimension along the horizontal axis (default: the first one left); either spelling.
     overwrite : bool
         Replace an existing PNG.
 
@@ -100,10 +118,13 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         raise EloInputError(f"{store}: no metric {metric!r}; metrics in this store: {', '.join(allowed)}")
     da = ds[metric].where(ds["status"] == 1)
     swept = [d for d in da.dims if d != "detector"]
-    for dim, value in (select or {}).items():
-        if dim not in swept:
-            raise EloInputError(f"--select {dim}={value}: {dim} is not swept in {store} (swept: "
-                                f"{', '.join(swept) or 'none'})")
+    chosen = {}
+    for given, value in (select or {}).items():
+        dim = _dimension(given, swept, f"--select {given}={value}", store)
+        if dim in chosen:
+            raise EloInputError(f"--select names {dim} twice ({chosen[dim][0]}, {given})")
+        chosen[dim] = (given, value)
+    for dim, (_, value) in chosen.items():
         vals = ds[dim].values
         numeric = vals.dtype.kind in "iuf"
         try:
@@ -116,7 +137,7 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
             raise EloInputError(f"--select {dim}={value}: not a value of the sweep; {dim} takes "
                                 f"{', '.join(f'{v:g}' if numeric else str(v) for v in vals)}")
         da = da.isel({dim: hits[0]})
-    title = metric + "".join(f", {k}={v}" for k, v in (select or {}).items())
+    title = metric + "".join(f", {k}={v}" for k, (_, v) in chosen.items())
     if "detector" in da.dims and detector is not None:
         if detector not in list(ds["detector"].values):
             raise EloInputError(f"detector {detector!r}: not in {', '.join(map(str, ds['detector'].values))}")
@@ -128,10 +149,9 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         raise EloInputError(f"{metric} varies over {len(dims)} swept dimensions ({', '.join(dims) or 'none'}); "
                             "plot one or two: fix the others with --select DIM=VALUE")
     if x is not None:
-        if x not in dims:
-            raise EloInputError(f"--x {x}: not among the plotted dimensions ({', '.join(dims)})")
-        dims.remove(x)
-        dims.insert(0, x)
+        if dimension_name(x) not in dims:
+            raise EloInputError(f"--x {x}: {dimension_name(x)} is not among the plotted dimensions ({', '.join(dims)})")
+        dims.insert(0, dims.pop(dims.index(dimension_name(x))))
     units = ds[metric].attrs.get("units", "")
     vlabel = f"{metric} ({units})" if units and units != "1" else metric
     fig, axes = new_figure()

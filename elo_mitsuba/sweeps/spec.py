@@ -33,13 +33,22 @@ What a swept name means, and what it costs on a worker:
 * ``spp``, ``events``, ``quality`` and detector moves (``<detector>.center``, ``.normal``,
   ``.radius``, ``detectors.radius``) change a loaded scene in place (``mi.traverse``): no reload,
   no recompilation.
+
+The store names each swept key (and each zipped group) by :func:`dimension_name`: a Python
+identifier, the spec key with ``.`` (and any other character an identifier cannot hold) as
+``_``: ``right.radius`` is the dimension ``right_radius``, so ``ds.sel(right_radius=25)``; a
+``[zip.NAME]`` group is the dimension ``NAME`` with one coordinate per member (``dh``,
+``right_center``). A spec whose names would not make such keywords (a group ``[zip."2nd"]``, a
+name the store or ``Dataset.sel`` uses itself, two keys with one name) is refused when parsed.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import keyword
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +75,18 @@ UNITS = {"dh": "mm", "dw": "mm", "wd": "mm", "field": "mm", "fwhm": "mm", "res":
 #: Most points one spec may hold: far beyond a sensible sweep, but it stops a typo (a list of
 #: 10^6 values) before the store is allocated.
 MAX_POINTS = 1_000_000
+#: Keywords of ``xarray.Dataset.sel`` itself: a dimension of that name could not be selected as
+#: ``ds.sel(name=value)``.
+SEL_KEYWORDS = ("indexers", "method", "tolerance", "drop")
+
+
+def dimension_name(key: str) -> str:
+    """The store's name for a swept spec key or zipped group: ``right.radius`` -> ``right_radius``,
+    ``detectors.radius`` -> ``detectors_radius``, ``dh`` -> ``dh`` (every character a Python
+    identifier cannot hold becomes ``_``), so that ``ds.sel(right_radius=25)`` selects it. The one
+    mapping used by the store, sweep-plot and the spec's checks; the spec itself keeps its TOML
+    keys (``right.radius = [...]``)."""
+    return re.sub(r"\W", "_", str(key))
 
 
 @dataclass(frozen=True)
@@ -82,6 +103,12 @@ class Member:
     def units(self) -> str:
         return UNITS.get(self.attribute or self.key, "")
 
+    @property
+    def dim(self) -> str:
+        """Its name in the store (:func:`dimension_name`): the dimension, or in a zipped group
+        the coordinate along the group's dimension."""
+        return dimension_name(self.key)
+
 
 @dataclass(frozen=True)
 class Axis:
@@ -96,6 +123,12 @@ class Axis:
     @property
     def zipped(self) -> bool:
         return len(self.members) > 1 or self.members[0].key != self.name
+
+    @property
+    def dim(self) -> str:
+        """The dimension's name in the store (:func:`dimension_name` of the key or group name;
+        ``name`` stays the spec's, which the digest is made of)."""
+        return dimension_name(self.name)
 
 
 @dataclass
@@ -317,6 +350,7 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
         if name in seen:
             _fail(source, f"zip.{name}: the group's name is also a swept parameter; name it differently")
         axes.append(Axis(name, tuple(members)))
+    _check_store_names(source, axes)
     if "res" in seen and resolution is not None:
         _fail(source, "res is swept and render.resolution is set; give one of them")
     n = math.prod(len(a) for a in axes)
@@ -360,6 +394,45 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
     if resolution is not None and resolution % downsample:
         _fail(source, f"keep.downsample = {downsample} does not divide render.resolution = {resolution}")
     return spec
+
+
+def _store_names(axes) -> list[tuple[str, str]]:
+    """(name in the store, where the spec gives it) of every swept dimension and coordinate."""
+    out = []
+    for a in axes:
+        group = f"zip.{a.name}" if a.zipped else None
+        out.append((a.dim, group or f"vary.{a.name}"))
+        for m in a.members:
+            where = f"{group}.{m.key}" if group else f"vary.{m.key}"
+            if a.zipped:
+                out.append((m.dim, where))
+            if m.attribute in ("center", "normal"):
+                out.append((f"{m.dim}_xyz", where))
+    return out
+
+
+def _check_store_names(source, axes) -> None:
+    """Every dimension and coordinate name (:func:`dimension_name`) a keyword ``ds.sel`` accepts,
+    none the store's own, no two alike."""
+    from .metrics import METRICS
+    from .store import RESERVED_NAMES
+
+    taken: dict[str, str] = {}
+    for name, where in _store_names(axes):
+        why = None
+        if not name.isidentifier() or keyword.iskeyword(name):
+            why = "is not a Python identifier"
+        elif name in SEL_KEYWORDS:
+            why = "is a keyword of Dataset.sel itself"
+        elif name in RESERVED_NAMES or name in METRICS or name.startswith("image_"):
+            why = "is a name the store uses itself"
+        if why:
+            _fail(source, f"{where}: its store name {name!r} {why} (a swept key is stored with '.' as '_', a "
+                  "name ds.sel(name=value) takes; a [zip.NAME] group as NAME: letters, digits, _); choose another name")
+        if name in taken:
+            _fail(source, f"{taken[name]} and {where} would both be the store's {name!r} (spec keys are "
+                  "stored with '.' as '_'); rename one")
+        taken[name] = where
 
 
 def _members(source, where, key, value) -> list[Member]:

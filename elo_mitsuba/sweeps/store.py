@@ -2,8 +2,12 @@
 Zarr library), preallocated on the client and filled point by point by the workers.
 
 Layout: dimensions = the sweep's axes (+ ``detector`` for per-detector metrics, + ``y``, ``x`` for
-images); chunks of one point along every axis, so that each point writes its own chunks and workers
-never write the same file. Variables:
+images), each named by :func:`.spec.dimension_name`, a Python identifier: the spec's
+``right.radius`` is the dimension ``right_radius`` (``ds.sel(right_radius=25)``), its ``long_name``
+the spec key; a ``[zip.NAME]`` group is the dimension ``NAME`` (0, 1, ...) with one coordinate per
+member; a ``center``/``normal`` move has its labels ``"(127, 0, 272)"`` as the coordinate and the
+vectors as ``<name>_xyz`` (dimension ``xyz``). Chunks of one point along every axis, so that each
+point writes its own chunks and workers never write the same file. Variables:
 
 * ``status`` (int8): 0 = not done, 1 = done, 2 = failed (``error`` holds the one-line reason);
   written *after* the point's data, so a worker killed half-way leaves 0 and the point is redone;
@@ -11,7 +15,11 @@ never write the same file. Variables:
 * ``render_seconds``, ``worker_rss_mb``, ``worker_cpu_s``, ``finished_at``, ``worker``: what each point
   cost, when and where it ran.
 
-Attributes: the spec (TOML text and digest), the scan geometry, the package version.
+Attributes: the spec (TOML text, parsed form and digest), the scan geometry, the package version.
+
+Stores written before the dimensions were identifiers (``right.radius``) resume unchanged (the
+digest is the spec's, and points are written by index); :func:`.plot.plot_metric` reads them with
+their names mapped by :func:`.spec.dimension_name`.
 """
 
 from __future__ import annotations
@@ -33,6 +41,10 @@ ERROR_CHARS = 240
 #: Longest worker name kept per point.
 WORKER_CHARS = 64
 ZARR_FORMAT = 2
+#: The store's own dimensions and variables (besides the metrics and ``image_<channel>``): no swept
+#: name may take one (checked when the spec is parsed).
+RESERVED_NAMES = ("detector", "x", "y", "xyz", "status", "error", "worker", "render_seconds", "worker_rss_mb",
+                  "worker_cpu_s", "finished_at")
 
 
 def image_variable(channel: str) -> str:
@@ -105,7 +117,7 @@ def _create(path: Path, spec, layout: dict) -> None:
     import dask.array as da
     import xarray as xr
 
-    axes = [a.name for a in spec.axes]
+    axes = [a.dim for a in spec.axes]
     shape = spec.shape
     one = (1,) * len(axes)
     coords = _coordinates(spec)
@@ -170,27 +182,28 @@ def _coordinates(spec) -> dict:
     coords = {}
     for a in spec.axes:
         if not a.zipped:
-            m = a.members[0]
-            coords.update(_member_coords(a.name, m, index=True))
+            coords.update(_member_coords(a.dim, a.members[0], index=True))
         else:
-            coords[a.name] = (a.name, np.arange(len(a)), {"description": "zipped group: "
-                                                          + ", ".join(m.key for m in a.members)})
+            coords[a.dim] = (a.dim, np.arange(len(a)), {"description": "zipped group: "
+                                                        + ", ".join(m.dim for m in a.members),
+                                                        "long_name": a.name})
             for m in a.members:
-                coords.update(_member_coords(a.name, m, index=False))
+                coords.update(_member_coords(a.dim, m, index=False))
     return coords
 
 
 def _member_coords(dim, m, index: bool) -> dict:
+    """The coordinate(s) of swept member ``m`` along dimension ``dim``: named ``dim`` itself
+    (``index``) or, in a zipped group, ``m.dim``; ``long_name`` is the spec key."""
     attrs = {"units": m.units, "long_name": m.key,
              "load_time": "yes: a scene load per value" if m.target == "scene" else "no: changed in place"}
     vals = m.values
+    name = dim if index else m.dim
     if m.attribute in ("center", "normal"):
         labels = np.array(["(" + ", ".join(f"{c:g}" for c in v) + ")" for v in vals])
-        out = {f"{m.key}_xyz": ((dim, "xyz"), np.array(vals, dtype=float), attrs)}
-        out[dim if index else m.key] = (dim, labels, {**attrs, "units": m.units})
-        return out
-    arr = np.array(vals)
-    return {dim if index else m.key: (dim, arr, attrs)}
+        return {f"{m.dim}_xyz": ((dim, "xyz"), np.array(vals, dtype=float), attrs),
+                name: (dim, labels, dict(attrs))}
+    return {name: (dim, np.array(vals), attrs)}
 
 
 def read_status(path) -> np.ndarray:

@@ -39,7 +39,9 @@ MAX_VALUE_PROBES = 256
 
 
 def _values_text(spec: SweepSpec, picks: dict) -> str:
-    """``dh = -50, right.radius = 20`` for the axis indices ``picks`` ({axis number: index})."""
+    """``dh = -50, right.radius = 20`` for the axis indices ``picks`` ({axis number: index}): the
+    keys as the spec writes them (the line to fix), not the store's names (:func:`.spec.dimension_name`,
+    whose own checks are :func:`.spec.load_spec`'s)."""
     parts = []
     for a, i in sorted(picks.items()):
         for m in spec.axes[a].members:
