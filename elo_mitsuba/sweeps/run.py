@@ -289,6 +289,8 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
     Returns
     -------
     SweepSummary
+        The store's path, points in all, done, failed and skipped (done before), seconds, workers,
+        and whether the store was created or resumed.
 
     Raises
     ------
@@ -299,6 +301,23 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
         stored is kept and a re-run resumes it.
     EloEnvironmentError
         The ``sweep`` extra (Dask, distributed, xarray, Zarr) is not installed: one line, before anything else.
+
+    Examples
+    --------
+    A detector's radius swept in this process (``workers=0``), read back with xarray; a larger
+    disc collects more electrons:
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import xarray as xr
+    >>> spec = {"scene": "flat_plate", "vary": {"right": {"radius": [20.0, 30.0]}},
+    ...         "render": {"resolution": 4}, "keep": {"metrics": ["signal_mean"]}}
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     summary = sweep(spec, Path(folder) / "radii.zarr", workers=0, progress=False)
+    ...     mean = xr.open_zarr(Path(folder) / "radii.zarr").signal_mean.sel(detector="right")
+    ...     bigger = bool(mean.sel(right_radius=30.0) > mean.sel(right_radius=20.0))
+    >>> summary.done, summary.failed, bigger
+    (2, 0, True)
     """
     require("a sweep")
     workers, address, threads_per_worker = check_resources(workers, scheduler, threads_per_worker)
