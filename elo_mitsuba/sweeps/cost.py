@@ -73,17 +73,7 @@ def estimate(spec, probe, layout: dict, workers: int) -> dict:
 def check(spec, probe, layout: dict, output, *, workers: int, force: bool = False) -> dict:
     """Refuse a sweep whose estimate is out of bounds (see the module docstring); returns the
     estimate. Raises EloInputError (one line with the figures)."""
-    from ..budget import human_bytes, human_seconds
-
-    try:
-        from ..budget import REFUSE_SECONDS, memory_limit
-    except ImportError:  # an older budget module: MemAvailable and a 4 h limit
-        from ..budget import available_memory
-
-        REFUSE_SECONDS = 4 * 3600.0
-
-        def memory_limit():
-            return available_memory(), "available on this machine"
+    from ..budget import REFUSE_SECONDS, human_bytes, human_seconds, memory_limit
 
     est = estimate(spec, probe, layout, workers)
     w, h = est["resolution"]

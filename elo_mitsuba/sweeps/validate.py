@@ -141,10 +141,8 @@ def _check_integrator(spec: SweepSpec, probe) -> None:
             raise EloInputError(f"{src}: [integrator]: {exc}") from None
     qualities = {spec.quality} | {v for a in spec.axes for m in a.members if m.key == "quality" for v in m.values}
     events = [spec.events] + [v for a in spec.axes for m in a.members if m.key == "events" for v in m.values]
-    try:
-        from ..options import check_combination  # the one rule of every entry point
-    except ImportError:  # pragma: no cover -- an options module without it: EloOptions' own checks only
-        return
+    from ..options import check_combination  # the one rule of every entry point
+
     try:
         check_combination(spec.integrator, base=probe.options, qualities=sorted(qualities), events=max(events),
                           bounce_possible=bool(probe.integrator.bounce_possible), prefix="integrator.")
