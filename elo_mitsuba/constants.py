@@ -58,6 +58,24 @@ TABLE1_LAYOUTS = {
     75: (77.6, 289.6),
 }
 
+# --- Signal chain noise (issue 27, the design metric) -----------------------------------------------
+#: Dwell time of the beam on one pixel (s). Our choice: the paper gives none; ELO scans of PBF-EB
+#: machines dwell ~0.1-1 us per point. With BEAM_CURRENT_A it sets the primary electrons per pixel.
+PIXEL_DWELL_S = 1e-6
+#: RMS noise of the transimpedance amplifier's output over one pixel (V). Our choice (1 mV at
+#: 1e5 V/A: 10 nA input-referred), a parameter of the metric everywhere.
+AMPLIFIER_NOISE_V = 1e-3
+
+# --- ATHENE-like chamber (scenes_xml/parts/chamber.xml; scenes_xml/athene_flat.xml documents it) ----
+#: Interior: x, y, z ranges (mm). tests/test_design.py checks these against parts/chamber.xml.
+CHAMBER_INTERIOR_MM = ((-350.0, 350.0), (-450.0, 330.0), (0.0, 550.0))
+#: Half-width of the square gun-column opening in the ceiling (|x|, |y| < 50 mm): the column runs
+#: from the ceiling down to the beam pivot at the work distance.
+COLUMN_HALF_WIDTH_MM = 50.0
+#: Radiation-protection sheet hanging from the ceiling: its y range and lower edge z (mm), full width.
+SHEET_Y_MM = (200.0, 202.0)
+SHEET_BOTTOM_MM = 320.0
+
 # --- Software environment --------------------------------------------------------------------------
 #: Oldest LLVM that Mitsuba's llvm variants run with here (Debian's 15/16 abort on fminimum).
 MIN_LLVM_MAJOR = 17

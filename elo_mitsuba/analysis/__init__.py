@@ -34,6 +34,7 @@ _EXPORTS = {
         "height_gradient", "integrate_dct", "integrate_fft", "integrate_gradient", "integrate_masked")},
     **{n: ("point_detector", n) for n in (
         "beam_directions", "eq24_differences", "flat_plate_images", "point_detector_images", "point_solid_angle")},
+    **{n: ("precision", n) for n in ("SignalNoise", "design_metrics", "gradient_bound")},
     **{n: ("stsa", n) for n in ("mean_flat", "normalised_differences", "normalized_differences", "stsa_correct", "sum_images")},
 }
 
