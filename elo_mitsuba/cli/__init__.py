@@ -27,6 +27,7 @@ COMMANDS = (
     "reflectance_map",
     "sweep",
     "sweep_plot",
+    "optimize",
     "new_scene",
 )
 
@@ -46,6 +47,7 @@ examples:
   elo-mitsuba reconstruct grad.exr -o height.npy
   elo-mitsuba invert --flat flat.exr melt.exr -o height.exr
   elo-mitsuba sweep examples/sweep_minimal.toml -o sweep.zarr --workers 2
+  elo-mitsuba optimize examples/optimize_athene.toml -o front.zarr --plot front.png
 
 Run 'elo-mitsuba COMMAND --help' for each command's options.
 """

@@ -1,0 +1,322 @@
+"""The optimiser: a Pareto front of detector systems, each evaluation a task on the sweeps' Dask engine.
+
+Why Optuna: it is maintained, its samplers are multi-objective with constraints (NSGA-II, and the
+multi-objective TPE that needs far fewer evaluations at budgets of ~100), its ask-and-tell
+interface lets every evaluation be a Dask task that this client collects, and its journal storage
+(an append-only file, no database server) keeps the optimiser's state across a killed run. pymoo
+has the algorithms but no storage to resume from; nevergrad and CMA-ES optimise one weighted sum
+(or need one to rank), not a front.
+
+Flow per batch: ask ``batch`` trials (their parameters), submit one task per design
+(:func:`~.evaluate.evaluate_design`), append each result to ``OUT.zarr/.optimize/evaluations.jsonl``
+(on disk before anything else), then tell the optimiser. A killed run resumes from these two
+files: a trial the journal holds as running whose result the log has is told from the log (not
+evaluated again); one without a result is evaluated; completed trials count towards ``trials``.
+The dataset (every evaluated design, :mod:`.store`) is rewritten from the log at most every
+:data:`WRITE_EVERY_S` seconds and at the end.
+
+Before any work: the spec is checked (:func:`~.spec.load_spec`), and so is the design space
+(:func:`check_design_space`): bounds no feasible design lies in are refused with one line.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EloInputError
+from . import store
+from .evaluate import evaluate_design
+from .geometry import CONSTRAINTS, design_discs, violations
+from .spec import OptimizeSpec, load_spec
+
+#: Random designs (and the bounds' corners) tried by :func:`check_design_space`.
+PROBE_DESIGNS = 2000
+#: The dataset is rewritten at most this often (s) while running, and at the end.
+WRITE_EVERY_S = 5.0
+#: Study name in the journal.
+STUDY = "elo-optimize"
+#: Modules the optimiser needs (the ``sweep`` extra).
+MODULES = ("dask", "distributed", "xarray", "zarr", "optuna")
+
+
+@dataclass
+class OptimizeSummary:
+    """What a run did: the store, trials in all, evaluated now, told from a killed run's log,
+    seconds, workers, ``created``/``resumed``, designs on the front."""
+
+    path: Path
+    trials: int
+    evaluated: int
+    recovered: int
+    seconds: float
+    workers: int
+    state: str
+    front: int
+
+
+def design_params(spec: OptimizeSpec, values: dict, count: int) -> dict:
+    """A design's full parameters: the optimiser's ``values`` plus the spec's fixed ones."""
+    return {n: float(values[n]) if n in values else spec.bound(n)[0] for n in spec.parameter_names(count)}
+
+
+def check_design_space(spec: OptimizeSpec, n: int = PROBE_DESIGNS, seed: int = 0) -> None:
+    """Refuse (one line) bounds within which no design meets the constraints: ``n`` random designs
+    and the corners of the bounds are checked (geometry only, ~1 ms each).
+
+    Examples
+    --------
+    Detectors whose centres would be 560-700 mm high, in a chamber 550 mm high:
+
+    >>> check_design_space(load_spec({"parameters": {"dh": [560.0, 700.0]}}))
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: spec: no design within the bounds meets the constraints (2000 random designs and the corners tried); the closest violates 'chamber' by 21 mm: widen [parameters] or lower constraints.clearance (10 mm)
+    """
+    rng = np.random.default_rng(seed)
+    m = spec.metric
+    best = (math.inf, None)
+    for i in range(n + 2 ** 5 * len(spec.counts)):
+        count = spec.counts[i % len(spec.counts)]
+        names = spec.parameter_names(count)
+        if i < n:
+            vals = {p: rng.uniform(*spec.bound(p)) for p in names}
+        else:  # a corner of the (symmetric) bounds
+            j = i - n
+            vals = {p: spec.bound(p)[(j >> (b % 5)) & 1] for b, p in enumerate(names)}
+        v = violations(design_discs(vals, count, spec.symmetric), field_mm=m["field"], work_distance_mm=m["wd"],
+                       clearance=spec.clearance)
+        worst = max(v.values())
+        if worst <= 0:
+            return
+        if sum(v.values()) < best[0]:
+            best = (sum(v.values()), max(v, key=v.get), worst)
+    raise EloInputError(f"{spec.source}: no design within the bounds meets the constraints ({n} random designs and "
+                        f"the corners tried); the closest violates {best[1]!r} by {best[2]:.0f} mm: widen [parameters] "
+                        f"or lower constraints.clearance ({spec.clearance:g} mm)")
+
+
+def _sampler(spec: OptimizeSpec):
+    import warnings
+
+    import optuna
+
+    # Optuna 5 deprecates constraints_func (removal in 7; pyproject pins < 7) for
+    # Trial.set_constraint, which a trial told after a restart (no Trial object) cannot call
+    warnings.filterwarnings("ignore", message=".*constraints_func.*", category=FutureWarning)
+
+    opt = spec.optimizer
+    m = spec.metric
+
+    def constraints(trial):
+        # from the parameters alone (geometry): also for a trial told after a restart
+        count = int(trial.params.get("count", spec.counts[0]))
+        v = violations(design_discs(design_params(spec, trial.params, count), count, spec.symmetric),
+                       field_mm=m["field"], work_distance_mm=m["wd"], clearance=spec.clearance)
+        return [v[c] for c in CONSTRAINTS]
+
+    if opt["sampler"] == "nsga2":
+        return optuna.samplers.NSGAIISampler(population_size=max(opt["batch"], 4), seed=opt["seed"],
+                                             constraints_func=constraints)
+    if opt["sampler"] == "random":
+        return optuna.samplers.RandomSampler(seed=opt["seed"])
+    if opt["sampler"] == "grid":
+        return optuna.samplers.GridSampler(grid_space(spec), seed=opt["seed"])
+    return optuna.samplers.TPESampler(seed=opt["seed"], multivariate=True, constant_liar=True,
+                                      n_startup_trials=min(20, max(opt["trials"] // 5, 5)),
+                                      constraints_func=constraints)
+
+
+def grid_space(spec: OptimizeSpec) -> dict:
+    """The grid of ``sampler = "grid"``: ``grid_points`` values per free parameter (and the counts).
+
+    Examples
+    --------
+    >>> g = grid_space(load_spec({"parameters": {"radius": 25.0}, "optimizer": {"grid_points": 3}}))
+    >>> {k: [float(x) for x in v] for k, v in g.items()}
+    {'dh': [60.0, 290.0, 520.0], 'dw': [60.0, 195.0, 330.0]}
+    """
+    out = {}
+    if len(spec.counts) > 1:
+        out["count"] = list(spec.counts)
+    for p in spec.free_parameters(max(spec.counts)):
+        out[p] = [float(x) for x in np.linspace(*spec.bound(p), spec.optimizer["grid_points"])]
+    return out
+
+
+def _suggest(spec: OptimizeSpec, trial) -> tuple[dict, int]:
+    count = trial.suggest_categorical("count", list(spec.counts)) if len(spec.counts) > 1 else spec.counts[0]
+    for p in spec.free_parameters(count):
+        trial.suggest_float(p, *spec.bound(p))
+    return design_params(spec, trial.params, count), int(count)
+
+
+def _record(spec, number, params, count, result) -> dict:
+    feasible = max(result["violations"].values()) <= 0
+    return {"trial": int(number), "count": count, "params": params, "metrics": result["metrics"],
+            "violations": result["violations"], "seconds": result["seconds"], "feasible": bool(feasible)}
+
+
+def _connect(workers, address):
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    if address is None:
+        import dask
+
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                   silence_logs=logging.ERROR)
+        return Client(cluster), cluster
+    try:
+        return Client(**address, timeout="10s"), None
+    except Exception as exc:  # noqa: BLE001 -- refused, unreachable: one line
+        raise EloInputError(f"cannot reach the Dask scheduler {address} within 10 s ({type(exc).__name__})") from None
+
+
+def optimize(spec, output, *, workers: int | None = None, scheduler: str | None = None,
+             threads_per_worker: int | None = None, overwrite: bool = False, progress: bool | None = None,
+             max_evaluations: int | None = None) -> OptimizeSummary:
+    """Search the spec's design space for the Pareto front of its objectives.
+
+    Parameters
+    ----------
+    spec : str, Path, dict or OptimizeSpec
+        The optimiser spec (:mod:`.spec`).
+    output : str or Path
+        The ``.zarr`` store; an existing store of the same spec is resumed.
+    workers : int, optional
+        Local Dask worker processes (default 1; 0 = in this process, without Dask).
+    scheduler : str, optional
+        A running Dask scheduler's address (``tcp://host:port``) or scheduler file.
+    threads_per_worker : int, optional
+        Dr.Jit threads per worker.
+    overwrite : bool
+        Replace an optimiser's store of another spec.
+    progress : bool, optional
+        A progress line on stderr (default: when stderr is a terminal).
+    max_evaluations : int, optional
+        Stop (resumably) after this many evaluations in this run.
+
+    Returns
+    -------
+    OptimizeSummary
+
+    Examples
+    --------
+    Six designs of Table 1's kind (only dh and dw free), in this process:
+
+    >>> import tempfile
+    >>> spec = {"parameters": {"radius": 25.0}, "metric": {"grid": 2},
+    ...         "optimizer": {"trials": 6, "batch": 3, "sampler": "random"}}
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     s = optimize(spec, Path(d) / "o.zarr", workers=0, progress=False)
+    ...     ds = store.read_designs(Path(d) / "o.zarr")
+    >>> s.evaluated, s.state, ds.sizes["design"], bool(ds.pareto.any())
+    (6, 'created', 6, True)
+    """
+    from ..sweeps.extra import require
+    from ..sweeps.run import check_resources
+
+    require("elo-mitsuba optimize", MODULES)
+    workers, address, threads = check_resources(workers, scheduler, threads_per_worker)
+    spec = load_spec(spec)
+    check_design_space(spec)
+    if max_evaluations is not None and (isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int)
+                                        or max_evaluations < 1):
+        raise EloInputError(f"max_evaluations={max_evaluations!r}; must be a whole number >= 1")
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    path = Path(output)
+    state = store.check_store(path, spec, overwrite=overwrite)
+    storage = JournalStorage(JournalFileBackend(str(store.state_dir(path) / "journal.log")))
+    study = optuna.create_study(study_name=STUDY, storage=storage, directions=spec.directions,
+                                sampler=_sampler(spec), load_if_exists=True)
+    records = {r["trial"]: r for r in store.read_records(path)}
+    settings = spec.to_dict()
+    show = sys.stderr.isatty() if progress is None else progress
+    client = cluster = None
+    if workers != 0:
+        client, cluster = _connect(workers, address)
+        if address is None:
+            from ..sweeps.run import available_cores
+            from ..sweeps.worker import set_up
+
+            client.run(set_up, threads or max(1, available_cores() // max(workers, 1)))
+    else:
+        from ..sweeps.worker import set_up
+
+        set_up(threads)
+    t0 = time.perf_counter()
+    evaluated = recovered = 0
+    last_write = time.monotonic()
+    try:
+        # a killed run's trials: told from the log if evaluated, else evaluated now
+        leftover = []
+        for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
+            if t.number in records:
+                study.tell(t.number, [records[t.number]["metrics"][o] for o in spec.objectives])
+                recovered += 1
+            else:
+                count = int(t.params.get("count", spec.counts[0]))
+                names = spec.free_parameters(count)
+                if all(n in t.params for n in names):
+                    leftover.append((t.number, design_params(spec, t.params, count), count))
+                else:  # killed while asking: never evaluated, nothing to keep
+                    study.tell(t.number, state=optuna.trial.TrialState.FAIL)
+        while True:
+            done = sum(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False))
+            want = spec.trials - done - len(leftover)
+            if max_evaluations is not None:
+                want = min(want, max_evaluations - evaluated - len(leftover))
+            batch = list(leftover)
+            leftover = []
+            while want > 0 and len(batch) < spec.optimizer["batch"]:
+                trial = study.ask()
+                params, count = _suggest(spec, trial)
+                batch.append((trial.number, params, count))
+                want -= 1
+            if not batch:
+                break
+            if client is None:
+                results = [evaluate_design(p, c, settings) for _, p, c in batch]
+            else:
+                futures = [client.submit(evaluate_design, p, c, settings, pure=False) for _, p, c in batch]
+                results = client.gather(futures)
+            new = [_record(spec, n, p, c, r) for (n, p, c), r in zip(batch, results)]
+            store.append_records(path, new)  # on disk before the optimiser hears of it
+            for r in new:
+                records[r["trial"]] = r
+                study.tell(r["trial"], [r["metrics"][o] for o in spec.objectives])
+            evaluated += len(new)
+            if show:
+                print(f"\r  {done + len(new)}/{spec.trials} designs, {evaluated} evaluated in "
+                      f"{time.perf_counter() - t0:.0f} s ", end="", file=sys.stderr, flush=True)
+            if time.monotonic() - last_write > WRITE_EVERY_S:
+                store.write_dataset(path, records.values(), spec)
+                last_write = time.monotonic()
+            if max_evaluations is not None and evaluated >= max_evaluations:
+                break
+        if show:
+            print(file=sys.stderr)
+        store.write_dataset(path, records.values(), spec)
+    finally:
+        for thing in (client, cluster):
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:  # noqa: BLE001 -- closing a cluster that is already gone
+                    pass
+    ds = store.read_designs(path)
+    return OptimizeSummary(path=path, trials=int(ds.sizes["design"]), evaluated=evaluated, recovered=recovered,
+                           seconds=time.perf_counter() - t0, workers=workers or 0, state=state,
+                           front=int(ds.pareto.sum()))

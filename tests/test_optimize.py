@@ -1,0 +1,161 @@
+"""``elo-mitsuba optimize`` (issue 27): refusals before any work, a run's store, a killed run
+resumed without evaluating a design twice, evaluations as Dask tasks, the results."""
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from elo_mitsuba.cli import main
+from elo_mitsuba.constants import CHAMBER_INTERIOR_MM, SHEET_BOTTOM_MM, SHEET_Y_MM
+from elo_mitsuba.design import store
+from elo_mitsuba.design.geometry import CONSTRAINTS
+from elo_mitsuba.design.optimize import optimize
+from elo_mitsuba.scene_files import scenes_dir
+
+SMALL = """\
+count = 4
+objectives = ["sigma_worst", "masked_share"]
+[parameters]
+dh = [100.0, 400.0]
+dw = [80.0, 300.0]
+radius = 25.0
+[metric]
+grid = 2
+[optimizer]
+sampler = "{sampler}"
+trials = {trials}
+batch = {batch}
+"""
+
+
+def _spec(tmp_path, name="spec.toml", sampler="random", trials=8, batch=4, extra=""):
+    p = tmp_path / name
+    p.write_text(SMALL.format(sampler=sampler, trials=trials, batch=batch) + extra)
+    return p
+
+
+def _one_error_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("elo-mitsuba: error: ")
+    return err[0]
+
+
+@pytest.mark.parametrize("parameters, words", [
+    ("dh = [560.0, 700.0]", "no design within the bounds meets the constraints"),       # above the ceiling
+    ("dw = [400.0, 500.0]", "no design within the bounds meets the constraints"),       # beyond the walls
+    ("radius = [200.0, 300.0]", "no design within the bounds meets the constraints"),  # discs overlap
+    ("dh = [300.0, 100.0]", "low must not exceed high"),
+    ("height = 3.0", "'height' is not a key"),
+])
+def test_impossible_or_bad_specs_are_refused_in_one_line_before_any_work(tmp_path, capsys, parameters, words):
+    text = SMALL.format(sampler="tpe", trials=4, batch=2)
+    key = parameters.split(" =")[0]
+    text = re.sub(rf"^{key} = .*$", parameters, text, flags=re.M) if re.search(rf"^{key} = ", text, re.M) \
+        else text.replace("[parameters]\n", f"[parameters]\n{parameters}\n")
+    spec = tmp_path / "bad.toml"
+    spec.write_text(text)
+    out = tmp_path / "out.zarr"
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--quiet"]) == 2
+    line = _one_error_line(capsys)
+    assert words in line and str(spec) in line
+    assert not out.exists()  # nothing was started
+
+
+def test_a_store_of_another_spec_is_not_replaced(tmp_path, capsys):
+    out = tmp_path / "o.zarr"
+    optimize(_spec(tmp_path, trials=2, batch=2), out, workers=0, progress=False)
+    other = _spec(tmp_path, "other.toml", trials=3, batch=2)
+    assert main(["optimize", str(other), "-o", str(out), "--workers", "0", "--quiet"]) == 2
+    assert "another spec" in _one_error_line(capsys)
+    (tmp_path / "plain.zarr").mkdir()
+    assert main(["optimize", str(other), "-o", str(tmp_path / "plain.zarr"), "--workers", "0"]) == 2
+    assert "not an optimiser's store" in _one_error_line(capsys)
+
+
+def test_every_evaluated_design_is_stored_with_its_front(tmp_path):
+    out = tmp_path / "o.zarr"
+    s = optimize(_spec(tmp_path, sampler="tpe", trials=10, batch=5), out, workers=0, progress=False)
+    assert (s.evaluated, s.trials, s.state) == (10, 10, "created")
+    ds = store.read_designs(out)
+    assert ds.sizes["design"] == 10 and sorted(ds.design.values) == list(range(10))
+    viol = np.stack([ds[f"violation_{c}"].values for c in CONSTRAINTS])
+    assert np.array_equal(ds.feasible.values, viol.max(axis=0) <= 0)
+    # the front: feasible, and no feasible design better in both objectives
+    v = np.stack([ds.sigma_worst.values, ds.masked_share.values], axis=-1)
+    for i in np.flatnonzero(ds.pareto.values):
+        better = np.all(v <= v[i], axis=1) & np.any(v < v[i], axis=1) & ds.feasible.values
+        assert not better.any()
+    assert ds.pareto.sum() >= 1
+    # the discs are the parameters': Table 1's kind, facing the origin
+    c = ds.disc_center.values[0]
+    assert np.allclose(c[:, 2], ds.dh.values[0]) and np.allclose(np.hypot(c[:, 0], c[:, 1]), ds.dw.values[0])
+    assert np.all(np.isfinite(ds.sigma_worst.values))
+    # the same command again: nothing left to evaluate
+    again = optimize(_spec(tmp_path, sampler="tpe", trials=10, batch=5), out, workers=0, progress=False)
+    assert (again.evaluated, again.state) == (0, "resumed")
+
+
+def test_a_killed_run_resumes_without_evaluating_a_design_twice(tmp_path):
+    spec = _spec(tmp_path, sampler="tpe", trials=24, batch=2)
+    out = tmp_path / "o.zarr"
+    log = out / ".optimize" / "evaluations.jsonl"
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.Popen([sys.executable, "-m", "elo_mitsuba", "optimize", str(spec), "-o", str(out), "--workers", "0",
+                             "--quiet"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0 = time.time()
+    while time.time() - t0 < 60 and (not log.is_file() or len(log.read_text().splitlines()) < 6):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    before = [json.loads(x)["trial"] for x in log.read_text().splitlines() if x.strip()]
+    assert 6 <= len(before) < 24, len(before)  # killed mid-way
+    s = optimize(spec, out, workers=0, progress=False)
+    after = [r["trial"] for r in store.read_records(out)]
+    assert len(after) == len(set(after)) == 24  # every design once: none evaluated again
+    assert s.evaluated == 24 - len(before)  # the logged ones are told, not evaluated
+    assert s.state == "resumed" and store.read_designs(out).sizes["design"] == 24
+
+
+def test_evaluations_run_as_tasks_on_a_dask_cluster(tmp_path):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        s = optimize(_spec(tmp_path, trials=4, batch=4), tmp_path / "o.zarr", scheduler=cluster.scheduler_address,
+                     progress=False)
+    assert s.evaluated == 4
+    assert np.all(store.read_designs(tmp_path / "o.zarr").seconds.values > 0)
+
+
+def test_results_plot_scene_and_table1(tmp_path, capsys):
+    spec = _spec(tmp_path, trials=6, batch=3)
+    out, png, xml = tmp_path / "o.zarr", tmp_path / "front.png", tmp_path / "best.xml"
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--quiet", "--plot", str(png),
+                 "--scene", str(xml)]) == 0
+    text = capsys.readouterr().out
+    for z in ("zeta25", "zeta50", "zeta60", "zeta75"):
+        assert z in text
+    assert png.read_bytes()[:4] == b"\x89PNG" and "<shape type=\"disk\"" in xml.read_text()
+    # an existing plot is not replaced without --overwrite, and nothing runs
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--plot", str(png)]) == 2
+    assert str(png) in _one_error_line(capsys)
+
+
+def test_the_chamber_constants_are_the_scene_files():
+    text = (scenes_dir() / "parts" / "chamber.xml").read_text()
+    origins = dict(re.findall(r'id="(\w+)">\s*<transform name="to_world">\s*<scale [^>]*/>\s*<lookat origin="([^"]+)"', text))
+    xyz = {k: [float(v) for v in o.split(",")] for k, o in origins.items()}
+    (x0, x1), (y0, y1), (z0, z1) = CHAMBER_INTERIOR_MM
+    assert xyz["wall_right"][0] == x1 and xyz["wall_left"][0] == x0
+    assert xyz["wall_back"][1] == y1 and xyz["wall_front"][1] == y0 and xyz["ceiling_back"][2] == z1
+    assert xyz["sheet_front"][1] == SHEET_Y_MM[0] and xyz["sheet_back"][1] == SHEET_Y_MM[1]
+    assert xyz["sheet_front"][2] - 115 == SHEET_BOTTOM_MM
