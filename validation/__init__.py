@@ -24,6 +24,8 @@ Studies (one module each, run in this order):
                           noise, blur, 2nd event, detector calibration
 ``inversion``             beyond the paper: heights by inverting the forward model vs the model
                           gradient + integration (melt plate, steep hills, masking, chamber)
+``design``                beyond the paper: the Cramer-Rao bound of the gradient (the design metric)
+                          against model-gradient fits on renders; Table 1 under it
 ========================  =======================================================================
 
 The package lives only in a source checkout (it is not installed with elo_mitsuba). Importing it
@@ -36,7 +38,7 @@ from .report import VERDICTS, Row, StudyResult  # noqa: F401
 
 #: Study names in the order they run (module validation.study_<name>).
 STUDIES = ("checks", "stsa", "corrugated", "reflectance", "masking", "melt_plate", "convergence", "topography",
-           "inversion")
+           "inversion", "design")
 
 
 def run(quick: bool = False, output_dir=None, only=None, log=print, json_path=None, figures=True):

@@ -33,6 +33,7 @@ DEFAULT = {
     },
     "topography": {"res": 512, "cal_res": 1024},   # sawtooth plate; the calibration's flat
     "inversion": {"melt_res": 512, "hills_res": 256},
+    "design": {"res": 128, "spp": 16},             # flat plate twice: the bound vs the model fit
 }
 
 QUICK = {
@@ -54,6 +55,7 @@ QUICK = {
     },
     "topography": {"res": 160, "cal_res": 256},
     "inversion": {"melt_res": 64, "hills_res": 64},
+    "design": {"res": 48, "spp": 16},
 }
 
 

@@ -126,7 +126,10 @@ def _sampler(spec: OptimizeSpec):
     if opt["sampler"] == "random":
         return optuna.samplers.RandomSampler(seed=opt["seed"])
     if opt["sampler"] == "grid":
-        return optuna.samplers.GridSampler(grid_space(spec), seed=opt["seed"])
+        # the grid's points are enqueued when the study is created (:func:`optimize`): Optuna's
+        # GridSampler stops its study from inside tell() when the grid is exhausted, which the
+        # ask-and-tell interface refuses with an error
+        return optuna.samplers.RandomSampler(seed=opt["seed"])
     return optuna.samplers.TPESampler(seed=opt["seed"], multivariate=True, constant_liar=True,
                                       n_startup_trials=min(20, max(opt["trials"] // 5, 5)),
                                       constraints_func=constraints)
@@ -241,6 +244,16 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
     storage = JournalStorage(JournalFileBackend(str(store.state_dir(path) / "journal.log")))
     study = optuna.create_study(study_name=STUDY, storage=storage, directions=spec.directions,
                                 sampler=_sampler(spec), load_if_exists=True)
+    target = spec.trials
+    if spec.optimizer["sampler"] == "grid":
+        import itertools
+
+        space = grid_space(spec)
+        points = list(itertools.product(*space.values()))
+        target = min(target, len(points))
+        if not study.trials:  # a new study: the grid in a fixed order (resumed: its waiting trials)
+            for values in points[:target]:
+                study.enqueue_trial(dict(zip(space, values)))
     records = {r["trial"]: r for r in store.read_records(path)}
     settings = spec.to_dict()
     show = sys.stderr.isatty() if progress is None else progress
@@ -275,7 +288,7 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
                     study.tell(t.number, state=optuna.trial.TrialState.FAIL)
         while True:
             done = sum(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False))
-            want = spec.trials - done - len(leftover)
+            want = target - done - len(leftover)
             if max_evaluations is not None:
                 want = min(want, max_evaluations - evaluated - len(leftover))
             batch = list(leftover)
@@ -299,7 +312,7 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
                 study.tell(r["trial"], [r["metrics"][o] for o in spec.objectives])
             evaluated += len(new)
             if show:
-                print(f"\r  {done + len(new)}/{spec.trials} designs, {evaluated} evaluated in "
+                print(f"\r  {done + len(new)}/{target} designs, {evaluated} evaluated in "
                       f"{time.perf_counter() - t0:.0f} s ", end="", file=sys.stderr, flush=True)
             if time.monotonic() - last_write > WRITE_EVERY_S:
                 store.write_dataset(path, records.values(), spec)
