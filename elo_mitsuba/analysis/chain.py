@@ -418,7 +418,8 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
         Untrusted gradient pixels (True).
     method : str
         Solver of :func:`~.integrate.integrate_gradient` (``"auto"``: ``masked`` where a pixel is
-        masked or not finite, else ``dct``).
+        masked or not finite, else ``dct``; ``"robust"``: the discontinuity-preserving Cauchy
+        estimator, :func:`~.integrate.integrate_robust`, for surfaces with cliffs).
     projection, work_distance_mm : str, float, optional
         The scan's beam (``perspective`` from a pivot ``work_distance_mm`` above the plate, or
         ``orthographic``). A perspective scan's slopes are converted to the scan grid first
@@ -441,6 +442,10 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
     >>> out = heights(0.1 * np.ones((32, 32)), np.zeros((32, 32)), 16.0)
     >>> out["method"], round(float(out["height"][0, -1] - out["height"][0, 0]), 3)
     ('dct', 1.55)
+    >>> step = np.zeros((32, 32)); step[:, 16] = 2.0             # a 1 mm cliff in one column
+    >>> out = heights(step, np.zeros((32, 32)), 16.0, method="robust")
+    >>> out["method"], round(float(out["height"][0, -1] - out["height"][0, 0]), 3)
+    ('robust', 1.0)
     """
     from .integrate import integrate_gradient, reconstruction_quality, resolve_method, scan_grid_gradient
 

@@ -1,7 +1,7 @@
 """Normal integration: height map Z(x, y) (mm, up to a constant) from the gradient dZ/dx, dZ/dy.
 
-Three solvers, chosen after the survey of Quéau, Durou and Aujol, "Normal integration: a survey"
-(J. Math. Imaging Vis. 60, 2018); the code is our own:
+Four solvers, chosen after the survey of Quéau, Durou and Aujol, "Normal integration: a survey"
+(J. Math. Imaging Vis. 60, 2018) and its companion on variational methods; the code is our own:
 
 * ``"fft"`` — Frankot-Chellappa: project the gradient onto integrable fields in the Fourier
   basis. The FFT assumes a periodic surface; we mirror the gradient field (even extension of Z,
@@ -18,6 +18,14 @@ Three solvers, chosen after the survey of Quéau, Durou and Aujol, "Normal integ
   of the valid domain is integrated independently and gets zero mean: relative heights between
   components are unknown (no gradient connects them). Components smaller than
   ``min_component_size`` pixels are added to the mask. Without any mask it reproduces ``"dct"``.
+* ``"robust"`` — discontinuity-preserving: the Cauchy estimator of the same pair misfits
+  (Quéau, Durou and Aujol, "Variational methods for normal integration", J. Math. Imaging Vis.
+  60, 2018), minimised by iteratively reweighted least squares, each iteration a weighted
+  ``"masked"`` solve. A pair whose gradient disagrees with the rest (one wall of a cliff saying
+  less than the others) is given up instead of being spread over the relief around it; it cannot
+  add a jump that no wall's gradient holds. Not chosen by ``"auto"``: on smooth surfaces it
+  equals least squares, on rendered cliffs it changes the relief beside them by micrometres
+  (validation/study_steps.py), at 2-3 times the cost of ``"masked"``.
 
 Orientation as everywhere (:mod:`elo_mitsuba.grid`); dZ/dy is the derivative along +y,
 i.e. *against* the row index. All returned heights are finite; masked pixels hold 0.
@@ -34,7 +42,20 @@ import numpy as np
 from ..errors import EloInputError
 from .layout import pixel_size
 
-METHODS = ("dct", "fft", "masked")
+METHODS = ("dct", "fft", "masked", "robust")
+
+#: ``"robust"``: the Cauchy estimator's lambda in units of the least-squares misfits' robust
+#: spread. 2.385 is the constant that gives the Cauchy M-estimator 95 % efficiency at Gaussian
+#: residuals (Holland & Welsch 1977): on a noisy but smooth gradient it is nearly least squares.
+ROBUST_SCALE = 2.385
+#: ``"robust"``: at most this many reweighted solves, stopping when no height moves by more than
+#: ``ROBUST_TOL`` x lambda.
+ROBUST_ITERATIONS = 30
+ROBUST_TOL = 1e-3
+#: ``"robust"``: relative residual of each conjugate-gradient solve (started from the previous
+#: iterate; the next reweighting corrects what is left). On the stepped layer at 400² the result
+#: is within 1 µm RMS of the converged one.
+ROBUST_CG_TOL = 1e-4
 
 #: :func:`reconstruction_quality` warns above these (documented in ``reconstruct --help``).
 #: Integrability residual: the relative RMS misfit between the gradient of the height map and the
@@ -162,12 +183,13 @@ def _solve_direct(lap, rhs, comp):
     return spsolve(lap.tocsc(), np.where(pin, 0.0, rhs))
 
 
-def _solve_pcg(lap, rhs, valid, tol):
+def _solve_pcg(lap, rhs, valid, tol, x0=None, maxiter=2000):
     """Conjugate gradients preconditioned with the full-grid DCT Poisson solver.
 
     The restricted Laplacian differs from the full-grid Neumann Laplacian only next to masked
     pixels, so the DCT inverse is a good preconditioner; the system is singular (one constant
     per component) but consistent (rhs sums to 0 over each component), which CG tolerates.
+    ``x0`` starts it (the previous iterate of a reweighted solve).
     """
     from scipy import fft as sfft
     from scipy.sparse.linalg import LinearOperator, cg
@@ -182,13 +204,41 @@ def _solve_pcg(lap, rhs, valid, tol):
         return sfft.idctn(sfft.dctn(full, type=2, norm="ortho") / lam, type=2, norm="ortho")[valid]
 
     m = LinearOperator(lap.shape, matvec=precondition, dtype=float)
-    z, info = cg(lap, rhs, M=m, rtol=tol, atol=0.0, maxiter=2000)
+    z, info = cg(lap, rhs, x0=x0, M=m, rtol=tol, atol=0.0, maxiter=maxiter)
     if info != 0:
         raise EloInputError(
-            f"masked integration did not converge in 2000 iterations (tolerance {tol:g}); "
+            f"masked integration did not converge in {maxiter} iterations (tolerance {tol:g}); "
             "try method 'dct' or a smaller image"
         )
     return z
+
+
+def _pair_system(gc, gr, valid):
+    """The difference operator D (one row per 4-neighbour pair of valid pixels, columns the valid
+    pixels in C order) and each pair's target (g_a + g_b)/2; (None, None) when there is no pair."""
+    from scipy import sparse
+
+    n = int(valid.sum())
+    if n == 0:
+        return None, None
+    index = -np.ones(valid.shape, dtype=np.int64)
+    index[valid] = np.arange(n)
+    rows, cols, data, rhs_parts = [], [], [], []
+    eq = 0
+    for ia, ib, g in ((index[:, :-1], index[:, 1:], 0.5 * (gc[:, :-1] + gc[:, 1:])),
+                      (index[:-1, :], index[1:, :], 0.5 * (gr[:-1, :] + gr[1:, :]))):
+        keep = (ia >= 0) & (ib >= 0)
+        a, b, t = ia[keep], ib[keep], g[keep]
+        k = np.arange(eq, eq + a.size)
+        rows += [k, k]
+        cols += [a, b]
+        data += [-np.ones(a.size), np.ones(a.size)]
+        rhs_parts.append(t)
+        eq += a.size
+    if eq == 0:
+        return None, None
+    d = sparse.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(eq, n))
+    return d, np.concatenate(rhs_parts)
 
 
 def integrate_masked(dzdx, dzdy, field_mm, mask=None, *, min_component_size: int = 1,
@@ -229,50 +279,18 @@ def integrate_masked(dzdx, dzdy, field_mm, mask=None, *, min_component_size: int
     >>> height.round(4).tolist(), mask_out.tolist()
     ([[-0.6, -0.1, 0.4], [0.0, -0.1, 0.4]], [[False, False, False], [True, False, False]])
     """
-    from scipy import ndimage, sparse
-
     dzdx = np.asarray(dzdx, dtype=float)
     dzdy = np.asarray(dzdy, dtype=float)
-    bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != dzdx.shape:
-            raise EloInputError(f"mask shape {mask.shape} differs from the gradient's {dzdx.shape}")
-        bad |= mask
+    valid, labels = _trusted_domain(dzdx, dzdy, mask, min_component_size)
     gc, gr = _pixel_gradients(dzdx, dzdy, field_mm)
-    valid = ~bad
-    labels, n_comp = ndimage.label(valid)  # 4-connectivity: the pairs of the functional
-    if n_comp:
-        sizes = np.bincount(labels.ravel(), minlength=n_comp + 1)
-        small = sizes < int(min_component_size)
-        small[0] = False
-        valid &= ~small[labels]
-        labels = np.where(valid, labels, 0)
     height = np.zeros(dzdx.shape)
-    n = int(valid.sum())
-    if n == 0:
+    d, target = _pair_system(gc, gr, valid)
+    if d is None:  # no pixel, or isolated single pixels only
         return height, ~valid
-    index = -np.ones(dzdx.shape, dtype=np.int64)
-    index[valid] = np.arange(n)
-    rows, cols, data, rhs_parts = [], [], [], []
-    eq = 0
-    for ia, ib, g in ((index[:, :-1], index[:, 1:], 0.5 * (gc[:, :-1] + gc[:, 1:])),
-                      (index[:-1, :], index[1:, :], 0.5 * (gr[:-1, :] + gr[1:, :]))):
-        keep = (ia >= 0) & (ib >= 0)
-        a, b, t = ia[keep], ib[keep], g[keep]
-        k = np.arange(eq, eq + a.size)
-        rows += [k, k]
-        cols += [a, b]
-        data += [-np.ones(a.size), np.ones(a.size)]
-        rhs_parts.append(t)
-        eq += a.size
-    if eq == 0:  # isolated single pixels only
-        return height, ~valid
-    d = sparse.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(eq, n))
     lap = (d.T @ d).tocsr()
-    rhs = d.T @ np.concatenate(rhs_parts)
+    rhs = d.T @ target
     comp = labels[valid]
-    if n <= direct_limit:
+    if comp.size <= direct_limit:
         z = _solve_direct(lap, rhs, comp)
     else:
         z = _solve_pcg(lap, rhs, valid, tol)
@@ -282,6 +300,158 @@ def integrate_masked(dzdx, dzdy, field_mm, mask=None, *, min_component_size: int
     z -= means[comp]
     height[valid] = z
     return height, ~valid
+
+
+def _trusted_domain(dzdx, dzdy, mask, min_component_size):
+    """Trusted pixels (finite gradient, not masked, in a 4-connected component of at least
+    ``min_component_size`` pixels) and their component labels."""
+    from scipy import ndimage
+
+    bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != dzdx.shape:
+            raise EloInputError(f"mask shape {mask.shape} differs from the gradient's {dzdx.shape}")
+        bad |= mask
+    valid = ~bad
+    labels, n_comp = ndimage.label(valid)  # 4-connectivity: the pairs of the functional
+    if n_comp:
+        sizes = np.bincount(labels.ravel(), minlength=n_comp + 1)
+        small = sizes < int(min_component_size)
+        small[0] = False
+        valid &= ~small[labels]
+        labels = np.where(valid, labels, 0)
+    return valid, labels
+
+
+def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None = None,
+                     iterations: int = ROBUST_ITERATIONS, tol: float = ROBUST_TOL, min_component_size: int = 1,
+                     direct_limit: int = 40_000, return_weights: bool = False):
+    """Discontinuity-preserving integration: the Cauchy estimator of the pair misfits, minimised by
+    iteratively reweighted least squares (Quéau, Durou & Aujol, "Variational methods for normal
+    integration", J. Math. Imaging Vis. 60, 2018, the non-convex estimators of their Sec. 5).
+
+    Minimises sum over neighbouring trusted pairs (a, b) of log(1 + (r_ab / lambda)^2), with
+    r_ab = Z_b - Z_a - (g_a + g_b)/2 the misfit of :func:`integrate_masked`'s functional. A misfit
+    well above lambda costs only its logarithm, so a pair whose gradient disagrees with the rest
+    (a wall whose slope is truncated on one side and not the other, a blurred rim) is given up
+    instead of being spread, as least squares spreads it, over the relief around it. Each
+    iteration is a weighted Poisson solve with the weights w = 1 / (1 + (r / lambda)^2) of the
+    previous solution's misfits, starting from least squares (the non-convex functional needs a
+    good start). lambda defaults to :data:`ROBUST_SCALE` times the robust spread (1.4826 x the
+    median absolute misfit) of the least-squares solution, so that on a gradient that is a surface's
+    plus noise nearly every weight stays near 1 and the result is least squares'.
+
+    Pairs with a masked pixel do not enter (as in ``"masked"``), and each trusted component gets
+    its own zero mean. What it cannot do: recover a jump that the gradient does not hold. The
+    height across a cliff is what the wall's pairs say; a wall whose gradient is truncated on every
+    side (blur, saturated slopes, or a mask all round the foot) stays truncated, and a patch cut off
+    by masked pixels all round is a component of its own whose height relative to the rest is
+    unknown (zero mean, like ``"masked"``).
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        Gradient (mm/mm); values at masked pixels are ignored. Non-finite values are masked.
+    field_mm : float or (float, float)
+        Scan field in mm.
+    mask : ndarray of bool (H, W), optional
+        True = untrusted.
+    scale_mm : float, optional
+        lambda (mm per pixel pair): misfits well above it are treated as outliers. Default from the
+        data (above).
+    iterations : int
+        At most this many reweighted solves after the least-squares start.
+    tol : float
+        Stop when no height moves by more than ``tol`` times lambda in one iteration.
+    min_component_size : int
+        Trusted components with fewer pixels are masked too.
+    direct_limit : int
+        Up to this many trusted pixels each solve is a sparse LU; above it conjugate gradients
+        preconditioned by the DCT Poisson solver, started from the previous iterate.
+    return_weights : bool
+        Also return the final pair weights as two arrays (H, W-1) (pairs along +x) and (H-1, W)
+        (pairs along rows), 0 where a pair does not enter.
+
+    Returns
+    -------
+    height : ndarray (H, W)
+        Height in mm, zero mean per component, 0 at masked pixels.
+    mask_out : ndarray of bool (H, W)
+        The pixels that have no height.
+    weights : (ndarray, ndarray)
+        Only with ``return_weights``.
+
+    Examples
+    --------
+    A flat field with a 1 mm step between columns 3 and 4, whose wall gradient is wrong in one
+    row (the gradient says 0 there): least squares gives that row 0.81 mm and spreads the rest of
+    its disagreement over the flats; the robust estimator gives up the row's wall pairs.
+
+    >>> import numpy as np
+    >>> dzdx, dzdy = np.zeros((6, 8)), np.zeros((6, 8))            # 1 mm pixels
+    >>> dzdx[:, 3] = dzdx[:, 4] = 0.5                              # the wall: 0.5 + 0.5 = 1 mm
+    >>> dzdx[2, 3:5] = 0.0
+    >>> z_ls, _ = integrate_masked(dzdx, dzdy, (8.0, 6.0))
+    >>> z, _ = integrate_robust(dzdx, dzdy, (8.0, 6.0))
+    >>> round(float(z_ls[2, -1] - z_ls[2, 0]), 2), round(float(z[2, -1] - z[2, 0]), 2)
+    (0.81, 0.99)
+    """
+    dzdx = np.asarray(dzdx, dtype=float)
+    dzdy = np.asarray(dzdy, dtype=float)
+    if dzdx.shape != dzdy.shape or dzdx.ndim != 2:
+        raise EloInputError(f"dzdx {dzdx.shape} and dzdy {dzdy.shape}: expected two 2-D arrays of one shape")
+    if scale_mm is not None and not (math.isfinite(scale_mm) and scale_mm > 0):
+        raise EloInputError(f"scale_mm {scale_mm!r}: must be a finite number > 0")
+    valid, labels = _trusted_domain(dzdx, dzdy, mask, min_component_size)
+    gc, gr = _pixel_gradients(np.where(valid, dzdx, 0.0), np.where(valid, dzdy, 0.0), field_mm)
+    height = np.zeros(dzdx.shape)
+    d, target = _pair_system(gc, gr, valid)
+    weights = None
+    if d is None:
+        z = None
+    else:
+        from scipy import sparse
+
+        comp = labels[valid]
+        dt = d.T.tocsr()
+
+        def solve(w, z0):
+            lap = (dt @ sparse.diags(w) @ d).tocsr()
+            rhs = dt @ (w * target)
+            if comp.size <= direct_limit:
+                return _solve_direct(lap, rhs, comp)
+            return _solve_pcg(lap, rhs, valid, ROBUST_CG_TOL, x0=z0)
+
+        w = np.ones(target.size)
+        z = solve(w, None)  # least squares: the start
+        r = d @ z - target
+        lam = scale_mm
+        if lam is None:
+            # the misfits' robust spread; a floor for an exactly integrable field (misfits ~ 0)
+            floor = 1e-9 * max(float(np.sqrt(np.mean(target ** 2))), 1e-12)
+            lam = max(ROBUST_SCALE * 1.4826 * float(np.median(np.abs(r))), floor)
+        energy = float(np.sum(np.log1p((r / lam) ** 2)))
+        for _ in range(int(iterations)):
+            w = 1.0 / (1.0 + (r / lam) ** 2)
+            z = solve(w, z)
+            r = d @ z - target
+            # IRLS decreases the Cauchy energy at every step (a majorise-minimise iteration)
+            previous, energy = energy, float(np.sum(np.log1p((r / lam) ** 2)))
+            if previous - energy <= tol * previous:
+                break
+        counts = np.bincount(comp)
+        z -= (np.bincount(comp, weights=z) / np.maximum(counts, 1))[comp]
+        height[valid] = z
+        weights = w
+    if not return_weights:
+        return height, ~valid
+    wc, wr = np.zeros((dzdx.shape[0], dzdx.shape[1] - 1)), np.zeros((dzdx.shape[0] - 1, dzdx.shape[1]))
+    if weights is not None:
+        pc = valid[:, :-1] & valid[:, 1:]
+        wc[pc] = weights[:int(pc.sum())]
+        wr[valid[:-1, :] & valid[1:, :]] = weights[int(pc.sum()):]
+    return height, ~valid, (wc, wr)
 
 
 def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
@@ -294,14 +464,16 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
         Gradient (mm/mm), package orientation.
     field_mm : float or (float, float)
         Scan field in mm.
-    method : {"auto", "dct", "fft", "masked"}
+    method : {"auto", "dct", "fft", "masked", "robust"}
         ``"auto"`` uses ``"masked"`` when any pixel is masked (or a gradient is non-finite) and
         ``"dct"`` otherwise. ``"dct"``/``"fft"`` use every pixel and take masked gradients as 0
-        (a flat patch), which biases the surrounding heights.
+        (a flat patch), which biases the surrounding heights. ``"robust"``
+        (:func:`integrate_robust`) gives up pairs whose gradient disagrees with the rest instead
+        of spreading them: for surfaces with cliffs.
     mask : ndarray of bool, optional
         True = untrusted.
     min_component_size : int
-        For ``"masked"``: smaller trusted components are masked too.
+        For ``"masked"`` and ``"robust"``: smaller trusted components are masked too.
 
     Returns
     -------
@@ -326,6 +498,8 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
     method = resolve_method(method, dzdx, dzdy, bad)
     if method == "masked":
         return integrate_masked(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size)
+    if method == "robust":
+        return integrate_robust(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size)
     if method == "dct":
         z = integrate_dct(np.where(bad, 0.0, dzdx), np.where(bad, 0.0, dzdy), field_mm)
     elif method == "fft":

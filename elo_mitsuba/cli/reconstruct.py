@@ -20,7 +20,16 @@ Solvers (Queau, Durou & Aujol 2018 survey the field):
   masked  the least-squares functional of 'dct' restricted to trusted pixels, sparse direct solve;
           each connected trusted region gets its own zero-mean constant (their relative heights
           are unknown); needs memory for large images
-  auto    'masked' if any pixel is masked, else 'dct' (default)
+  robust  discontinuity-preserving (Queau, Durou & Aujol 2018, "Variational methods for normal
+          integration": the Cauchy estimator, iteratively reweighted 'masked' solves): a pair
+          of pixels whose gradient disagrees with the rest is given up instead of being spread
+          over the relief around it. Use it for surfaces with cliffs (parts beside powder,
+          craters): one wall of a step saying less than the others no longer tilts the flats
+          beside it. It cannot add height that no wall's gradient holds: a cliff blurred or
+          shadowed on every side stays short, and a part cut off by masked pixels all round
+          gets its own zero mean, as with 'masked'. Equals 'masked' on smooth surfaces; 2-3x
+          its time (about 20 s at 1500x1500 on 2 cores)
+  auto    'masked' if any pixel is masked, else 'dct' (default; never 'robust')
 
 Output by suffix (elo_mitsuba.heightmap): .exr (channels height and mask, 1 = no height; geometry
 in the header), .tif (float32, the header as JSON in its ImageDescription, the pixel size in its
@@ -41,6 +50,7 @@ EPILOG = """\
 examples:
   elo-mitsuba reconstruct grad.exr -o height.exr --preview height.png
   elo-mitsuba reconstruct grad.exr -o height.npy --method dct
+  elo-mitsuba reconstruct grad.exr -o height.exr --method robust     # a layer with part edges
 """
 
 
@@ -57,7 +67,7 @@ def add_parser(subparsers):
     p.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm if the header lacks it")
     p.add_argument("--ignore-mask", action="store_true", help="treat every pixel as trusted")
     p.add_argument("--min-component", type=int, default=16, metavar="N",
-                   help="masked solver: trusted regions with fewer pixels are dropped (default 16)")
+                   help="masked and robust solvers: trusted regions with fewer pixels are dropped (default 16)")
     p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(run=run)
