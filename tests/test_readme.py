@@ -65,7 +65,7 @@ def readme_commands(page: Path = README) -> list:
 
 
 def small(argv: list[str]) -> list[str]:
-    if argv[0] == "sweep" and "--workers" in argv:
+    if argv[0] in ("sweep", "optimize") and "--workers" in argv:
         argv = list(argv)
         argv[argv.index("--workers") + 1] = "0"
         return argv

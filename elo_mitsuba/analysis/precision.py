@@ -5,7 +5,7 @@ Each pixel's N detector signals are modelled by the 1st event of one flat facet
 point), as the model-based gradient (:mod:`.model_gradient`) inverts them. The measurement model
 is the one that fit uses,
 
-    C_k = s m_k(p, q) + noise,        m_k = S_k(n_S) / S_k(flat),   n_S = [p, q, 1]/|.|,
+    C_k = s m_k(p, q) + noise,        m_k = S_k(n_S) / S_k(flat),   n_S = [p, q, 1] / norm,
 
 with p = -dZ/dx, q = -dZ/dy (Eq. 16) and s a per-pixel scale (material contrast, beam drift) that
 the fit eliminates (s = sum C m / sum m^2). The bound therefore treats s as a nuisance parameter:
@@ -66,7 +66,7 @@ SINGULAR_RCOND = 1e-9
 SIGMA_CAP = 1e3
 #: Slope samples of :func:`design_metrics`: azimuths per ring (rings at s_max/2 and s_max, plus 0).
 PRECISION_AZIMUTHS = 8
-#: Masking samples: radii (area-uniform) x azimuths over the slope disc |grad Z| <= s_mask.
+#: Masking samples: radii (area-uniform) x azimuths over the slope disc of radius s_mask.
 MASK_SAMPLES = (8, 24)
 
 
@@ -369,7 +369,7 @@ def slope_samples(s_max: float, azimuths: int = PRECISION_AZIMUTHS) -> tuple[np.
 
 def masked_shares(centers, points, s_mask: float, samples=MASK_SAMPLES) -> tuple[float, float]:
     """Share of facets that hide at least one detector, and of those that leave fewer than three
-    visible, over the points and the slopes |grad Z| <= ``s_mask`` (area-uniform in the slope
+    visible, over the points and the slopes up to ``s_mask`` in magnitude (area-uniform in the slope
     disc). A detector is hidden when its centre lies on or behind the facet's tangent plane
     (Sec. 4.3).
 
@@ -428,7 +428,7 @@ def design_metrics(detectors: Mapping, *, field_mm: float = FIELD_MM, work_dista
     grid : int
         The field is judged at grid x grid points (its pixel centres).
     s_max : float
-        Precision is judged for slopes |grad Z| up to this (:func:`slope_samples`).
+        Precision is judged for slope magnitudes up to this (:func:`slope_samples`).
     s_mask : float
         Masking is judged for slopes up to this (:func:`masked_shares`).
     noise : float or SignalNoise, optional

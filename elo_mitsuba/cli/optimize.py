@@ -99,8 +99,11 @@ def run(args) -> int:
         # a ratio to 0 says nothing: then the difference
         ratio = ", ".join(f"{o} x{r:.3g}" if row["values"][o] else f"{o} {float(d[o]) - row['values'][o]:+.3g}"
                           for o, r in row["chosen_ratio"].items())
-        dom = (f"dominated by front design {row['dominated_by']}" if row["dominated_by"] is not None
-               else "not dominated by the front")
+        dom = "not dominated by the front"
+        if row["dominated_by"] is not None:
+            dv = row["dominating_values"]
+            dom = f"dominated by front design {row['dominated_by']} (" + ", ".join(
+                f"{o}={v:.4g}" for o, v in dv.items()) + ")"
         print(f"  {row['layout']}: {vals}{'' if row['feasible'] else ' (infeasible here)'}; chosen: {ratio}; {dom}")
     if args.plot:
         print(f"wrote {plot_front(ds, args.plot, table1=table1, overwrite=args.overwrite)}")

@@ -17,7 +17,7 @@ points of every disc (centre, a ring at half the radius, the rim), with a cleara
   (a disc below its lower edge is seen from the field under it);
 * ``beam``: outside the beam's cone from the pivot (0, 0, wd) to the scan field (the field's line
   of sight to the gun);
-* ``column``: outside the gun column (|x|, |y| < COLUMN_HALF_WIDTH_MM above the pivot);
+* ``column``: outside the gun column (abs(x), abs(y) < COLUMN_HALF_WIDTH_MM above the pivot);
 * ``overlap``: no two discs' bounding spheres within the clearance of each other;
 * ``occlusion``: no disc's bounding sphere on the line of sight from the field (centre, corners,
   edge midpoints) to another disc's centre;

@@ -110,7 +110,9 @@ def compare_table1(ds, table1: Mapping) -> list[dict]:
         if dom.any():
             idx = np.flatnonzero(dom)
             by = int(ds.design.values[idx[np.argmin(v[idx, 0])]])
+        best = ds.sel(design=by) if by is not None else None
         rows.append({"layout": name, "feasible": bool(rec["feasible"]),
+                     "dominating_values": None if best is None else {o: float(best[o]) for o in objectives},
                      "values": {o: float(rec["metrics"][o]) for o in objectives},
                      "chosen_ratio": {o: float(chosen[o]) / rec["metrics"][o] if rec["metrics"][o] else float("inf")
                                       for o in objectives},
