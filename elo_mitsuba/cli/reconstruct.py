@@ -27,8 +27,9 @@ Solvers (Queau, Durou & Aujol 2018 survey the field):
           craters): one wall of a step saying less than the others no longer tilts the flats
           beside it. It cannot add height that no wall's gradient holds: a cliff blurred or
           shadowed on every side stays short, and a part cut off by masked pixels all round
-          gets its own zero mean, as with 'masked'. Equals 'masked' on smooth surfaces; 2-3x
-          its time (about 20 s at 1500x1500 on 2 cores)
+          gets its own zero mean, as with 'masked'. Its integrability residual runs above least
+          squares' (the misfit is gathered on the pairs it gives up). Equals 'masked' on smooth
+          surfaces; up to 2.5x its time (about 15 s at 1500x1500 on 2 cores)
   auto    'masked' if any pixel is masked, else 'dct' (default; never 'robust')
 
 Output by suffix (elo_mitsuba.heightmap): .exr (channels height and mask, 1 = no height; geometry
