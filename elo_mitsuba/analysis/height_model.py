@@ -440,3 +440,104 @@ class HeightModel:
         """The transpose of :meth:`apply_jacobian`: (H + 1, W + 1) for image-space weights ``v`` (K, H, W)."""
         bv = np.stack([blur(x, self.sigma_px) for x in v])
         return sum(corner_t(np.sum(lin.partials[m] * bv, axis=0), c) for m, c in enumerate(STENCIL))
+
+
+def sub_pixel_fwhm(fwhm_mm: float, pixel_mm: float, factor: int) -> float:
+    """The beam FWHM (mm) that a model on a grid ``factor`` times finer convolves with, so that its
+    images averaged over each scan pixel's ``factor`` x ``factor`` sub-pixels have the beam's own
+    profile: the block mean adds the variance of ``factor`` equally spaced offsets per axis,
+    pixel^2 (factor^2 - 1) / (12 factor^2), which is taken off the beam's (to 0 at least).
+
+    Examples
+    --------
+    >>> round(sub_pixel_fwhm(0.27, 0.2, 2), 4), sub_pixel_fwhm(0.27, 0.2, 1)
+    (0.243, 0.27)
+    """
+    sigma2 = fwhm_to_sigma(fwhm_mm) ** 2 - pixel_mm ** 2 * (factor * factor - 1) / (12.0 * factor * factor)
+    return float(np.sqrt(max(sigma2, 0.0)) / fwhm_to_sigma(1.0))
+
+
+def sub_pixel_mean(a, factor: int) -> np.ndarray:
+    """The mean of each block of ``factor`` x ``factor`` values of the last two axes.
+
+    Examples
+    --------
+    >>> sub_pixel_mean(np.arange(16.0).reshape(4, 4), 2).tolist()
+    [[2.5, 4.5], [10.5, 12.5]]
+    """
+    a = np.asarray(a)
+    *lead, h, w = a.shape
+    return a.reshape(*lead, h // factor, factor, w // factor, factor).mean(axis=(-3, -1))
+
+
+class SuperResolvedModel:
+    """The images of a height map ``factor`` times finer than the scan grid, on the scan grid.
+
+    A pore or a bump of two or three pixels has a relief inside each pixel that one facet per pixel
+    cannot hold: on a rough layer with 0.5 mm pores at 0.2 mm pixels the model of the true heights
+    misses the render by 2 noise levels at the pores (0.025 against 0.0013 elsewhere, corrected
+    units). Here the facets are the sub-pixels of a grid ``factor`` times finer (:class:`HeightModel`
+    on it), each scan pixel's image the mean of its sub-pixels' (the sub-beams land at their
+    centres, the beam's profile reduced by the block's own spread, :func:`sub_pixel_fwhm`): at
+    factor 2 the same case misses by 0.0125, at 4 by 0.0116. The unknowns are the fine grid's
+    corners; the scan pixel's centre is one of them (even factors).
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+        The scan (its grid is the data's).
+    factor : int
+        Sub-pixels per pixel along each axis (2 or more).
+    fwhm_mm, later, gains, shadows, nodes
+        As for :class:`HeightModel` (``later`` on the scan grid).
+
+    Examples
+    --------
+    >>> from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+    >>> geo = ScanGeometry.nominal((8, 8), 4.0, 100.0, 150.0)
+    >>> model = SuperResolvedModel(geo, 2, fwhm_mm=0.0, shadows=False)
+    >>> lin = model.evaluate(np.zeros((17, 17)))
+    >>> lin.images.shape, lin.partials is None
+    ((4, 8, 8), True)
+    """
+
+    def __init__(self, geometry, factor: int, *, fwhm_mm: float = 0.0, later: Mapping | None = None,
+                 gains: Mapping | None = None, shadows: bool = True, nodes=DEFAULT_NODES):
+        if int(factor) != factor or factor < 2:
+            raise EloInputError(f"super-resolution factor {factor!r}: must be an integer >= 2")
+        self.factor = int(factor)
+        self.coarse_shape = tuple(geometry.shape)
+        fine_shape = (self.coarse_shape[0] * self.factor, self.coarse_shape[1] * self.factor)
+        dx, dy = pixel_size(self.coarse_shape, geometry.field_mm)
+        self.fine = HeightModel(geometry.resized(fine_shape), fwhm_mm=sub_pixel_fwhm(fwhm_mm, max(dx, dy), self.factor),
+                                gains=gains, shadows=shadows, nodes=nodes)
+        self.geometry, self.names, self.shape = geometry, self.fine.names, fine_shape
+        self.sigma_px = self.fine.sigma_px
+        self.fwhm_mm, self.shadows = float(fwhm_mm), bool(shadows)
+        coarse = HeightModel(geometry, later=later, shadows=False, nodes=nodes)  # checks ``later``
+        self.later = coarse.later
+
+    def evaluate(self, corners, *, derivatives: bool = False, visible=None) -> Linearisation:
+        """:meth:`HeightModel.evaluate` on the fine grid (corners (fH + 1, fW + 1)); ``images`` on
+        the scan grid, ``sharp``, ``partials`` and ``visible`` on the fine one."""
+        lin = self.fine.evaluate(corners, derivatives=derivatives, visible=visible)
+        lin.images = sub_pixel_mean(lin.images, self.factor) + self.later
+        return lin
+
+    def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
+        """d images . dg on the scan grid for a change ``dg`` of the fine corners."""
+        return sub_pixel_mean(self.fine.apply_jacobian(lin, dg), self.factor)
+
+    def apply_jacobian_t(self, lin: Linearisation, v) -> np.ndarray:
+        """The transpose of :meth:`apply_jacobian`: fine corners from scan-grid weights ``v`` (K, H, W)."""
+        f = self.factor
+        return self.fine.apply_jacobian_t(lin, np.repeat(np.repeat(np.asarray(v), f, axis=-2), f, axis=-1) / (f * f))
+
+    def scan_heights(self, corners) -> np.ndarray:
+        """Heights at the scan pixels' centres (H, W): the fine corners there (odd factors: the
+        centre of the middle sub-pixel, :func:`pixels_from_corners`)."""
+        g, f = np.asarray(corners, float), self.factor
+        h, w = self.coarse_shape
+        if f % 2 == 0:
+            return g[f // 2::f, f // 2::f][:h, :w]
+        return pixels_from_corners(g)[f // 2::f, f // 2::f][:h, :w]

@@ -53,8 +53,9 @@ from ..budget import check_inversion
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
-from .noise import MIN_FLAT, estimate_noise
-from .height_model import HeightModel, corners_from_pixels, neighbour, neighbour_t, pixels_from_corners
+from .noise import MIN_FLAT, estimate_noise, local_chi2
+from .height_model import (HeightModel, SuperResolvedModel, corners_from_pixels, neighbour, neighbour_t,
+                           pixels_from_corners)
 
 #: Disc rule of the model: its 16 nodes also resolve a disc's partial shadowing (the RMS
 #: difference to the renderer on a shadowed relief: 7.0 % with (1, 4), 3.5 % with (2, 8); tests/).
@@ -152,10 +153,23 @@ class InversionResult:
         The residual RMS below which the images count as reproduced to within their noise
         (:data:`DISCREPANCY` times what the true surface would leave).
     height_error : ndarray (H, W) or None
-        Standard error (mm) of each height from the images' noise, relative to the image mean
-        (:func:`height_uncertainty`); None with ``uncertainty_probes=0``.
+        Standard error (mm) of each height, relative to the image mean: the noise's part
+        (``height_error_noise``) scaled, where the model does not reproduce the images to within
+        their noise, by the square root of the misfit's local chi-square per datum
+        (:func:`~.noise.local_chi2` of ``misfit`` over ``expected_misfit``; Birge's ratio, taken
+        locally, never below 1). None with ``uncertainty_probes=0``.
     height_error_rms : float
-        Its RMS over the image (mm; NaN when not computed): the height RMSE the noise alone leaves.
+        Its RMS over the image (mm; NaN when not computed).
+    height_error_noise : ndarray (H, W) or None
+        The noise's part alone (:func:`height_uncertainty`): the height error the images' noise
+        leaves, pixel by pixel.
+    start_misfit : ndarray (H, W) or None
+        The misfit of the start, as ``misfit``.
+    expected_misfit : float
+        The misfit RMS per pixel the true surface would leave (the noise less the datum the scale
+        takes, the held-fixed later events' error): ``discrepancy_level`` without the factor.
+    regions : list of Region
+        The local refinement's regions (:mod:`.local_inversion`); empty when it did not run.
     """
 
     height: np.ndarray
@@ -171,6 +185,10 @@ class InversionResult:
     discrepancy_level: float = 0.0
     height_error: np.ndarray | None = None
     height_error_rms: float = float("nan")
+    height_error_noise: np.ndarray | None = None
+    start_misfit: np.ndarray | None = None
+    expected_misfit: float = 0.0
+    regions: list = field(default_factory=list)
     #: what :func:`height_uncertainty` needs of the solution, dropped once it has run
     _linearised: tuple | None = field(default=None, repr=False, compare=False)
 
@@ -199,13 +217,27 @@ def _huber_weights(r, k):
 class _Problem:
     """The objective at one scan: measured ratios, weights, the model and the flat's model."""
 
-    def __init__(self, model: HeightModel, corrected, weights, flat_images, alpha, dx, dy):
+    def __init__(self, model, corrected, weights, flat_images, alpha, dx, dy, free=None):
         self.model = model
+        self.free = free  # (corners) bool: the unknowns that may change; None: all (mean held)
         self.c = corrected            # (K, H, W)
         self.w = weights              # (K, H, W) 0/1
         self.bf = flat_images         # (K, H, W)
         self.alpha = float(alpha)
         self.dx, self.dy = dx, dy
+
+    def scan_heights(self, corners):
+        """Heights at the scan pixels' centres from the model's corner heights."""
+        if isinstance(self.model, SuperResolvedModel):
+            return self.model.scan_heights(corners)
+        return pixels_from_corners(corners)
+
+    def start_corners(self, h0):
+        """The model's corner heights from scan-pixel heights (cubic; on the fine grid upsampled first)."""
+        if isinstance(self.model, SuperResolvedModel):
+            f = self.model.factor
+            return corners_from_pixels(upsample(h0, f, self.model.shape))
+        return corners_from_pixels(h0)
 
     def ratios(self, lin):
         return lin.images / self.bf
@@ -270,6 +302,9 @@ class _NormalEquations:
         self.wmm = np.where(wmm > 0, wmm, 1.0)
         tl, tr, bl, br = lin.partials  # d/d corner, STENCIL order
         f = self.wt * self.g * self.g
+        if f.shape[1:] != lin.partials.shape[2:]:  # sub-pixels: each carries 1/r^2 of its pixel's data
+            r = lin.partials.shape[2] // f.shape[1]
+            f = np.repeat(np.repeat(f, r, axis=1), r, axis=2) / (r ** 4)
         coef = [float(np.mean(np.sum(f * a ** 2, axis=0))) for a in
                 (0.5 * (tr + br - tl - bl), 0.5 * (tl + tr - bl - br), tl + tr + bl + br)]
         corners = tuple(n + 1 for n in lin.partials.shape[2:])
@@ -292,14 +327,23 @@ class _NormalEquations:
 
     def apply(self, v):
         model = self.problem.model
+        if self.problem.free is not None:
+            v = v * self.problem.free
         pu = self.project(self.g * model.apply_jacobian(self.lin, v))
-        return model.apply_jacobian_t(self.lin, self.g * self.wt * pu) + self.regulariser_gradient(v)
+        out = model.apply_jacobian_t(self.lin, self.g * self.wt * pu) + self.regulariser_gradient(v)
+        return out if self.problem.free is None else out * self.problem.free
 
     def solve(self, rhs, cg_iterations):
-        """x with zero mean (the mean height is not changed: the images hardly see it)."""
+        """x with zero mean (the mean height is not changed: the images hardly see it); with fixed
+        corners (``problem.free``) zero on them instead, the CG run in the free subspace."""
+        free = self.problem.free
+
+        def precond(v):
+            return self.precond(v) if free is None else self.precond(v * free) * free
+
         x = np.zeros_like(rhs)
-        res = rhs.copy()
-        z = self.precond(res)
+        res = rhs.copy() if free is None else rhs * free
+        z = precond(res)
         p = z.copy()
         rz = float(np.sum(res * z))
         r0 = np.sqrt(float(np.sum(res * res)))
@@ -313,11 +357,11 @@ class _NormalEquations:
             res -= a * ap
             if np.sqrt(float(np.sum(res * res))) < 1e-4 * r0:
                 break
-            z = self.precond(res)
+            z = precond(res)
             rz_new = float(np.sum(res * z))
             p = z + (rz_new / rz) * p
             rz = rz_new
-        return x - x.mean()
+        return x - x.mean() if free is None else x
 
 
 def _solve_step(problem: _Problem, h, lin, r, s, m, weights, cg_iterations):
@@ -337,10 +381,10 @@ def height_uncertainty(eq: _NormalEquations, sigma: float, probes: int, cg_itera
     the model, and a noisy start's own error where the start is kept (it has the same noise part
     to the extent that the start is an efficient estimate)."""
     rng = np.random.default_rng(seed)
-    acc = np.zeros(eq.lin.partials.shape[2:])
+    acc = np.zeros(eq.problem.c.shape[1:])
     for _ in range(int(probes)):
         e = sigma * eq.problem.w * rng.standard_normal(eq.problem.c.shape)
-        dh = pixels_from_corners(eq.solve(eq.data_rhs(e), cg_iterations))
+        dh = eq.problem.scan_heights(eq.solve(eq.data_rhs(e), cg_iterations))
         acc += (dh - dh.mean()) ** 2
     return np.sqrt(acc / max(int(probes), 1))
 
@@ -405,7 +449,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                    tol: float = TOL, discrepancy: float = DISCREPANCY, time_budget_s: float | None = None,
                    shadows: bool = True, scales: int = SCALES, uncertainty_probes: int = UNCERTAINTY_PROBES,
                    nodes=NODES, progress: Callable[[dict], None] | None = None,
-                   force: bool = False) -> InversionResult:
+                   force: bool = False, super_resolution: int = 1, fixed_border: int = 0,
+                   local: bool = True) -> InversionResult:
     """Four detector images -> the height map that the forward model maps onto them.
 
     Parameters
@@ -455,6 +500,15 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         disc's partial shadowing: (1, 4) counts quarters, (2, 8) sixteenths.
     progress : callable, optional
         Called with each step's history entry.
+    super_resolution : int
+        Sub-pixels per scan pixel and axis of the model's surface (1: one facet per pixel;
+        :class:`~.height_model.SuperResolvedModel`); the local refinement at defects uses 2.
+    local : bool
+        Refine, region by region, where the misfit exceeds the noise (:mod:`.local_inversion`),
+        after the field's solve; each region's outcome in ``regions``.
+    fixed_border : int
+        Pixels along the image's edge whose heights stay at the start's (a window cut out of a larger
+        height map, whose edge must join it); 0: all heights free, their mean held.
     force : bool
         Run even when the estimate (:func:`elo_mitsuba.budget.check_inversion`) says it takes longer
         than :data:`~elo_mitsuba.budget.REFUSE_SECONDS`; memory beyond what is available is refused always.
@@ -464,9 +518,11 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     InversionResult
     """
     for name, v in (("iterations", iterations), ("cg_iterations", cg_iterations),
-                    ("uncertainty_probes", uncertainty_probes)):
+                    ("uncertainty_probes", uncertainty_probes), ("fixed_border", fixed_border)):
         if int(v) != v or v < 0:
             raise EloInputError(f"{name}={v!r}: must be an integer >= 0")
+    if int(super_resolution) != super_resolution or super_resolution < 1:
+        raise EloInputError(f"super_resolution={super_resolution!r}: must be an integer >= 1")
     if alpha is not None and not (np.isfinite(alpha) and alpha >= 0):
         raise EloInputError(f"alpha={alpha!r}: must be a finite number >= 0")
     if not (np.isfinite(tol) and tol >= 0):
@@ -500,12 +556,37 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     # at full resolution first; if that does not reproduce the images to within their noise, coarse
     # to fine from the same start, kept if it fits better (the discrepancy principle decides); both
     # full-resolution solves share one set-up
-    full = _set_up(data, geometry, noise=noise, **model_settings)
+    full = _set_up(data, geometry, noise=noise, factor=int(super_resolution), fixed_border=int(fixed_border),
+                   **model_settings)
     single = _solve_scale(full, h0, h0, **settings)
     factors = scale_factors(shape, scales)
+
+    def finish(result):
+        result = _with_uncertainty(result, uncertainty_probes, cg_iterations)
+        result.start_misfit = _misfit_of(full, h0)
+        result.expected_misfit = float(result.discrepancy_level / discrepancy) if discrepancy > 0 else float(
+            np.sqrt(full.noise ** 2 * (1.0 - 1.0 / len(full.names)) + full.model_var))
+        if local:
+            from .local_inversion import refine_regions
+
+            left = None if budget is None else max(budget - (time.perf_counter() - t0), 0.0)
+            result.regions = refine_regions(result, images, flats, geometry, fwhm_mm=fwhm_mm, later=later,
+                                            flat_later=flat_later, later_error=later_error,
+                                            flat_later_error=flat_later_error, shadows=shadows, nodes=nodes,
+                                            iterations=iterations, time_budget_s=left)
+            refined = sum(r.status.startswith("refined") for r in result.regions)
+            if result.regions:
+                result.stopped += f"; {len(result.regions)} region(s) above the noise, {refined} refined"
+        if result.height_error is not None:
+            result.height_error_noise = result.height_error
+            birge = np.sqrt(np.maximum(local_chi2(result.misfit, max(result.expected_misfit, 1e-12)), 1.0))
+            result.height_error = result.height_error_noise * birge
+            result.height_error_rms = float(np.sqrt(np.mean(result.height_error ** 2)))
+        return result
+
     if not factors or single.history[-1]["rms"] <= single.discrepancy_level or (
             budget is not None and time.perf_counter() - t0 > budget):
-        return _with_uncertainty(single, uncertainty_probes, cg_iterations)
+        return finish(single)
     h, done, previous = None, [], None
     for f in factors:  # coarse to fine: the long wavelengths first, where shadows cannot trap them
         coarse = dataclasses.replace(geometry, shape=(shape[0] // f, shape[1] // f))
@@ -518,10 +599,18 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     fine = _solve_scale(full, upsample(h, previous, shape), h0, **settings)
     if fine.history[-1]["objective"] >= single.history[-1]["objective"]:
         single.stopped += f" (coarse to fine ended higher: {', '.join(done)})"
-        return _with_uncertainty(single, uncertainty_probes, cg_iterations)
+        return finish(single)
     fine.stopped += f" (coarse to fine: {', '.join(done)}, then 1/1; at full resolution alone the misfit " \
                     f"stayed at {single.history[-1]['rms']:.4g})"
-    return _with_uncertainty(fine, uncertainty_probes, cg_iterations)
+    return finish(fine)
+
+
+def _misfit_of(setup: _Setup, heights) -> np.ndarray:
+    """The misfit (RMS over the detectors, per pixel) of pixel heights ``heights``."""
+    problem = setup.problem
+    corners = problem.start_corners(heights)
+    _, r, _, _ = problem.cost(corners, problem.model.evaluate(corners), HUBER_K * setup.noise)
+    return np.sqrt(np.sum(r ** 2, axis=0) / np.maximum(np.sum(problem.w, axis=0), 1.0))
 
 
 def _with_uncertainty(result: InversionResult, probes: int, cg_iterations: int) -> InversionResult:
@@ -589,8 +678,10 @@ class _Setup:
     names: tuple
 
 
-def _set_up(data, geometry, *, fwhm_mm, alpha, noise, shadows, nodes) -> _Setup:
-    """Corrected images, weights, the flat's and the object's models at one scale."""
+def _set_up(data, geometry, *, fwhm_mm, alpha, noise, shadows, nodes, factor=1, fixed_border=0) -> _Setup:
+    """Corrected images, weights, the flat's and the object's models at one scale; ``factor``
+    sub-pixels per pixel and axis (:class:`~.height_model.SuperResolvedModel`), the heights within
+    ``fixed_border`` pixels of the edge held at the start's."""
     shape = tuple(geometry.shape)
     names = tuple(geometry.detectors)
     images, flats, later, flat_later = data.images, data.flats, data.later, data.flat_later
@@ -603,12 +694,21 @@ def _set_up(data, geometry, *, fwhm_mm, alpha, noise, shadows, nodes) -> _Setup:
     weights = good.astype(float)
     flat_model = HeightModel(geometry, fwhm_mm=fwhm_mm, later=flat_later, shadows=False, nodes=nodes)
     bf = flat_model.evaluate(np.zeros((shape[0] + 1, shape[1] + 1))).images.astype(float)
-    model = HeightModel(geometry, fwhm_mm=fwhm_mm, later=later, shadows=shadows, nodes=nodes)
+    if factor > 1:
+        model = SuperResolvedModel(geometry, factor, fwhm_mm=fwhm_mm, later=later, shadows=shadows, nodes=nodes)
+        dx, dy = dx / factor, dy / factor
+    else:
+        model = HeightModel(geometry, fwhm_mm=fwhm_mm, later=later, shadows=shadows, nodes=nodes)
+    free = None
+    if fixed_border > 0:
+        b = int(fixed_border) * int(factor)
+        free = np.zeros((model.shape[0] + 1, model.shape[1] + 1))
+        free[b:free.shape[0] - b, b:free.shape[1] - b] = 1.0
     if noise is None:
         noise = max(estimate_noise(corrected, weights), MIN_NOISE)
     if alpha is None:
         alpha = max(ALPHA_PER_NOISE2 * noise ** 2, MIN_ALPHA)
-    problem = _Problem(model, corrected, weights, np.maximum(bf, 1e-12), alpha, dx, dy)
+    problem = _Problem(model, corrected, weights, np.maximum(bf, 1e-12), alpha, dx, dy, free=free)
     # the residual RMS of the true surface: the noise, less the datum per pixel the scale takes,
     # and the Monte Carlo error of the held-fixed later events in the model's ratio
     model_var = _held_fixed_variance(corrected, img, flt, weights, names, data.later_error, data.flat_later_error)
@@ -621,7 +721,7 @@ def _solve_scale(setup: _Setup, h0, start_height, *, iterations, cg_iterations, 
     is what the result reports as its start."""
     problem, noise, model_var, names = setup.problem, setup.noise, setup.model_var, setup.names
     model, weights, alpha = problem.model, problem.w, problem.alpha
-    g0 = corners_from_pixels(h0)
+    g0 = problem.start_corners(h0)
     h = g0.copy()  # the unknowns: corner heights
     k = HUBER_K * noise
     lin = model.evaluate(h)  # derivatives only if a step is taken
@@ -683,7 +783,7 @@ def _solve_scale(setup: _Setup, h0, start_height, *, iterations, cg_iterations, 
     mask = (misfit > max(MISFIT_SIGMAS * noise, MIN_MISFIT)) | (np.sum(weights, axis=0) < 3)
     # a kept start is returned as given
     visible = start_visible if kept else h_visible
-    return InversionResult(height=h0.copy() if kept else pixels_from_corners(h), start_height=start_height,
+    return InversionResult(height=h0.copy() if kept else problem.scan_heights(h), start_height=start_height,
                            misfit=misfit, predicted=predicted, scale=s, mask=mask, noise=float(noise),
                            alpha=float(alpha), history=history, stopped=stopped, discrepancy_level=float(enough),
                            _linearised=(problem, h, visible, r, s, m, k, float(np.sqrt(noise ** 2 + model_var))))

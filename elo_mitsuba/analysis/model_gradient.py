@@ -36,6 +36,7 @@ from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
 from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
+from .noise import local_chi2
 from .stsa import MIN_SUM
 
 #: Levenberg-Marquardt iterations (each: one kernel of three model evaluations).
@@ -295,8 +296,12 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     with np.errstate(divide="ignore", invalid="ignore"):
         var_p = np.where(det > 0, a22 / det, np.inf) * noise ** 2
         var_q = np.where(det > 0, a11 / det, np.inf) * noise ** 2
-    sigma_p = np.sqrt(var_p).reshape(shape)
-    sigma_q = np.sqrt(var_q).reshape(shape)
+    # where the facet model does not reproduce the four values to within the noise (the beam
+    # straddling a pore's rim, a step), the noise-only bound is scaled by the local Birge ratio
+    birge = np.sqrt(np.maximum(local_chi2(np.where(np.isfinite(residual), 2.0 * residual, 0.0),
+                                          noise if np.isfinite(noise) and noise > 0 else 1.0), 1.0))
+    sigma_p = np.sqrt(var_p).reshape(shape) * birge
+    sigma_q = np.sqrt(var_q).reshape(shape) * birge
     dzdx = -p.reshape(shape)
     dzdy = -q.reshape(shape)
     limit = max(RESIDUAL_SIGMAS * (noise if np.isfinite(noise) else 0.0), MIN_RESIDUAL)
