@@ -179,3 +179,30 @@ def test_designs_stored_but_not_told_are_told_from_the_log(tmp_path, monkeypatch
     assert (s.recovered, s.evaluated) == (4, 4)
     trials = [r["trial"] for r in store.read_records(out)]
     assert sorted(trials) == list(range(8))
+
+
+def test_asymmetric_designs_of_a_chosen_count(tmp_path):
+    spec = _spec(tmp_path, trials=6, batch=3).read_text().replace("count = 4", "count = [3, 5]\nsymmetric = false")
+    spec = spec.replace("[parameters]\n", "[parameters]\nazimuth = [-10.0, 10.0]\n")
+    path = tmp_path / "asym.toml"
+    path.write_text(spec)
+    optimize(path, tmp_path / "o.zarr", workers=0, progress=False)
+    ds = store.read_designs(tmp_path / "o.zarr")
+    assert set(ds["count"].values) <= {3, 5} and ds.sizes["slot"] == 5
+    for i in range(ds.sizes["design"]):
+        k = int(ds["count"].values[i])
+        assert np.isfinite(ds.disc_radius.values[i, :k]).all() and np.isnan(ds.disc_radius.values[i, k:]).all()
+        # each detector its own height: per-detector parameters, the ones beyond the count NaN
+        h = [ds[f"dh_{j}"].values[i] for j in range(5)]
+        assert np.allclose(ds.disc_center.values[i, :k, 2], h[:k]) and np.isnan(h[k:]).all()
+
+
+def test_the_second_event_objective_renders_the_chamber(tmp_path):
+    spec = _spec(tmp_path, trials=2, batch=2, extra="[render]\nresolution = 2\nspp = 16\n")
+    spec.write_text(spec.read_text().replace('objectives = ["sigma_worst", "masked_share"]',
+                                             'objectives = ["sigma_worst", "e2_share"]'))
+    optimize(spec, tmp_path / "o.zarr", workers=0, progress=False)
+    ds = store.read_designs(tmp_path / "o.zarr")
+    e2 = ds.e2_share.values
+    assert ds.feasible.values.any()
+    assert np.all((e2 > 0) & (e2 < 0.5) | ~ds.feasible.values) and np.all(e2[~ds.feasible.values] == 1.0)
