@@ -235,6 +235,7 @@ def main(argv=None):
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--res", type=int, default=400, help="stepped layer's resolution (default 400)")
+    p.add_argument("--noise", type=float, default=0.01, help="relative Gaussian noise on object and flat (default 0.01)")
     p.add_argument("--hills-res", type=int, default=256)
     p.add_argument("--melt-res", type=int, default=512)
     p.add_argument("--no-smooth", action="store_true", help="skip the hills and the melt plate")
@@ -244,9 +245,10 @@ def main(argv=None):
     import elo_mitsuba
 
     elo_mitsuba.ensure_variant()
-    result = {"steps": measure_reconstruct(args.res)}
+    result = {"steps": measure_reconstruct(args.res, noise=args.noise)}
     s = result["steps"]
-    print(f"stepped layer {s['res']}²: model gradient masked {100 * s['masked_fraction']:.1f} %")
+    print(f"stepped layer {s['res']}², noise {100 * s['noise']:g} %: model gradient masked "
+          f"{100 * s['masked_fraction']:.1f} %")
     for m in METHODS:
         r = s[m]
         print(f"  {m:7s} RMSE {1000 * r['rmse_mm']:.1f} µm, >1 mm from cliffs {1000 * r['rmse_far_mm']:.1f} µm "
@@ -256,7 +258,7 @@ def main(argv=None):
     print("  truth   steps " + ", ".join(f"{v:+.3f}" + ("" if c else "*") for v, c in zip(s["truth_steps"], s["connected"]))
           + "   (* masked all round: no trusted path to the powder)")
     if not args.no_smooth:
-        result["smooth"] = measure_smooth(hills_res=args.hills_res, melt_res=args.melt_res)
+        result["smooth"] = measure_smooth(hills_res=args.hills_res, melt_res=args.melt_res, noise=args.noise)
         for name, r in result["smooth"].items():
             print(f"{name} {r['res']}²: " + ", ".join(f"{m} {1000 * r[m]['rmse_mm']:.2f} µm ({r[m]['seconds']:.2f} s)"
                                                    for m in METHODS if m in r))

@@ -31,7 +31,8 @@ _EXPORTS = {
         "raw_gradient", "surface_gradient")},
     "INTEGRATION_METHODS": ("integrate", "METHODS"),
     **{n: ("integrate", n) for n in (
-        "height_gradient", "integrate_dct", "integrate_fft", "integrate_gradient", "integrate_masked")},
+        "height_gradient", "integrate_dct", "integrate_fft", "integrate_gradient", "integrate_masked",
+        "integrate_robust")},
     **{n: ("point_detector", n) for n in (
         "beam_directions", "eq24_differences", "flat_plate_images", "point_detector_images", "point_solid_angle")},
     **{n: ("precision", n) for n in ("SignalNoise", "design_metrics", "gradient_bound")},
