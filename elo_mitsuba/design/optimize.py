@@ -304,7 +304,13 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
                 results = [evaluate_design(p, c, settings) for _, p, c in batch]
             else:
                 futures = [client.submit(evaluate_design, p, c, settings, pure=False) for _, p, c in batch]
-                results = client.gather(futures)
+                try:
+                    results = client.gather(futures)
+                except Exception as exc:  # noqa: BLE001 -- a lost worker or scheduler: one line, resumable
+                    from ..errors import EloError
+
+                    raise EloError(f"the Dask cluster failed ({type(exc).__name__}: {' '.join(str(exc).split())[:160]}); "
+                                   f"{len(records)} designs are stored: re-run the same command to resume") from None
             new = [_record(spec, n, p, c, r) for (n, p, c), r in zip(batch, results)]
             store.append_records(path, new)  # on disk before the optimiser hears of it
             for r in new:
