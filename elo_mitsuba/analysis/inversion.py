@@ -157,9 +157,14 @@ class InversionResult:
         (``height_error_noise``) scaled, where the model does not reproduce the images to within
         their noise, by the square root of the misfit's local chi-square per datum
         (:func:`~.noise.local_chi2` of ``misfit`` over ``expected_misfit``; Birge's ratio, taken
-        locally, never below 1). None with ``uncertainty_probes=0``.
+        locally, never below 1), and in quadrature the uncertainty of a ``floating`` part's offset.
+        None with ``uncertainty_probes=0``.
     height_error_rms : float
         Its RMS over the image (mm; NaN when not computed).
+    floating : ndarray of bool (H, W) or None
+        Parts of the field that bands of misfit above the noise (a cliff) cut off from its largest
+        part: their offset to it is not measured, and ``height_error`` holds the offset as
+        recovered (:func:`~.local_inversion.offset_errors`).
     height_error_noise : ndarray (H, W) or None
         The noise's part alone (:func:`height_uncertainty`): the height error the images' noise
         leaves, pixel by pixel.
@@ -186,6 +191,7 @@ class InversionResult:
     height_error: np.ndarray | None = None
     height_error_rms: float = float("nan")
     height_error_noise: np.ndarray | None = None
+    floating: np.ndarray | None = None
     start_misfit: np.ndarray | None = None
     expected_misfit: float = 0.0
     regions: list = field(default_factory=list)
@@ -579,8 +585,11 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                 result.stopped += f"; {len(result.regions)} region(s) above the noise, {refined} refined"
         if result.height_error is not None:
             result.height_error_noise = result.height_error
-            birge = np.sqrt(np.maximum(local_chi2(result.misfit, max(result.expected_misfit, 1e-12)), 1.0))
-            result.height_error = result.height_error_noise * birge
+            chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
+            from .local_inversion import offset_errors, threshold
+
+            result.floating, offset = offset_errors(result.height, chi2, threshold(detectors=len(full.names)))
+            result.height_error = np.hypot(result.height_error_noise * np.sqrt(np.maximum(chi2, 1.0)), offset)
             result.height_error_rms = float(np.sqrt(np.mean(result.height_error ** 2)))
         return result
 
