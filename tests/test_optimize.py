@@ -136,11 +136,13 @@ def test_evaluations_run_as_tasks_on_a_dask_cluster(tmp_path):
 
 
 def test_results_plot_scene_and_table1(tmp_path, capsys):
-    spec = _spec(tmp_path, trials=6, batch=3)
+    spec = _spec(tmp_path, trials=6, batch=3, extra="[render]\nresolution = 2\nspp = 16\n")
     out, png, xml = tmp_path / "o.zarr", tmp_path / "front.png", tmp_path / "best.xml"
     assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--quiet", "--plot", str(png),
-                 "--scene", str(xml)]) == 0
+                 "--scene", str(xml), "--second-event"]) == 0
     text = capsys.readouterr().out
+    shares = re.search(r"2nd-event share .*: (.*)$", text, re.M).group(1)
+    assert "zeta25" in shares and "zeta75" in shares
     for z in ("zeta25", "zeta50", "zeta60", "zeta75"):
         assert z in text
     assert png.read_bytes()[:4] == b"\x89PNG" and "<shape type=\"disk\"" in xml.read_text()

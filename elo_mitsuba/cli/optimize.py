@@ -48,6 +48,9 @@ def add_parser(subparsers):
     p.add_argument("--scene", metavar="BEST.xml", help="write the chosen design as a scene (athene_flat with its discs)")
     p.add_argument("--design", type=non_negative_int, metavar="TRIAL",
                    help="the design --scene writes (default: the front's knee)")
+    p.add_argument("--second-event", action="store_true",
+                   help="also render the 2nd-event share of the chosen design and of Table 1's layouts in the "
+                        "chamber ([render] resolution and spp; a few seconds)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a store of another spec, and existing --plot/--scene files")
     p.add_argument("--quiet", "--no-progress", dest="no_progress", action="store_true", help="no progress line")
@@ -105,8 +108,20 @@ def run(args) -> int:
             dom = f"dominated by front design {row['dominated_by']} (" + ", ".join(
                 f"{o}={v:.4g}" for o, v in dv.items()) + ")"
         print(f"  {row['layout']}: {vals}{'' if row['feasible'] else ' (infeasible here)'}; chosen: {ratio}; {dom}")
+    if args.second_event:
+        from ..design.evaluate import second_event_share
+        from ..design.geometry import design_discs
+
+        m, r = spec.metric, spec.render
+        kw = dict(resolution=r["resolution"], spp=r["spp"], work_distance_mm=m["wd"], field_mm=m["field"],
+                  material=m["material"])
+        shares = {name: second_event_share(design_discs(rec["params"], 4), **kw) for name, rec in table1.items()}
+        if int(d["count"]) == 4 and bool(d["feasible"]):
+            shares = {f"design {chosen}": second_event_share(design_of(ds, chosen), **kw), **shares}
+        print("2nd-event share (largest of the four detectors, flat plate in the chamber): "
+              + ", ".join(f"{k} {100 * v:.2f} %" for k, v in shares.items()))
     if args.plot:
-        print(f"wrote {plot_front(ds, args.plot, table1=table1, overwrite=args.overwrite)}")
+        print(f"wrote {plot_front(ds, args.plot, table1=table1, chosen=chosen, overwrite=args.overwrite)}")
     if args.scene:
         print(f"wrote {export_scene(design_of(ds, chosen), args.scene, overwrite=args.overwrite)}")
     return 0

@@ -174,10 +174,11 @@ def sketch_layout(ax_top, ax_side, discs: Mapping, *, field_mm: float = 80.0, wo
     ax_side.set_title("from the side (-y)", fontsize=9)
 
 
-def plot_front(ds, path, *, table1: Mapping | None = None, overwrite: bool = False) -> Path:
+def plot_front(ds, path, *, table1: Mapping | None = None, chosen: int | None = None,
+               overwrite: bool = False) -> Path:
     """The front as a PNG: objective 1 vs objective 2 (every evaluated feasible design in grey,
-    the front joined, Table 1's layouts marked), and sketches of the chosen design and the
-    front's two ends, from above and from the side.
+    the front joined, Table 1's layouts marked), and sketches of the chosen design (default: the
+    front's knee, :func:`choose_design`) and the front's two ends, from above and from the side.
 
     Examples
     --------
@@ -209,7 +210,7 @@ def plot_front(ds, path, *, table1: Mapping | None = None, overwrite: bool = Fal
         ax.scatter(ds[ox].values[bad], ds[oy].values[bad], s=8, marker="x", color="0.85", label="infeasible")
     order = np.argsort(ds[ox].values[front])
     ax.plot(ds[ox].values[front][order], ds[oy].values[front][order], "o-", color="C0", ms=4, label="Pareto front")
-    chosen = choose_design(ds)
+    chosen = choose_design(ds) if chosen is None else int(chosen)
     ends = [int(ds.design.values[front][order[0]]), int(ds.design.values[front][order[-1]])]
     picks = [(chosen, "C3", "chosen")] + [(t, c, lab) for t, c, lab in zip(ends, ("C1", "C2"), ("end 1", "end 2"))]
     for t, c, lab in picks:
