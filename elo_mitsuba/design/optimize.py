@@ -36,7 +36,7 @@ from .geometry import CONSTRAINTS, design_discs, violations
 from .spec import OptimizeSpec, load_spec
 
 #: Random designs (and the bounds' corners) tried by :func:`check_design_space`.
-PROBE_DESIGNS = 2000
+PROBE_DESIGNS = 1000
 #: The dataset is rewritten at most this often (s) while running, and at the end.
 WRITE_EVERY_S = 5.0
 #: Study name in the journal.
@@ -76,7 +76,7 @@ def check_design_space(spec: OptimizeSpec, n: int = PROBE_DESIGNS, seed: int = 0
     >>> check_design_space(load_spec({"parameters": {"dh": [560.0, 700.0]}}))
     Traceback (most recent call last):
     ...
-    elo_mitsuba.errors.EloInputError: spec: no design within the bounds meets the constraints (2000 random designs and the corners tried); the closest violates 'chamber' by 21 mm: widen [parameters] or lower constraints.clearance (10 mm)
+    elo_mitsuba.errors.EloInputError: spec: no design within the bounds meets the constraints (1000 random designs and the corners tried); the closest violates 'chamber' by 21 mm: widen [parameters] or lower constraints.clearance (10 mm)
     """
     rng = np.random.default_rng(seed)
     m = spec.metric
