@@ -208,3 +208,12 @@ def test_the_second_event_objective_renders_the_chamber(tmp_path):
     e2 = ds.e2_share.values
     assert ds.feasible.values.any()
     assert np.all((e2 > 0) & (e2 < 0.5) | ~ds.feasible.values) and np.all(e2[~ds.feasible.values] == 1.0)
+
+
+def test_the_grid_sampler_visits_every_grid_point_once(tmp_path):
+    spec = _spec(tmp_path, sampler="grid", trials=100, batch=3, extra="")
+    spec.write_text(spec.read_text().replace("batch = 3", "batch = 3\ngrid_points = 2"))
+    s = optimize(spec, tmp_path / "o.zarr", workers=0, progress=False)
+    ds = store.read_designs(tmp_path / "o.zarr")
+    pairs = sorted(zip(ds.dh.values.tolist(), ds.dw.values.tolist()))
+    assert s.evaluated == 4 and pairs == [(100.0, 80.0), (100.0, 300.0), (400.0, 80.0), (400.0, 300.0)]
