@@ -42,6 +42,9 @@ from .noise import CHI2_WINDOW_PX, local_chi2
 
 #: Threshold of a window's mean chi-square per datum, in standard deviations of pure noise's.
 SIGMAS = 5.0
+#: Flagged areas of fewer pixels are noise: a defect spreads over the window (a 2-pixel pit flags
+#: 70-110 pixels at 7x7), one noisy pixel at the field's edge flags a handful.
+MIN_FLAGGED_PX = 9
 #: Pixels a flagged area is grown by on each side (the beam profile's reach, a few pixels of the
 #: relief around it that the solve needs to place a defect).
 MARGIN_PX = 8
@@ -109,15 +112,17 @@ def threshold(window: int = CHI2_WINDOW_PX, detectors: int = 4, sigmas: float = 
     return 1.0 + sigmas * np.sqrt(2.0 / (window * window * max(detectors - 1, 1)))
 
 
-def find_regions(chi2, limit: float, *, margin: int = MARGIN_PX) -> list[tuple[tuple, tuple, int]]:
-    """Windows ``((r0, r1), (c0, c1), flagged pixels)`` around the connected areas where ``chi2``
-    exceeds ``limit``, grown by ``margin`` and clipped to the image; overlapping windows merged.
+def find_regions(chi2, limit: float, *, margin: int = MARGIN_PX,
+                 min_pixels: int = MIN_FLAGGED_PX) -> list[tuple[tuple, tuple, int]]:
+    """Windows ``((r0, r1), (c0, c1), flagged pixels)`` around the connected areas of at least
+    ``min_pixels`` where ``chi2`` exceeds ``limit``, grown by ``margin`` and clipped to the image;
+    overlapping windows merged.
 
     Examples
     --------
-    >>> chi2 = np.ones((50, 50)); chi2[20:23, 30:32] = 9.0
+    >>> chi2 = np.ones((50, 50)); chi2[20:23, 30:33] = 9.0
     >>> find_regions(chi2, 2.0, margin=4)
-    [((16, 27), (26, 36), 6)]
+    [((16, 27), (26, 37), 9)]
     """
     from scipy.ndimage import find_objects, label
 
@@ -126,6 +131,8 @@ def find_regions(chi2, limit: float, *, margin: int = MARGIN_PX) -> list[tuple[t
     h, w = flagged.shape
     boxes = []
     for k, sl in enumerate(find_objects(labels), start=1):
+        if np.sum(labels[sl] == k) < min_pixels:
+            continue
         boxes.append([max(sl[0].start - margin, 0), min(sl[0].stop + margin, h),
                       max(sl[1].start - margin, 0), min(sl[1].stop + margin, w),
                       int(np.sum(labels[sl] == k))])

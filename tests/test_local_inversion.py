@@ -1,0 +1,133 @@
+"""Local refinement of the inversion (analysis/local_inversion.py) and error bars that cover the misfit.
+
+Model images (the inversion's own forward model, no renders) of a smooth relief with a pit of two
+pixels; the start is the truth smoothed over the pit, as the model gradient's blur-mixed normals
+leave it: the images as a whole fit to within their noise, the pit's region does not.
+"""
+
+import numpy as np
+import pytest
+
+from elo_mitsuba.analysis.height_model import HeightModel
+from elo_mitsuba.analysis.inversion import invert_heights
+from elo_mitsuba.analysis.local_inversion import find_regions, offset_errors, threshold
+from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+N = 128
+FWHM = 0.25
+
+
+@pytest.fixture(scope="module")
+def pit_case():
+    from scipy.ndimage import gaussian_filter
+
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    yy, xx = np.mgrid[0:N, 0:N].astype(float)
+    relief = 0.05 * np.sin(2 * np.pi * xx / N) * np.cos(2 * np.pi * yy / N)
+    pit = -0.06 * np.exp(-((yy - 40) ** 2 + (xx - 22) ** 2) / 3.0)
+    truth = relief + pit
+    rng = np.random.default_rng(3)
+    img = {n: v * (1 + 0.003 * rng.standard_normal(v.shape)) for n, v in HeightModel(geo, fwhm_mm=FWHM).images(truth).items()}
+    flat = {n: v * (1 + 0.003 * rng.standard_normal(v.shape))
+            for n, v in HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N))).items()}
+    start = relief + gaussian_filter(pit, 3.0)
+    # the start's misfit is a little above the noise over the field (the pit's share of 16384
+    # pixels): at a discrepancy of 2 the field passes as fitting to its noise, the pit's region not
+    res = invert_heights(img, flat, geo, start=start, fwhm_mm=FWHM, noise=0.003 * np.sqrt(2), iterations=6,
+                         discrepancy=2.0)
+    near = np.hypot(yy - 40, xx - 22) <= 6
+    return truth, start, res, near
+
+
+def _rms(a, sel):
+    return float(np.sqrt(np.mean(a[sel] ** 2)))
+
+
+def test_the_pit_is_refined_where_the_field_fits_to_the_noise(pit_case):
+    truth, start, res, near = pit_case
+    assert res.stopped.startswith("fits to the noise at the start"), res.stopped
+    assert res.regions, "no region found around the pit"
+    refined = [r for r in res.regions if r.status.startswith("refined")]
+    assert refined
+    # every refined window contains the pit, and none is far from it
+    for r in refined:
+        assert r.rows[0] <= 40 < r.rows[1] and r.cols[0] <= 22 < r.cols[1], r
+        assert r.misfit_end < r.misfit_start
+    e0, e1 = start - truth, res.height - truth
+    assert _rms(e1, near) < 0.5 * _rms(e0, near), (_rms(e1, near), _rms(e0, near))
+
+
+def test_no_region_fits_worse_and_no_tile_gets_worse(pit_case):
+    truth, start, res, near = pit_case
+    for r in res.regions:
+        assert r.misfit_end <= min(r.misfit_start, r.misfit_solve) + 1e-9, r
+    e0 = np.abs((start - start.mean()) - (truth - truth.mean()))
+    e1 = np.abs((res.height - res.height.mean()) - (truth - truth.mean()))
+    t = 16
+    tiles0 = np.sqrt((e0 ** 2).reshape(N // t, t, N // t, t).mean(axis=(1, 3)))
+    tiles1 = np.sqrt((e1 ** 2).reshape(N // t, t, N // t, t).mean(axis=(1, 3)))
+    assert np.all(tiles1 <= tiles0 + 1e-3), float(np.max(tiles1 - tiles0))
+
+
+def test_error_bars_grow_only_where_the_misfit_exceeds_the_noise(pit_case):
+    truth, start, res, near = pit_case
+    assert np.all(res.height_error >= res.height_error_noise - 1e-15)
+    far = ~near
+    assert np.median(res.height_error[far] / res.height_error_noise[far]) < 1.05
+
+
+def test_local_refinement_can_be_turned_off(pit_case):
+    truth, start, res, near = pit_case
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    images = {n: v for n, v in HeightModel(geo, fwhm_mm=FWHM).images(start).items()}
+    flat = HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N)))
+    off = invert_heights(images, flat, geo, start=start, fwhm_mm=FWHM, noise=0.004, local=False, uncertainty_probes=0)
+    assert off.regions == []
+
+
+def test_find_regions_merges_overlapping_windows_and_keeps_apart_distant_ones():
+    chi2 = np.ones((100, 100))
+    chi2[20:23, 20:23] = chi2[20:23, 30:33] = 9.0  # 7 px apart: windows of margin 8 overlap
+    chi2[80:83, 80:83] = 9.0
+    chi2[50, 50] = 9.0  # one pixel: noise
+    regions = find_regions(chi2, 2.0, margin=8)
+    assert len(regions) == 2
+    assert regions[0][0] == (12, 31) and regions[0][1] == (12, 41) and regions[0][2] == 18
+
+
+def test_threshold_is_the_noise_window_mean_plus_sigmas():
+    # pure chi-square noise of 3 degrees of freedom per pixel: the 7x7 mean exceeds the threshold
+    # in well under 1e-3 of windows
+    from elo_mitsuba.analysis.noise import local_chi2
+
+    rng = np.random.default_rng(0)
+    misfit = np.sqrt(rng.chisquare(3, (400, 400)) / 3.0)
+    c = local_chi2(misfit, 1.0)
+    assert np.mean(c > threshold()) < 1e-3
+    assert np.mean(c > 1.2) > 0.01  # and it is not so high that a real misfit passes
+
+
+def test_offset_errors_zero_on_one_connected_field():
+    h = np.random.default_rng(1).standard_normal((30, 30))
+    chi2 = np.ones((30, 30))
+    chi2[10:12, :] = 9.0  # a band across the whole field: two parts, the smaller floats
+    floating, error = offset_errors(h, chi2, 2.0)
+    assert floating[:10].all() and not floating[12:].any()
+    chi2[10:12, :5] = 1.0  # a gap in the band: one part, nothing floats
+    floating, error = offset_errors(h, chi2, 2.0)
+    assert not floating.any() and not error.any()
+
+
+def test_model_gradient_sigma_covers_a_misfit_above_the_noise():
+    from elo_mitsuba.analysis.model_gradient import model_gradient
+
+    geo = ScanGeometry.nominal((48, 48), 9.6, 100.0, 150.0)
+    flat = HeightModel(geo, shadows=False).images(np.zeros((48, 48)))
+    rng = np.random.default_rng(2)
+    img = {n: v * (1 + 0.003 * rng.standard_normal(v.shape)) for n, v in flat.items()}
+    img["right"][16:32, 16:32] *= 1.012  # a patch no facet explains: 2-3 noise levels, not masked
+    fl = {n: v * (1 + 0.003 * rng.standard_normal(v.shape)) for n, v in flat.items()}
+    res = model_gradient(img, fl, geo)
+    inside = res.dzdx_sigma[19:29, 19:29][~res.mask[19:29, 19:29]]
+    outside = res.dzdx_sigma[2:10, 2:10]
+    assert inside.size > 50 and np.median(inside) > 1.5 * np.median(outside), (inside.size, np.median(inside), np.median(outside))

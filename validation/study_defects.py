@@ -1,0 +1,214 @@
+"""Heights at the defects (issue 25): a rough layer with pores and bumps, a layer with steps, and
+whether the error bars cover the error.
+
+For each surface, rendered with the ATHENE beam blur (0.27 mm FWHM) and 1 % Gaussian noise on every
+object and flat pixel: the height RMSE (mean removed) of Eq. 26 + integration, the model gradient +
+integration (the inversion's start) and ``invert`` (with its local refinement), overall, within
+1 mm of the defects (a pore's or bump's rim, a cliff) and beyond; the steps as recovered; the slope
+bias over the flat areas (mean gradient error of the model gradient, absolute); and the calibration
+of ``height_error`` and of the model gradient's ``dzdx_sigma``/``dzdy_sigma``: the share of pixels
+whose actual error lies within 1x and 2x the stated one (a calibrated Gaussian error bar: 68 % and
+95 %).
+
+Run: ``python -m validation.study_defects [--res 400] [--out validation/REPORT-defects.md]`` (about
+5 min on 2 cores); it writes the table and a figure per surface into ``validation/figures``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+NAMES = ("right", "left", "back", "front")
+FIGURES = Path(__file__).parent / "figures"
+
+
+def _rmse(h, truth, sel=None):
+    e = (h - np.mean(h)) - (truth - np.mean(truth))
+    if sel is not None:
+        e = e[sel]
+    return float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
+
+
+def _render_pair(xml, res, layout):
+    import elo_mitsuba as em
+
+    out = []
+    for scene in (xml, "flat_plate"):
+        s = em.load_scene(scene, res=res, fwhm=0.27, layout=layout)
+        out.append(s.render(quality="default", events=1, seed=3, progress=False))
+    return out
+
+
+def _coverage(err, stated, sel):
+    err, stated = np.abs(err[sel]), stated[sel]
+    return float(np.mean(err <= stated)), float(np.mean(err <= 2 * stated))
+
+
+def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0.01, seed: int = 7) -> dict:
+    """Render one surface (``rough``, ``steps``, ``hills`` or ``melt``), add noise, and measure."""
+    from elo_mitsuba.analysis import surface_gradient
+    from elo_mitsuba.analysis.inversion import invert_heights, start_heights
+    from elo_mitsuba.analysis.model_gradient import model_gradient
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+    from elo_mitsuba.mesh import mesh_surface_height, write_mesh
+    from elo_mitsuba.objects import melt_plate as mp
+    from elo_mitsuba.objects import rough_layer as rl
+    from elo_mitsuba.objects import stepped_layer as sl
+    from elo_mitsuba.objects.hills import hills_height, hills_mesh
+    from elo_mitsuba.scene_files import scenes_dir, write_scene
+
+    if kind == "melt":
+        heights = np.load(scenes_dir() / "meshes" / "melt_plate_height.npy").astype(float)
+
+        def truth_fn(x, y):
+            return mesh_surface_height(heights, mp.PIXEL_SIZE_MM, x, y)
+        xml = "melt_plate"
+    else:
+        mesh, truth_fn = {"rough": (rl.rough_mesh, rl.rough_height), "steps": (sl.stepped_mesh, sl.stepped_height),
+                          "hills": (hills_mesh, hills_height)}[kind]
+        write_mesh(mesh(80.0, res), tmp / f"{kind}.ply", overwrite=True)
+        xml = write_scene(tmp / f"{kind}.xml", tmp / f"{kind}.ply", overwrite=True)
+    obj, flat = _render_pair(xml, res, layout)
+    shape = obj.channels["right"].shape
+    geo = ScanGeometry.from_metadata(obj.metadata, shape)
+    truth = geo.landing_heights(truth_fn)
+    pts, _ = geo.beam(truth)
+    X, Y = pts[..., 0], pts[..., 1]
+    rng = np.random.default_rng(seed)
+    img = {n: obj.channels[n] * (1 + noise * rng.standard_normal(shape)) for n in NAMES}
+    fl = {n: flat.channels[n] * (1 + noise * rng.standard_normal(shape)) for n in NAMES}
+    if kind == "rough":
+        near = rl.near_defects(X, Y)
+    elif kind == "steps":
+        near = np.zeros(shape, bool)
+        for p in sl.steps():
+            near |= np.abs(sl.cliff_distance(p, X, Y)) <= 1.0
+    else:
+        near = np.zeros(shape, bool)
+    e26 = surface_gradient(img, fl, geo.field_mm, *geo.symmetric_layout())
+    mg = model_gradient(img, fl, geo)
+    h_start = start_heights(mg, geo)
+    t0 = time.perf_counter()
+    inv = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
+    seconds = time.perf_counter() - t0
+    out = {"kind": kind, "res": res, "layout": layout, "seconds": seconds, "stopped": inv.stopped,
+           "near_share": float(near.mean())}
+    for name, h in (("eq26", start_heights(e26, geo)), ("start", h_start), ("invert", inv.height)):
+        out[name] = {"all": _rmse(h, truth), "near": _rmse(h, truth, near) if near.any() else float("nan"),
+                     "far": _rmse(h, truth, ~near)}
+    out["near_ratio"] = out["invert"]["near"] / out["start"]["near"] if near.any() else float("nan")
+    # never worse than the start: the largest RMSE increase over 4 mm tiles
+    e_inv = np.abs((inv.height - inv.height.mean()) - (truth - truth.mean()))
+    e_st = np.abs((h_start - h_start.mean()) - (truth - truth.mean()))
+    t = max(int(round(4.0 / (80.0 / res))), 1)
+    hh, ww = (shape[0] // t) * t, (shape[1] // t) * t
+
+    def tiles(e):
+        return np.sqrt((e[:hh, :ww] ** 2).reshape(hh // t, t, ww // t, t).mean(axis=(1, 3)))
+    out["worst_tile_um"] = float(1e3 * np.max(tiles(e_inv) - tiles(e_st)))
+    # error bars (errors relative to the trusted field's level where parts float)
+    d = inv.height - truth
+    ref = ~inv.floating if inv.floating is not None and inv.floating.any() else np.ones(shape, bool)
+    d = d - np.median(d[ref])
+    every = np.ones(shape, bool)
+    out["height_error"] = {"stated_rms_um": 1e3 * inv.height_error_rms,
+                           "all": _coverage(d, inv.height_error, every),
+                           "near": _coverage(d, inv.height_error, near) if near.any() else (np.nan, np.nan),
+                           "noise_only": _coverage(d, inv.height_error_noise, every)}
+    eps = 1e-3
+    gx = (truth_fn(X + eps, Y) - truth_fn(X - eps, Y)) / (2 * eps)
+    gy = (truth_fn(X, Y + eps) - truth_fn(X, Y - eps)) / (2 * eps)
+    ok = ~mg.mask
+    out["gradient_sigma"] = {"dzdx": _coverage(mg.dzdx - gx, mg.dzdx_sigma, ok),
+                             "dzdy": _coverage(mg.dzdy - gy, mg.dzdy_sigma, ok)}
+    flat_area = ok & ~near & (np.hypot(gx, gy) < 1e-3) if kind == "steps" else None
+    if flat_area is not None and flat_area.any():
+        out["slope_bias"] = (float(np.mean((mg.dzdx - gx)[flat_area])), float(np.mean((mg.dzdy - gy)[flat_area])))
+    if kind == "steps":
+        from elo_mitsuba.objects.stepped_layer import step_height, steps
+
+        out["steps"] = [{"nominal": p["height_mm"],
+                         **{k: step_height(h, geo.field_mm, p, coordinates=(X, Y)) for k, h in
+                            (("start", h_start), ("invert", inv.height))}} for p in steps()]
+    out["regions"] = [r.as_dict() for r in inv.regions]
+    _figure(kind, truth, h_start, inv, near)
+    return out
+
+
+def _figure(kind, truth, start, inv, near):
+    from elo_mitsuba.analysis.plots import new_figure, save_figure
+
+    fig, axes = new_figure(4, width=4.0, height=3.6)
+    e0 = 1e3 * ((start - start.mean()) - (truth - truth.mean()))
+    e1 = 1e3 * ((inv.height - inv.height.mean()) - (truth - truth.mean()))
+    lim = float(np.percentile(np.abs(e0), 99))
+    for ax, img, title, cmap, vlim in (
+            (axes[0], 1e3 * (truth - truth.mean()), "truth (um)", "viridis", None),
+            (axes[1], e0, "start: error (um)", "RdBu_r", lim), (axes[2], e1, "invert: error (um)", "RdBu_r", lim),
+            (axes[3], 1e3 * inv.height_error, "height_error (um)", "magma", None)):
+        kw = {} if vlim is None else {"vmin": -vlim, "vmax": vlim}
+        im = ax.imshow(img, cmap=cmap, **kw)
+        ax.set_title(title)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    save_figure(fig, FIGURES / f"defects_{kind}.png", overwrite=True)
+
+
+def report(results) -> str:
+    lines = ["# Heights at the defects (issue 25)", "",
+             "Generated by `python -m validation.study_defects`; 0.27 mm FWHM beam, 1 % noise on object and flat, "
+             "quality default, events 1, seed 7. RMSE with the mean removed; \"near\": within 1 mm of a defect's rim or "
+             "a cliff. Coverage: share of pixels whose actual error lies within 1x / 2x the stated error bar "
+             "(68 % / 95 % for a calibrated Gaussian one; the issue asks 60-75 % and >= 90 %).", "",
+             "| surface | Eq. 26 + int. (all) | start all / near / far | invert all / near / far | near ratio | worst 4 mm tile vs start | time | height_error within 1x / 2x (near) | noise-only bar | dzdx_sigma 1x / 2x |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        s, i = r["start"], r["invert"]
+        he, g = r["height_error"], r["gradient_sigma"]
+        lines.append(
+            f"| {r['kind']} {r['res']}², {r['layout']} | {1e3 * r['eq26']['all']:.1f} µm | {1e3 * s['all']:.1f} / "
+            f"{1e3 * s['near']:.1f} / {1e3 * s['far']:.1f} µm | {1e3 * i['all']:.1f} / {1e3 * i['near']:.1f} / "
+            f"{1e3 * i['far']:.1f} µm | {r['near_ratio']:.2f} | {r['worst_tile_um']:+.1f} µm | {r['seconds']:.0f} s | "
+            f"{100 * he['all'][0]:.0f} / {100 * he['all'][1]:.0f} % ({100 * he['near'][0]:.0f} / "
+            f"{100 * he['near'][1]:.0f} %) | {100 * he['noise_only'][0]:.0f} / {100 * he['noise_only'][1]:.0f} % | "
+            f"{100 * g['dzdx'][0]:.0f} / {100 * g['dzdx'][1]:.0f} % |")
+    for r in results:
+        if "steps" in r:
+            lines += ["", f"Steps recovered ({r['kind']} {r['res']}², {r['layout']}; mm, nominal: start, invert):", ""]
+            lines += [f"- {p['nominal']:+.1f}: {p['start']:+.3f}, {p['invert']:+.3f}" for p in r["steps"]]
+        if "slope_bias" in r:
+            lines += ["", f"Slope bias of the model gradient over the flat powder ({r['kind']}): "
+                      f"dZ/dx {r['slope_bias'][0]:+.2e}, dZ/dy {r['slope_bias'][1]:+.2e} (absolute)"]
+        lines += ["", f"Regions of {r['kind']}: {len(r['regions'])}; " + "; ".join(
+            f"{g['status']} ({g['misfit_start']:.2f} -> {g['misfit_end']:.2f})" for g in r["regions"][:12])]
+    lines += [""] + [f"![{r['kind']}](figures/defects_{r['kind']}.png)" for r in results] + [""]
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    import json
+    import tempfile
+
+    ap = argparse.ArgumentParser(prog="python -m validation.study_defects", description=__doc__.splitlines()[0])
+    ap.add_argument("--res", type=int, default=400, help="resolution of the rough and stepped layers (default 400)")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "REPORT-defects.md"))
+    ap.add_argument("--only", nargs="*", default=["rough", "steps", "hills", "melt"])
+    args = ap.parse_args(argv)
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind in args.only:
+            res = {"hills": 256, "melt": 512}.get(kind, args.res)
+            layout = {"rough": "zeta25", "steps": "zeta50", "hills": "zeta50", "melt": "zeta25"}[kind]
+            results.append(run_surface(kind, res, Path(tmp), layout=layout))
+            print(json.dumps({k: v for k, v in results[-1].items() if k != "regions"}, default=float), flush=True)
+    Path(args.out).write_text(report(results))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
