@@ -118,7 +118,8 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     out["height_error"] = {"stated_rms_um": 1e3 * inv.height_error_rms,
                            "all": _coverage(d, inv.height_error, every),
                            "near": _coverage(d, inv.height_error, near) if near.any() else (np.nan, np.nan),
-                           "noise_only": _coverage(d, inv.height_error_noise, every)}
+                           "noise_only": _coverage(d, inv.height_error_noise, every),
+                           "bias_rms_um": 1e3 * float(np.sqrt(np.mean(inv.height_error_bias ** 2)))}
     eps = 1e-3
     gx = (truth_fn(X + eps, Y) - truth_fn(X - eps, Y)) / (2 * eps)
     gy = (truth_fn(X, Y + eps) - truth_fn(X, Y - eps)) / (2 * eps)

@@ -157,7 +157,8 @@ class InversionResult:
         (``height_error_noise``) scaled, where the model does not reproduce the images to within
         their noise, by the square root of the misfit's local chi-square per datum
         (:func:`~.noise.local_chi2` of ``misfit`` over ``expected_misfit``; Birge's ratio, taken
-        locally, never below 1), and in quadrature the uncertainty of a ``floating`` part's offset.
+        locally, never below 1), and in quadrature the regulariser's bias (``height_error_bias``) and
+        the uncertainty of a ``floating`` part's offset.
         None with ``uncertainty_probes=0``.
     height_error_rms : float
         Its RMS over the image (mm; NaN when not computed).
@@ -168,6 +169,9 @@ class InversionResult:
     height_error_noise : ndarray (H, W) or None
         The noise's part alone (:func:`height_uncertainty`): the height error the images' noise
         leaves, pixel by pixel.
+    height_error_bias : ndarray (H, W) or None
+        The magnitude of the regulariser's bias (:func:`regulariser_bias`), in ``height_error``
+        in quadrature.
     start_misfit : ndarray (H, W) or None
         The misfit of the start, as ``misfit``.
     expected_misfit : float
@@ -191,6 +195,7 @@ class InversionResult:
     height_error: np.ndarray | None = None
     height_error_rms: float = float("nan")
     height_error_noise: np.ndarray | None = None
+    height_error_bias: np.ndarray | None = None
     floating: np.ndarray | None = None
     start_misfit: np.ndarray | None = None
     expected_misfit: float = 0.0
@@ -589,7 +594,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
             from .local_inversion import offset_errors, threshold
 
             result.floating, offset = offset_errors(result.height, chi2, threshold(detectors=len(full.names)))
-            result.height_error = np.hypot(result.height_error_noise * np.sqrt(np.maximum(chi2, 1.0)), offset)
+            result.height_error = np.sqrt((result.height_error_noise ** 2) * np.maximum(chi2, 1.0) + offset ** 2
+                                          + result.height_error_bias ** 2)
             result.height_error_rms = float(np.sqrt(np.mean(result.height_error ** 2)))
         return result
 
@@ -631,7 +637,17 @@ def _with_uncertainty(result: InversionResult, probes: int, cg_iterations: int) 
         eq = _NormalEquations(problem, lin, s, m, _huber_weights(r, k))
         result.height_error = height_uncertainty(eq, sigma, probes, cg_iterations)
         result.height_error_rms = float(np.sqrt(np.mean(result.height_error ** 2)))
+        result.height_error_bias = np.abs(regulariser_bias(eq, corners, cg_iterations))
     return result
+
+
+def regulariser_bias(eq: _NormalEquations, corners, cg_iterations: int) -> np.ndarray:
+    """The regulariser's bias (mm) at the solution ``corners``, relative to the image mean:
+    linearised, the solution is (J^T W J + alpha L^T L)^-1 J^T W J of the truth, so it misses it by
+    -(J^T W J + alpha L^T L)^-1 alpha L^T L h, evaluated at the solution (one CG solve). It is what
+    the curvature penalty flattens: on the steep hills (slopes to 1.26) the inversion's 4.9 um
+    error is twice what the noise leaves, with a misfit at the noise level."""
+    return -eq.problem.scan_heights(eq.solve(eq.regulariser_gradient(corners), cg_iterations))
 
 
 class _ScaleData:
