@@ -24,7 +24,8 @@ from .report import fmt, pct, table
 
 TITLE = "Presets on every scene: error per event and total, and the error estimate's own accuracy"
 #: The shipped scenes and their default events (the chamber scenes: the 2nd event on relief).
-SCENES = ("flat_plate", "athene_flat", "corrugated_sheet", "melt_plate", "corrugated_chamber", "melt_chamber")
+SCENES = ("flat_plate", "athene_flat", "corrugated_sheet", "melt_plate", "corrugated_chamber", "melt_chamber",
+          "shield_chamber")
 PRESETS = ("draft", "default", "reference")
 #: The reference renders the reference preset with this many times its samples.
 REFERENCE_FACTOR = 8
