@@ -32,6 +32,8 @@ MAX_BOUNCE_MIN = 4096
 #: events^2 (2 cores: events 8 about 80 s, 10 about 2 min; elo_mitsuba.budget); in the shipped
 #: scenes events above 4 add < 0.1 % of the signal.
 MAX_EVENTS = 10
+#: Most strata per side of the far-field control variate (its s x s samples run in a loop).
+MAX_FAR_FIELD = 32
 
 
 def _option(default, doc: str, kind: str, *, xml: bool = True, choices=None, bounds=None):
@@ -74,6 +76,9 @@ class EloOptions:
                                          "float", bounds=(0.0, 90.0))
     bounce_min: float = _option(0.0, "paths per pixel below which a second pass tops events >= 2 up (0 = off)",
                                 "float", bounds=(0.0, MAX_BOUNCE_MIN))
+    far_field: int = _option(0, "far-field control variate of events >= 2: s x s cheap g_BSE samples per sample "
+                             "against a cached wall response (0 = off; plugins/_far_field.py)", "int",
+                             bounds=(0, MAX_FAR_FIELD))
     units: str = _option("fraction", "N_d/N_0 ('fraction') or detector voltage U_d = N_d/N_0 I_b T "
                          "('voltage', Eq. 9)", "str", choices=UNITS)
     beam_current: float = _option(BEAM_CURRENT_A, "beam current I_b (A) of Eq. 9", "float", bounds=(0.0, None))

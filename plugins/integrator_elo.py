@@ -87,6 +87,7 @@ from elo_mitsuba.physics.solid_angle import vos_denominator
 from elo_mitsuba.schema import event_channel, event_channels
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
+from ._far_field import JITTER, NEAR_MM, FarFieldTable, build_rays, geometry_key, reduce_table, stratum
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
 from ._occlusion import shape_key, unblockable, unblockable_regions
 from ._relief import relief_under_beam
@@ -120,6 +121,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._in_render = False
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
+        self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
+        self.far_field_builds = 0  # how many times the far-field table was built (tests, benchmarks)
 
     # ---- options --------------------------------------------------------------------------------
     def configure(self, options: EloOptions) -> None:
@@ -175,6 +178,65 @@ class EloIntegrator(mi.SamplingIntegrator):
             sensor = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
             if sensor is not None:
                 self._unblockable_regions = unblockable_regions(scene, sensor, detectors)
+        if self.far_field > 0 and self.traced_events() > 1 and beam is not None:
+            self._update_far_field(scene, beam)
+
+    def _update_far_field(self, scene, sensor):
+        """Build the far-field table (:mod:`._far_field`) unless the one held was built for this
+        geometry: a table is never used for a geometry other than its own."""
+        traced = self.traced_events()
+        key = geometry_key(scene, sensor, traced, self._two_sided)
+        if self._far is not None and self._far.key == key:
+            return
+        o, d, nodes = build_rays(scene, sensor)
+        ray = mi.Ray3f(o, d)
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(0x26F4, dr.width(o))
+        ctx = mi.BSDFContext()
+        outer = self._n_shadow
+        self._n_shadow = mi.Float(0.0) if self.count_rays else None
+        try:
+            with dr.suspend_grad():
+                si = scene.ray_intersect(ray)
+                alive = si.is_valid() & ~si.shape.is_emitter()
+                bsdf = si.bsdf(ray)
+                direct = self._sampled(scene, sampler, si, bsdf, ctx, ray, alive, JITTER, True)
+                later = (self._bounces(scene, sampler, si, ray, bsdf, ctx, alive, traced - 1)[0] if traced > 2
+                         else [[] for _ in self.detectors])
+                responses = [x for dd in range(len(self.detectors)) for x in [direct[dd]] + later[dd]]
+                dr.eval(responses)
+        finally:
+            self._n_shadow = outer
+        self._far = FarFieldTable(key, reduce_table(responses), nodes, len(responses))
+        self.far_field_builds += 1
+
+    def far_field_table(self):
+        """The far-field table in use (:class:`._far_field.FarFieldTable`), or None."""
+        return self._far if self.far_field > 0 else None
+
+    def _far_mean(self, scene, sampler, si, ctx, bsdf, alive):
+        """The control variate's mean per channel: s x s stratified samples of g_BSE at the 1st
+        event, each weighted S (the sample weight) times the table's L; no ray."""
+        far, s = self._far, self.far_field
+        n = far.n_channels
+        near_test = bool(self.relief)
+
+        def body(i, sampler, *acc):
+            u1 = sampler.next_1d(alive)
+            u2 = stratum(i, s, sampler.next_2d(alive))
+            bs, w = bsdf.sample(ctx, si, u1, u2, alive)
+            wo = si.to_world(bs.wo)
+            use = alive & (w[0] > 0)
+            if near_test:  # relief: directions that meet a surface within NEAR_MM are near field
+                ray = si.spawn_ray(wo)
+                ray.maxt = NEAR_MM
+                use &= ~scene.ray_test(ray, use)
+            vals = far.lookup(si.p, wo, use)
+            return (i + 1, sampler) + tuple(dr.fma(w[0], v, a) for a, v in zip(acc, vals))
+
+        out = dr.while_loop(state=(mi.UInt32(0), sampler) + tuple(mi.Float(0.0) for _ in range(n)),
+                            cond=lambda i, *rest: i < s * s, body=body)
+        return [a * (1.0 / (s * s)) for a in out[2:]]
 
     def unblockable_detectors(self):
         """Ids of the detectors whose shadow rays the occlusion analysis skips somewhere (from
@@ -353,13 +415,15 @@ class EloIntegrator(mi.SamplingIntegrator):
             outer_shadow = self._n_shadow
 
             k_paths = self.bounce_samples
+            far = self._far if self.far_field > 0 else None
 
             def bounces(si, ray, alive, sampler):
                 self._n_shadow = mi.Float(0.0) if counting else None
                 # k continuation paths from the same 1st event (splitting), each weighted 1/k
-                later, n_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced)
+                later, n_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced, far)
                 for _ in range(k_paths - 1):
-                    more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced)
+                    more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced,
+                                                   far)
                     later = [[a + b for a, b in zip(x, y)] for x, y in zip(later, more)]
                     n_hit = n_hit + more_hit
                 if k_paths > 1:
@@ -391,6 +455,9 @@ class EloIntegrator(mi.SamplingIntegrator):
                 out = tuple(x * inv for x in out[: n_det * (traced - 1)]) + tuple(out[n_det * (traced - 1):])
             else:
                 out = bounces(si, ray, alive, sampler)
+            if far is not None:  # the control variate's mean, from its own cheap samples
+                mean = self._far_mean(scene, sampler, si_first, ctx, bsdf, alive_first)
+                out = tuple(a + b for a, b in zip(out, mean)) + tuple(out[len(mean):])
             for d in range(n_det):
                 per_event[d] += list(out[d * (traced - 1):(d + 1) * (traced - 1)])
             if counting:
@@ -422,9 +489,12 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._n_shadow = None
         return mi.Spectrum(total_all), mi.Bool(True), aovs
 
-    def _bounces(self, scene, sampler, si, ray, bsdf, ctx, alive, traced):
+    def _bounces(self, scene, sampler, si, ray, bsdf, ctx, alive, traced, far=None):
         """Events 2 .. traced for the paths alive after the 1st: per detector a list of their
-        direct contributions, and the number of bounce rays cast (for count_rays)."""
+        direct contributions, and the number of bounce rays cast (for count_rays). With ``far``
+        (a far-field table) each contribution is less the control variate of the path's first
+        direction (S L(node, wo)): the caller adds the variate's mean."""
+        control = None
         n_det = len(self.detectors)
         later = [[] for _ in range(n_det)]
         alive = mi.Bool(alive)  # a copy: the &= below must not change the caller's mask
@@ -435,8 +505,13 @@ class EloIntegrator(mi.SamplingIntegrator):
             bs, weight = bsdf.sample(ctx, si, sampler.next_1d(alive), sampler.next_2d(alive), alive)
             throughput = throughput * weight[0]
             alive &= throughput > 0
+            first_p = si.p
             ray = si.spawn_ray(si.to_world(bs.wo))
             si = scene.ray_intersect(ray, alive)
+            if far is not None and event == 1:
+                # the same rule as the variate's mean: on relief, a hit within NEAR_MM is near field
+                far_dir = alive & ~(si.is_valid() & (si.t < NEAR_MM)) if self.relief else alive
+                control = [weight[0] * v for v in far.lookup(first_p, ray.d, far_dir)]
             n_hit = n_hit + dr.select(alive, 1.0, 0.0)
             if self._plate_keys:
                 # a backscattering detector plate is a surface too: its backscattered electrons
@@ -468,6 +543,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                 self._n_shadow = self._n_shadow + out[-1]
             for d in range(n_det):
                 later[d].append(throughput * out[d])
+        if control is not None:
+            later = [[x - control[d * (traced - 1) + e] for e, x in enumerate(later[d])] for d in range(n_det)]
         return later, n_hit
 
     def _plate_hit(self, si, ray):

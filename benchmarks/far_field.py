@@ -1,0 +1,103 @@
+"""The far-field control variate (option ``far_field``, issue 26) against the current presets,
+side by side in one run, on the chamber scenes (athene_flat, corrugated_chamber, melt_chamber,
+shield_chamber): error per event and total, time warm, peak memory, and the render's own estimate.
+
+Each scene runs in its own process (peak RSS per scene). Reference: the reference preset with
+``--ref-factor`` x its spp, 96 quadrature triangles and the far field at ``--ref-far`` strata
+(unbiased: tests/test_far_field.py), independent seed; its own estimated noise is listed and the
+errors are corrected for it (sqrt(err^2 - noise_ref^2), per channel). Errors per pixel as
+everywhere in benchmarks/ (|x - ref| / max(ref, 5 % of its mean)), worst detector.
+
+    python -m benchmarks.far_field --res 128                 # a table in Markdown on stdout
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from .harness import DETS, ROOT, rel_error
+
+SCENES = ("athene_flat", "corrugated_chamber", "melt_chamber", "shield_chamber")
+#: (label, quality, far_field strata)
+CONFIGS = (("default", "default", 0), ("default + far field 2", "default", 2),
+           ("reference", "reference", 0), ("reference + far field 2", "reference", 2))
+
+
+def measure(scene_name, res, ref_factor, ref_far):
+    import elo_mitsuba as em
+
+    em.ensure_variant()
+    scene = em.load_scene(scene_name, res=res)
+    spp_ref = scene.set_quality("reference") * ref_factor
+    scene.configure(quadrature_triangles=96, far_field=ref_far)
+    t = time.perf_counter()
+    ref = scene.render(spp=spp_ref, seed=90001, progress=False, quality="reference")
+    out = {"scene": scene_name, "res": res, "reference_s": time.perf_counter() - t, "rows": []}
+    noise = {n: ref.error_summary()[n].get("rms_rel") or 0.0 for n in ref.channels}
+    out["reference_noise"] = max(noise[f"{d}.e2"] for d in DETS)
+    for label, quality, far in CONFIGS:
+        scene.configure(far_field=far)
+        scene.render(quality=quality, seed=7, progress=False)  # compile, build the table, warm up
+        times = []
+        for seed in (11, 12):
+            t = time.perf_counter()
+            r = scene.render(quality=quality, seed=seed, progress=False)
+            times.append(time.perf_counter() - t)
+        row = {"label": label, "seconds": min(times), "builds": scene.integrator.far_field_builds}
+        for kind, key in (("total", lambda d: d), ("e1", lambda d: f"{d}.e1"), ("e2", lambda d: f"{d}.e2")):
+            errs, ests = [], []
+            for d in DETS:
+                rms = rel_error(r.channels[key(d)], ref.channels[key(d)])[0]
+                errs.append(float(np.sqrt(max(rms**2 - noise[key(d)] ** 2, 0.0))))
+                ests.append(r.error_summary()[key(d)].get("rms_rel") or 0.0)
+            row[kind] = max(errs)
+            row[kind + "_est"] = max(ests)
+        out["rows"].append(row)
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m benchmarks.far_field", description=__doc__.split("\n\n")[0])
+    p.add_argument("--res", type=int, default=128)
+    p.add_argument("--ref-factor", type=int, default=8)
+    p.add_argument("--ref-far", type=int, default=4)
+    p.add_argument("--scenes", default=",".join(SCENES))
+    p.add_argument("--one", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.one:
+        print("RESULT " + json.dumps(measure(a.one, a.res, a.ref_factor, a.ref_far)))
+        return 0
+    rows = []
+    for name in a.scenes.split(","):
+        cmd = [sys.executable, "-m", "benchmarks.far_field", "--one", name, "--res", str(a.res),
+               "--ref-factor", str(a.ref_factor), "--ref-far", str(a.ref_far)]
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+        if proc.returncode or not lines:
+            print(f"{name}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+            return 1
+        r = json.loads(lines[-1][7:])
+        print(f"{name}: reference {r['reference_s']:.1f} s, its e2 noise {100 * r['reference_noise']:.2f} %, "
+              f"peak RSS {r['peak_rss_mb']:.0f} MB", file=sys.stderr)
+        for row in r["rows"]:
+            rows.append(f"| {name} | {row['label']} | {row['seconds']:.2f} | {100 * row['total']:.2f} % "
+                        f"({100 * row['total_est']:.2f} %) | {100 * row['e1']:.2f} % | {100 * row['e2']:.1f} % "
+                        f"({100 * row['e2_est']:.1f} %) | {r['peak_rss_mb']:.0f} |")
+    print(f"{a.res}x{a.res}, events 1 + 2, worst detector; in brackets the render's own error estimate.\n")
+    print("| scene | configuration | warm time (s) | total RMS (estimate) | e1 RMS | e2 RMS (estimate) | "
+          "peak RSS of the scene's process (MB) |")
+    print("|---|---|---|---|---|---|---|")
+    print("\n".join(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
