@@ -26,8 +26,8 @@ from .harness import DETS, ROOT, rel_error
 
 SCENES = ("athene_flat", "corrugated_chamber", "melt_chamber", "shield_chamber")
 #: (label, quality, far_field strata)
-CONFIGS = (("default", "default", 0), ("default + far field 2", "default", 2),
-           ("reference", "reference", 0), ("reference + far field 2", "reference", 2))
+CONFIGS = (("default", "default", 0), ("default + far field 8", "default", 8),
+           ("reference", "reference", 0), ("reference + far field 8", "reference", 8))
 
 
 def measure(scene_name, res, ref_factor, ref_far):
