@@ -355,12 +355,14 @@ def test_invert_cli(tmp_path, capsys, monkeypatch):
     assert meta["sources"]["flat"] == ["flat_plate.exr", "flat2.exr"]
     assert meta["flat_recordings"] == 2 and meta["noise_object"] > 0 and meta["noise_flat"] > 0
     assert "image noise: object" in p.stdout and "(the mean of 2 recordings)" in p.stdout
-    assert {"height", "mask", "misfit", "start_height", "scale", "model.right", "height_error"} <= set(channels)
+    assert {"height", "mask", "misfit", "start_height", "scale", "model.right", "height_error", "height_error_noise",
+            "floating"} <= set(channels)
+    assert np.all(channels["height_error"] >= channels["height_error_noise"])
     assert meta["method"] == "inversion" and meta["detectors"] and len(meta["history"]) >= 1
     err = channels["height_error"].astype(float)
     assert np.all(np.isfinite(err)) and err.min() > 0
     assert meta["height_error_rms_mm"] == pytest.approx(np.sqrt(np.mean(err ** 2)), rel=1e-5)
-    assert "height error from the noise alone" in p.stdout
+    assert "of which the noise alone" in p.stdout
     assert (tmp_path / "h.png").is_file()
     assert "gives no beam profile" not in p.stderr  # the render's header has it
     # images without a beam profile in their header: the single-ray model is said, not assumed silently

@@ -324,19 +324,27 @@ def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | No
                     overwrite: bool = False) -> Path:
     """Write an :class:`~.inversion.InversionResult`: ``.exr`` with channels height (mm), mask
     (1 = untrusted: the model does not reproduce the pixel's images), misfit, start_height, scale,
-    height_error (mm, the standard error the noise leaves, when computed) and ``model.<detector>``
-    (the modelled corrected images), the scan geometry, the solver's history and
+    height_error (mm, the standard error of each height, when computed: noise, misfit, regulariser
+    bias, a floating part's offset), height_error_noise (its noise part), floating (1 = a part whose
+    offset to the field no trusted pixel measures) and ``model.<detector>`` (the modelled corrected
+    images), the scan geometry, the solver's history, the local refinement's regions and
     ``height_error_rms_mm`` in the header; ``.npy`` / ``.tif`` the height alone (as
     :func:`write_height`)."""
     path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
     meta = {**dict(metadata or {}), **geometry.as_dict()}
     if result.height_error is not None:
         meta["height_error_rms_mm"] = result.height_error_rms
+    if result.regions:
+        meta["regions"] = [r.as_dict() for r in result.regions]
     if path.suffix.lower() != ".exr":
         return write_height(path, result.height, untrusted, meta, overwrite=overwrite)
     channels = {"height": result.height, "mask": np.asarray(untrusted, np.float32), "misfit": result.misfit,
                 "start_height": result.start_height, "scale": result.scale}
     if result.height_error is not None:
         channels["height_error"] = result.height_error
+    if result.height_error_noise is not None:
+        channels["height_error_noise"] = result.height_error_noise
+    if result.floating is not None:
+        channels["floating"] = np.asarray(result.floating, np.float32)
     channels.update({f"model.{n}": v for n, v in result.predicted.items()})
     return write_exr(path, channels, meta, overwrite=overwrite)

@@ -23,6 +23,11 @@ images must come from one surface; a robust (Huber) misfit and a small curvature
 objective: the result never fits worse than its start. A start that already reproduces the
 images to within their noise is kept (--discrepancy: the steps would fit the noise); otherwise it
 stops when a step gains < --tol, after --iterations steps or after --time-budget seconds.
+Then, region by region: where the misfit averaged over 7x7 pixels exceeds what noise reaches, the
+region is re-inverted on its own (its edge held), and kept only if it fits better than both the
+field's solve and the start (a pore or a bump on a layer that fits to the noise as a whole;
+--no-local skips it). A cliff is not recovered (12-62 % of steps of 0.1-1 mm at 0.2 mm pixels):
+the parts it cuts off are marked floating, their error bar holds the offset.
 
 Where it wins (validation/REPORT.md, rows I1-I5; 0.27 mm beam blur, 1 % noise): steep relief,
 masked and shadowed pixels (a per-pixel fit must drop them; here the model predicts them): height
@@ -37,10 +42,13 @@ solver gains).
 Output: .exr with channels height (mm, where each pixel's beam lands; row 0 = +y edge, columns
 towards +x), mask (1 = untrusted: misfit above 4 noise levels), misfit (RMS over the detectors,
 corrected units), start_height, scale (per-pixel material/current factor) and model.<detector>
-(the modelled corrected images), height_error (mm: the standard error that the images' noise
-leaves in each height, relative to the mean, from --uncertainty-probes noise draws propagated
-through the solution; model and regulariser bias not included); the geometry, the solver's history
-and height_error_rms_mm in the header, with the object's and the flat's own relative noise
+(the modelled corrected images), height_error (mm: the standard error of each height, relative to
+the mean: the images' noise propagated through the solution from --uncertainty-probes draws, the
+channel height_error_noise, scaled up by the local Birge ratio where the misfit exceeds the noise,
+with the regulariser's bias and a floating part's offset in quadrature; measured coverage in
+validation/REPORT-defects.md), floating (1 = a part cut off by bands of misfit, e.g. a raised part's
+cliff: its offset is not measured); the geometry, the solver's history, the local refinement's
+regions and height_error_rms_mm in the header, with the object's and the flat's own relative noise
 (noise_object, noise_flat; the summary line says the flat's share). .npy/.tif: the height alone.
 """
 
@@ -88,6 +96,9 @@ def add_parser(subparsers):
                           "standard error the images' noise leaves in each height; each costs about one step; "
                           "default 4, 0 = skip)")
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
+    sol.add_argument("--no-local", action="store_true",
+                     help="skip the local refinement (regions whose misfit exceeds the noise are re-inverted on "
+                          "their own after the field's solve; each is reported)")
     sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
                           "fixed in the model of the flat (and of the object, unless --chamber-later); written "
@@ -159,7 +170,7 @@ def run(args) -> int:
         iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
         tol=inversion.TOL if args.tol is None else args.tol,
         discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
-        time_budget_s=args.time_budget, progress=progress, force=args.yes,
+        time_budget_s=args.time_budget, progress=progress, force=args.yes, local=not args.no_local,
         uncertainty_probes=inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
     shares, noise_line = scan.noise_shares()
     meta = {"method": "inversion", BEAM_FWHM: fwhm, "noise": res.noise, "alpha": res.alpha,
@@ -180,9 +191,20 @@ def run(args) -> int:
           + scan.flat_note())
     if noise_line:
         print(noise_line)
+    if res.regions:
+        counts = {}
+        for r in res.regions:
+            key = "cannot fit" if "cannot fit" in r.status else r.status
+            counts[key] = counts.get(key, 0) + 1
+        print(f"{len(res.regions)} region(s) whose misfit exceeds the noise: "
+              + ", ".join(f"{v} {k}" for k, v in counts.items()) + " (header: regions)")
+    if res.floating is not None and res.floating.any():
+        print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by bands of misfit (a cliff), "
+              "their offset not measured (channel floating; height_error holds it)")
     if res.height_error is not None:
-        print(f"height error from the noise alone: {1000 * res.height_error_rms:.3g} um RMS "
-              f"({1000 * float(res.height_error.max()):.3g} um at most; channel height_error)")
+        noise_rms = float(np.sqrt(np.mean(res.height_error_noise ** 2)))
+        print(f"height error: {1000 * res.height_error_rms:.3g} um RMS, of which the noise alone {1000 * noise_rms:.3g} "
+              f"({1000 * float(res.height_error.max()):.3g} um at most; channels height_error, height_error_noise)")
     if args.preview:
         from ..analysis.plots import preview_height
 
