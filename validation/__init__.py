@@ -26,6 +26,8 @@ Studies (one module each, run in this order):
                           gradient + integration (melt plate, steep hills, masking, chamber)
 ``design``                beyond the paper: the Cramer-Rao bound of the gradient (the design metric)
                           against model-gradient fits on renders; Table 1 under it
+``defects``               beyond the paper: heights at pores, bumps and steps; the calibration of
+                          height_error and dzdx_sigma on four surfaces
 ========================  =======================================================================
 
 The package lives only in a source checkout (it is not installed with elo_mitsuba). Importing it
@@ -38,7 +40,7 @@ from .report import VERDICTS, Row, StudyResult  # noqa: F401
 
 #: Study names in the order they run (module validation.study_<name>).
 STUDIES = ("checks", "stsa", "corrugated", "reflectance", "masking", "melt_plate", "convergence", "topography",
-           "inversion", "design")
+           "inversion", "design", "defects")
 
 
 def run(quick: bool = False, output_dir=None, only=None, log=print, json_path=None, figures=True):

@@ -34,6 +34,9 @@ DEFAULT = {
     "topography": {"res": 512, "cal_res": 1024},   # sawtooth plate; the calibration's flat
     "inversion": {"melt_res": 512, "hills_res": 256},
     "design": {"res": 128, "spp": 16},             # flat plate twice: the bound vs the model fit
+    # issue 25: rough layer with pores and bumps, stepped layer, hills, melt plate
+    "defects": {"surfaces": ("rough", "steps", "hills", "melt"),
+                "res": {"rough": 400, "steps": 400, "hills": 256, "melt": 512}},
 }
 
 QUICK = {
@@ -56,6 +59,7 @@ QUICK = {
     "topography": {"res": 160, "cal_res": 256},
     "inversion": {"melt_res": 64, "hills_res": 64},
     "design": {"res": 48, "spp": 16},
+    "defects": {"surfaces": ("steps",), "res": {"steps": 64}},
 }
 
 

@@ -46,7 +46,7 @@ corrected units), start_height, scale (per-pixel material/current factor) and mo
 the mean: the images' noise propagated through the solution from --uncertainty-probes draws, the
 channel height_error_noise, scaled up by the local Birge ratio where the misfit exceeds the noise,
 with the regulariser's bias and a floating part's offset in quadrature; measured coverage in
-validation/REPORT-defects.md), floating (1 = a part cut off by bands of misfit, e.g. a raised part's
+validation/REPORT.md, rows D1-D4), floating (1 = a part cut off by bands of misfit, e.g. a raised part's
 cliff: its offset is not measured); the geometry, the solver's history, the local refinement's
 regions and height_error_rms_mm in the header, with the object's and the flat's own relative noise
 (noise_object, noise_flat; the summary line says the flat's share). .npy/.tif: the height alone.
