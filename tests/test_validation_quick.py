@@ -23,7 +23,7 @@ VERDICTS = ("agrees", "agrees approx.", "partly", "disagrees")
 #: rows the quick run must produce (one or more per study)
 EXPECTED_ROWS = {"E1", "E3", "4a", "4c", "4d", "4e", "10b", "10e", "12a", "12b", "T1", "14a", "14b",
                  "15a", "15b", "6a", "7a", "7b", "11a", "3b", "C1", "C2", "C3", "G1", "G6", "I1", "I3", "I4",
-                 "P1", "P2", "P3"}
+                 "P1", "P2", "P3", "D1"}
 
 
 @pytest.fixture(scope="module")
