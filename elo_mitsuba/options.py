@@ -282,7 +282,9 @@ def parameter_table() -> str:
 #: events >= 2 vary along a flank whose normals agree, where the window average is biased
 #: (+9 % in e2 on the corrugated sheet in the chamber): there the presets do not filter and give
 #: every pixel ``relief_paths`` continuation paths instead. ``scene`` keeps the scene file's own
-#: settings.
+#: settings. The presets leave the far-field control variate (``far_field``) off: it gains on the
+#: flat chamber scenes but not per second on the worst one, and its many discrete choices (bins,
+#: picks) move outputs by up to 4e3 ulps between instruction sets (benchmarks/RESULTS.md, Far field).
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},

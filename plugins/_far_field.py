@@ -16,8 +16,9 @@ wide. This module tabulates once per scene geometry a fixed function
 
 on a coarse grid of :data:`NODES` x :data:`NODES` nodes over the field and :data:`N_U` x
 :data:`N_PHI` direction bins of the upper hemisphere (equal solid angle: cos(theta) x azimuth),
-traced with the integrator's own detector estimate and continuation from the nodes (responses
-averaged over :data:`JITTER` jittered directions per bin; 0 below the horizon). The integrator
+traced from the nodes with the integrator's own estimators: the 2nd event by the triangle
+quadrature of Appendix A with one shadow ray per triangle (deterministic), later events by its
+continuation paths (averaged over :data:`JITTER` fixed directions per bin; 0 below the horizon). The integrator
 then estimates each event as
 
     (1/K) sum_k S_k L(node(p), wo_k)   +   (1/m) sum_j S_j [F_j - L(node(p), wo_j)]
@@ -46,12 +47,14 @@ import numpy as np
 NODES = 9
 #: Direction bins: cos(theta) rows x azimuth columns over the upper hemisphere.
 N_U, N_PHI = 64, 128
-#: Jittered directions traced per node and bin when the table is built.
+#: Triangles per detector of the table's quadrature (one shadow ray each).
+TABLE_TRIANGLES = 4
+#: Directions traced per node and bin when the table is built (fixed offsets in the bin).
 JITTER = 2
 #: On relief under the beam, a direction whose ray meets a surface within this distance (mm) is
 #: near field: no control variate there (neither in its mean nor on the traced path), traced per pixel.
 NEAR_MM = 60.0
-#: Seed of the table's build (deterministic for one geometry).
+#: Seed of the table's build (its events >= 3 are sampled).
 BUILD_SEED = 0x26F4
 
 
@@ -99,13 +102,14 @@ def build_rays(scene, sensor):
     z0 = float(np.max(z)) + 1e-3 if z.size else 1e-3
     n_bins = N_U * N_PHI
     lanes = NODES * NODES * n_bins * JITTER
-    rng = np.random.default_rng(BUILD_SEED)
     lane = np.arange(lanes)
     node, rest = lane // (n_bins * JITTER), lane % (n_bins * JITTER)
     b = rest // JITTER
     iu, ip = b // N_PHI, b % N_PHI
-    u = (iu + rng.random(lanes)) / N_U
-    phi = (ip + rng.random(lanes)) / N_PHI * 2.0 * np.pi - np.pi
+    j = rest % JITTER  # fixed offsets in the bin (no random numbers: the table is the same bit for bit
+    # wherever its rays and quadrature round alike)
+    u = (iu + (j + 0.5) / JITTER) / N_U
+    phi = (ip + np.mod(0.5 + j * 0.6180339887498949, 1.0)) / N_PHI * 2.0 * np.pi - np.pi
     s = np.sqrt(np.maximum(0.0, 1.0 - u * u))
     d = mi.Vector3f(mi.Float((s * np.cos(phi)).astype(np.float32)), mi.Float((s * np.sin(phi)).astype(np.float32)),
                     mi.Float(u.astype(np.float32)))

@@ -20,7 +20,7 @@ import elo_mitsuba as em
 DETS = ("right", "left", "back", "front")
 
 
-def _renders(name, far_field, spp, seed, events, res=12, **extra):
+def _renders(name, far_field, spp, seed, events, res=16, **extra):
     scene = em.load_scene(name, res=res)
     options = dict(events=events, far_field=far_field, **extra)
     if far_field:
@@ -29,7 +29,7 @@ def _renders(name, far_field, spp, seed, events, res=12, **extra):
     return scene.render(spp=spp, seed=seed, progress=False, quality="custom")
 
 
-@pytest.mark.parametrize("name", ["shield_chamber", "melt_chamber"])
+@pytest.mark.parametrize("name", ["shield_chamber", "melt_chamber", "corrugated_chamber"])
 def test_far_field_is_unbiased_against_brute_force(mi, name):
     brute = _renders(name, 0, 256, 1, 3)  # independent sampling of the detectors, every path traced
     far = _renders(name, 2, 64, 2, 3)
