@@ -25,9 +25,12 @@ import numpy as np
 from .harness import DETS, ROOT, rel_error
 
 SCENES = ("athene_flat", "corrugated_chamber", "melt_chamber", "shield_chamber")
-#: (label, quality, far_field strata)
-CONFIGS = (("default", "default", 0), ("default + far field 8", "default", 8),
-           ("reference", "reference", 0), ("reference + far field 8", "reference", 8))
+#: (label, quality, far_field: None = as the preset chooses, 0 = off as the presets were before
+#: issue 26, s = that many strata)
+CONFIGS = (("default, before (no far field)", "default", 0), ("default", "default", None),
+           ("default + far field 8", "default", 8),
+           ("reference, before (no far field)", "reference", 0), ("reference", "reference", None),
+           ("reference + far field 8", "reference", 8))
 
 
 def measure(scene_name, res, ref_factor, ref_far):
@@ -35,22 +38,26 @@ def measure(scene_name, res, ref_factor, ref_far):
 
     em.ensure_variant()
     scene = em.load_scene(scene_name, res=res)
-    spp_ref = scene.set_quality("reference") * ref_factor
+    spp_ref = scene.set_quality("reference") * ref_factor  # its options, then made "custom" below
     scene.configure(quadrature_triangles=96, far_field=ref_far)
     t = time.perf_counter()
-    ref = scene.render(spp=spp_ref, seed=90001, progress=False, quality="reference")
+    ref = scene.render(spp=spp_ref, seed=90001, progress=False, quality="custom")
     out = {"scene": scene_name, "res": res, "reference_s": time.perf_counter() - t, "rows": []}
     noise = {n: ref.error_summary()[n].get("rms_rel") or 0.0 for n in ref.channels}
     out["reference_noise"] = max(noise[f"{d}.e2"] for d in DETS)
     for label, quality, far in CONFIGS:
-        scene.configure(far_field=far)
-        scene.render(quality=quality, seed=7, progress=False)  # compile, build the table, warm up
+        spp = scene.set_quality(quality)
+        if far is not None:  # the preset's options with the far field set: rendered as "custom"
+            scene.configure(far_field=far)
+        how = dict(quality="custom", spp=spp) if far is not None else dict(quality=quality)
+        scene.render(seed=7, progress=False, **how)  # compile, build the table, warm up
         times = []
         for seed in (11, 12):
             t = time.perf_counter()
-            r = scene.render(quality=quality, seed=seed, progress=False)
+            r = scene.render(seed=seed, progress=False, **how)
             times.append(time.perf_counter() - t)
-        row = {"label": label, "seconds": min(times), "builds": scene.integrator.far_field_builds}
+        row = {"label": label, "seconds": min(times), "builds": scene.integrator.far_field_builds,
+               "far_field": scene.integrator.far_field}
         for kind, key in (("total", lambda d: d), ("e1", lambda d: f"{d}.e1"), ("e2", lambda d: f"{d}.e2")):
             errs, ests = [], []
             for d in DETS:
@@ -88,7 +95,7 @@ def main(argv=None):
         print(f"{name}: reference {r['reference_s']:.1f} s, its e2 noise {100 * r['reference_noise']:.2f} %, "
               f"peak RSS {r['peak_rss_mb']:.0f} MB", file=sys.stderr)
         for row in r["rows"]:
-            rows.append(f"| {name} | {row['label']} | {row['seconds']:.2f} | {100 * row['total']:.2f} % "
+            rows.append(f"| {name} | {row['label']} (s = {row['far_field']}) | {row['seconds']:.2f} | {100 * row['total']:.2f} % "
                         f"({100 * row['total_est']:.2f} %) | {100 * row['e1']:.2f} % | {100 * row['e2']:.1f} % "
                         f"({100 * row['e2_est']:.1f} %) | {r['peak_rss_mb']:.0f} |")
     print(f"{a.res}x{a.res}, events 1 + 2, worst detector; in brackets the render's own error estimate.\n")

@@ -282,9 +282,11 @@ def parameter_table() -> str:
 #: events >= 2 vary along a flank whose normals agree, where the window average is biased
 #: (+9 % in e2 on the corrugated sheet in the chamber): there the presets do not filter and give
 #: every pixel ``relief_paths`` continuation paths instead. ``scene`` keeps the scene file's own
-#: settings. The presets leave the far-field control variate (``far_field``) off: it gains on the
-#: flat chamber scenes but not per second on the worst one, and its many discrete choices (bins,
-#: picks) move outputs by up to 4e3 ulps between instruction sets (benchmarks/RESULTS.md, Far field).
+#: settings. On scenes without such relief events >= 2 also get the far-field control variate
+#: (``far_field`` = s, plugins/_far_field.py) with s x s >= 8 cheap samples per traced path (s >= 2):
+#: measured at 1500^2, athene_flat default 1.08 -> 0.30 % total for ~25 % more time
+#: (benchmarks/RESULTS.md, Far field). On relief it stays off: on corrugated_chamber it gained
+#: nothing per second.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},
@@ -296,11 +298,15 @@ QUALITY_PRESETS = {
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
 PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "bounce_min", "bounce_samples",
-                 "bounce_fraction")
+                 "bounce_fraction", "far_field")
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
 QUALITY_ACCURACY = {"draft": 0.18, "default": 0.09, "reference": 0.035}  # corrugated_chamber: 17.5, 8.7, 3.3 %
+#: Cheap far-field samples per traced continuation path in the presets (s x s >= this x paths per
+#: sample): fewer made the variate's own mean the larger noise (s = 2 at 128 paths per pixel: 1.60 %
+#: total on athene_flat's reference against 1.13 % without the variate).
+FAR_SAMPLES_PER_PATH = 8
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 
@@ -364,10 +370,13 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         # which the error estimate's two halves see only as a whole (its estimate then scattered
         # 0.76-1.6x in variance on athene_flat, against 0.9-1.0x with every sample tracing)
         per_sample = float(bounce_samples)
+    far = 0
+    if traced_events > 1 and not relief:  # the far-field variate: s x s >= FAR_SAMPLES_PER_PATH x paths
+        far = min(MAX_FAR_FIELD, max(2, math.ceil(math.sqrt(FAR_SAMPLES_PER_PATH * per_sample))))
     options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
                            bounce_filter=bounce_filter, bounce_min=bounce_min,
                            bounce_samples=bounce_samples,
-                           bounce_fraction=min(1.0, per_sample / bounce_samples))
+                           bounce_fraction=min(1.0, per_sample / bounce_samples), far_field=far)
     return options, spp
 
 

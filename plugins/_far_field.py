@@ -15,7 +15,8 @@ wide. This module tabulates once per scene geometry a fixed function
     L_{n,d}(node, bin) ~ F_{n,d}(node, wo in bin)
 
 on a coarse grid of :data:`NODES` x :data:`NODES` nodes over the field and :data:`N_U` x
-:data:`N_PHI` direction bins of the upper hemisphere (equal solid angle: cos(theta) x azimuth),
+:data:`N_PHI` direction bins of the upper hemisphere (equal solid angle: cos(theta) x azimuth;
+looked up bilinearly in both),
 traced from the nodes with the integrator's own estimators: the 2nd event by the triangle
 quadrature of Appendix A with one shadow ray per triangle (deterministic), later events by its
 continuation paths (averaged over :data:`JITTER` fixed directions per bin; 0 below the horizon). The integrator
@@ -140,17 +141,37 @@ class FarFieldTable:
         self.host = np.array(values).reshape(NODES * NODES, N_U * N_PHI, n_channels)
 
     def lookup(self, p, wo, active):
-        """L per channel at the node nearest to ``p`` (world) for the world direction ``wo``;
-        0 below the horizon."""
-        ix = dr.clip(dr.round((p.x - self._x0) / self._dx), 0, NODES - 1)
-        iy = dr.clip(dr.round((p.y - self._y0) / self._dy), 0, NODES - 1)
-        node = mi.UInt32(iy) * NODES + mi.UInt32(ix)
+        """L per channel at ``p`` (world) for the world direction ``wo``: bilinear between the
+        nodes and between the direction bins' centres (azimuth periodic), so that L is continuous
+        in p and wo (a last-bit change of a direction moves it by as little); 0 below the horizon."""
         up = active & (wo.z > 0)
-        iu = mi.UInt32(dr.clip(dr.floor(wo.z * N_U), 0, N_U - 1))
-        phi = dr.atan2(wo.y, wo.x) + math.pi  # [0, 2 pi]
-        ip = mi.UInt32(dr.clip(dr.floor(phi * (N_PHI / (2.0 * math.pi))), 0, N_PHI - 1))
-        base = ((node * (N_U * N_PHI)) + iu * N_PHI + ip) * self.n_channels
-        return [dr.gather(mi.Float, self.values, base + c, up) for c in range(self.n_channels)]
+        fx = dr.clip((p.x - self._x0) / self._dx, 0.0, NODES - 1.0)
+        fy = dr.clip((p.y - self._y0) / self._dy, 0.0, NODES - 1.0)
+        ix = dr.minimum(dr.floor(fx), NODES - 2.0)
+        iy = dr.minimum(dr.floor(fy), NODES - 2.0)
+        tx, ty = fx - ix, fy - iy
+        fu = dr.clip(wo.z * N_U - 0.5, 0.0, N_U - 1.0)
+        iu = dr.minimum(dr.floor(fu), N_U - 2.0)
+        tu = fu - iu
+        fp = (dr.atan2(wo.y, wo.x) + math.pi) * (N_PHI / (2.0 * math.pi)) - 0.5  # [-0.5, N_PHI - 0.5]
+        ip = dr.floor(fp)
+        tp = fp - ip
+        ip0 = mi.UInt32(dr.select(ip < 0, ip + N_PHI, ip))
+        ip1 = mi.UInt32(dr.select(ip + 1 >= N_PHI, ip + 1 - N_PHI, ip + 1))
+        n0 = mi.UInt32(iy) * NODES + mi.UInt32(ix)
+        corners = []
+        for node, wn in ((n0, (1 - tx) * (1 - ty)), (n0 + 1, tx * (1 - ty)), (n0 + NODES, (1 - tx) * ty),
+                         (n0 + NODES + 1, tx * ty)):
+            for u_i, wu in ((mi.UInt32(iu), 1 - tu), (mi.UInt32(iu) + 1, tu)):
+                for p_i, wp in ((ip0, 1 - tp), (ip1, tp)):
+                    corners.append(((node * (N_U * N_PHI) + u_i * N_PHI + p_i) * self.n_channels, wn * wu * wp))
+        out = []
+        for c in range(self.n_channels):
+            acc = mi.Float(0.0)
+            for base, w in corners:
+                acc = dr.fma(w, dr.gather(mi.Float, self.values, base + c, up), acc)
+            out.append(acc)
+        return out
 
 
 def stratum(i, s, u):
