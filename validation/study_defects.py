@@ -11,7 +11,7 @@ whose actual error lies within 1x and 2x the stated one (a calibrated Gaussian e
 95 %).
 
 Rows D1-D4 of validation/REPORT.md (``python -m validation --only defects``; about 4 min on 2 cores,
-a figure per surface). ``python -m validation.study_defects [--res 400] [--out defects.md]`` writes
+a figure per surface). ``python -m validation.study_defects [--res 400] [--out out/defects.md]`` writes
 the same measurements as a table with the steps and every region's outcome.
 """
 
@@ -257,9 +257,12 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(prog="python -m validation.study_defects", description=__doc__.splitlines()[0])
     ap.add_argument("--res", type=int, default=400, help="resolution of the rough and stepped layers (default 400)")
-    ap.add_argument("--out", default="defects.md", help="the table (markdown; default defects.md here)")
-    ap.add_argument("--only", nargs="*", default=["rough", "steps", "hills", "melt"])
+    ap.add_argument("--out", default="out/defects.md", help="the table (markdown; default out/defects.md here)")
+    ap.add_argument("--only", nargs="*", default=["rough", "steps", "hills", "melt"], choices=list(LAYOUTS))
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     args = ap.parse_args(argv)
+    if Path(args.out).exists() and not args.overwrite:
+        ap.error(f"--out {args.out} exists: pass --overwrite to replace it")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for kind in args.only:
@@ -268,6 +271,7 @@ def main(argv=None):
             results.append(run_surface(kind, res, Path(tmp), layout=layout))
             print(json.dumps({k: v for k, v in results[-1].items() if k not in ("regions", "figure")}, default=float),
                   flush=True)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(report(results))
     print(f"wrote {args.out}")
 
