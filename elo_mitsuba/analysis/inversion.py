@@ -228,9 +228,10 @@ def _huber_weights(r, k):
 class _Problem:
     """The objective at one scan: measured ratios, weights, the model and the flat's model."""
 
-    def __init__(self, model, corrected, weights, flat_images, alpha, dx, dy, free=None):
+    def __init__(self, model, corrected, weights, flat_images, alpha, dx, dy, free=None, links=None):
         self.model = model
         self.free = free  # (corners) bool: the unknowns that may change; None: all (mean held)
+        self.links = links  # (corners) weight of each curvature term (cut across a cliff); None: 1
         self.c = corrected            # (K, H, W)
         self.w = weights              # (K, H, W) 0/1
         self.bf = flat_images         # (K, H, W)
@@ -260,7 +261,8 @@ class _Problem:
 
     def regulariser(self, h):
         lx, ly = _second_differences(h)
-        return 0.5 * self.alpha * (float(np.sum((lx / self.dx) ** 2)) + float(np.sum((ly / self.dy) ** 2)))
+        k = 1.0 if self.links is None else self.links
+        return 0.5 * self.alpha * (float(np.sum(k * (lx / self.dx) ** 2)) + float(np.sum(k * (ly / self.dy) ** 2)))
 
     def cost(self, h, lin, threshold):
         """Objective with Huber's threshold ``threshold`` (corrected units), residuals, scale, ratios."""
@@ -334,7 +336,8 @@ class _NormalEquations:
         """alpha L^T L h."""
         p = self.problem
         lx, ly = _second_differences(h)
-        return p.alpha * _second_differences_t(lx / p.dx ** 2, ly / p.dy ** 2)
+        k = 1.0 if p.links is None else p.links
+        return p.alpha * _second_differences_t(k * lx / p.dx ** 2, k * ly / p.dy ** 2)
 
     def apply(self, v):
         model = self.problem.model
@@ -588,12 +591,18 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
             refined = sum(r.status.startswith("refined") for r in result.regions)
             if result.regions:
                 result.stopped += f"; {len(result.regions)} region(s) above the noise, {refined} refined"
+        from .local_inversion import offset_errors, threshold
+
+        limit = threshold(detectors=len(full.names))
+        chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
+        result.floating, offset = offset_errors(result.height, chi2, limit)
+        band = result.floating & (chi2 > limit)
+        if local and band.any() and iterations > 0 and (budget is None or time.perf_counter() - t0 < budget):
+            _cut_across(full, result, band, dict(settings, discrepancy=0.0))
+            chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
+            result.floating, offset = offset_errors(result.height, chi2, limit)
         if result.height_error is not None:
             result.height_error_noise = result.height_error
-            chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-            from .local_inversion import offset_errors, threshold
-
-            result.floating, offset = offset_errors(result.height, chi2, threshold(detectors=len(full.names)))
             result.height_error = np.sqrt((result.height_error_noise ** 2) * np.maximum(chi2, 1.0) + offset ** 2
                                           + result.height_error_bias ** 2)
             result.height_error_rms = float(np.sqrt(np.mean(result.height_error ** 2)))
@@ -618,6 +627,40 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     fine.stopped += f" (coarse to fine: {', '.join(done)}, then 1/1; at full resolution alone the misfit " \
                     f"stayed at {single.history[-1]['rms']:.4g})"
     return finish(fine)
+
+
+#: Weight of the curvature terms that cross a band of misfit around a floating part (a cliff): not
+#: 0, so that the part's offset stays where the field's solve put it rather than in a null space.
+CUT_LINK = 1e-3
+
+
+def _cut_across(setup: _Setup, result: InversionResult, band, settings) -> None:
+    """Solve again with the band's pixels out of the data and the curvature terms across it cut
+    (:data:`CUT_LINK`), so that a cliff's wrongly integrated offset does not bend the relief
+    around it; ``result`` takes the new heights (with misfit, scale and predicted images of the full
+    data) if the cut objective fell."""
+    from scipy.ndimage import binary_dilation
+
+    p = setup.problem
+    corners = np.zeros((band.shape[0] + 1, band.shape[1] + 1), bool)
+    for di in (0, 1):
+        for dj in (0, 1):
+            corners[di:di + band.shape[0], dj:dj + band.shape[1]] |= band
+    links = np.where(binary_dilation(corners), CUT_LINK, 1.0)
+    w = np.where(band[None], 0.0, p.w)
+    cut = _Problem(p.model, p.c, w, p.bf, p.alpha, p.dx, p.dy, free=p.free, links=links)
+    res = _solve_scale(dataclasses.replace(setup, problem=cut), result.height, result.start_height, **settings)
+    if len(res.history) < 2 or res.stopped.endswith("start kept"):
+        result.stopped += "; cut across the cliffs: no step"
+        return
+    corners_h = p.start_corners(res.height)
+    _, r, s_, m = p.cost(corners_h, p.model.evaluate(corners_h), HUBER_K * setup.noise)
+    result.height = res.height
+    result.misfit = np.sqrt(np.sum(r ** 2, axis=0) / np.maximum(np.sum(p.w, axis=0), 1.0))
+    result.scale = s_
+    result.predicted = {n: s_ * m[k] for k, n in enumerate(setup.names)}
+    result.mask = (result.misfit > max(MISFIT_SIGMAS * setup.noise, MIN_MISFIT)) | (np.sum(p.w, axis=0) < 3)
+    result.stopped += f"; cut across the cliffs: {len(res.history) - 1} steps"
 
 
 def _misfit_of(setup: _Setup, heights) -> np.ndarray:
