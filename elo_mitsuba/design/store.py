@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EloInputError
+from ..sweeps.store import zarr_path
 from .geometry import CONSTRAINTS, design_discs
 
 #: Folder of the resume state inside the store.
@@ -48,13 +49,7 @@ def check_store(path, spec, *, overwrite: bool = False) -> str:
     ...     check_store(Path(d) / "a.zarr", s), check_store(Path(d) / "a.zarr", s)
     ('created', 'resumed')
     """
-    if not isinstance(path, (str, os.PathLike)) or not str(path):
-        raise EloInputError(f"output {path!r}: give the path of a .zarr store")
-    path = Path(path)
-    if path.suffix.lower() != ".zarr":
-        raise EloInputError(f"output {path}: the optimiser writes a Zarr store; the name must end in .zarr")
-    if not path.parent.is_dir():
-        raise EloInputError(f"output {path}: directory {path.parent} does not exist")
+    path = zarr_path(path, "the optimiser")
     info = state_dir(path) / "spec.json"
     if path.exists():
         if not info.is_file():

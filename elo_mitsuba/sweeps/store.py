@@ -51,16 +51,29 @@ def image_variable(channel: str) -> str:
     return f"image_{channel}"
 
 
-def check_store_path(path, *, overwrite: bool = False) -> Path:
-    """The output store: ``*.zarr``, in an existing folder; an existing path must be a Zarr
-    store (it is then resumed, or replaced with ``overwrite``), never a user's other folder."""
+def zarr_path(path, writer: str) -> Path:
+    """``path`` as a Path if it names a ``*.zarr`` store in an existing folder (``writer`` says who
+    writes it, for the message); else one line.
+
+    Examples
+    --------
+    >>> zarr_path("out.zarr", "a sweep").name
+    'out.zarr'
+    """
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise EloInputError(f"output {path!r}: give the path of a .zarr store (a string or Path)")
     path = Path(path)
     if path.suffix.lower() != ".zarr":
-        raise EloInputError(f"output {path}: a sweep writes a Zarr store; the name must end in .zarr")
+        raise EloInputError(f"output {path}: {writer} writes a Zarr store; the name must end in .zarr")
     if not path.parent.is_dir():
         raise EloInputError(f"output {path}: directory {path.parent} does not exist")
+    return path
+
+
+def check_store_path(path, *, overwrite: bool = False) -> Path:
+    """The output store: ``*.zarr``, in an existing folder; an existing path must be a Zarr
+    store (it is then resumed, or replaced with ``overwrite``), never a user's other folder."""
+    path = zarr_path(path, "a sweep")
     if path.exists() and not (path / ".zgroup").is_file():
         raise EloInputError(f"output {path} exists and is not a sweep's Zarr store; choose another name")
     return path
