@@ -325,7 +325,8 @@ def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | No
     """Write an :class:`~.inversion.InversionResult`: ``.exr`` with channels height (mm), mask
     (1 = untrusted: the model does not reproduce the pixel's images), misfit, start_height, scale,
     height_error (mm, the standard error of each height, when computed: noise, misfit, regulariser
-    bias, a floating part's offset), height_error_noise (its noise part), floating (1 = a part whose
+    bias, the model's slope gain, a floating part's offset), height_error_noise (its noise part),
+    height_error_model (the model's systematic part), floating (1 = a part whose
     offset to the field no trusted pixel measures) and ``model.<detector>`` (the modelled corrected
     images), the scan geometry, the solver's history, the local refinement's regions and
     ``height_error_rms_mm`` in the header; ``.npy`` / ``.tif`` the height alone (as
@@ -344,6 +345,8 @@ def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | No
         channels["height_error"] = result.height_error
     if result.height_error_noise is not None:
         channels["height_error_noise"] = result.height_error_noise
+    if result.height_error_model is not None:
+        channels["height_error_model"] = result.height_error_model
     if result.floating is not None:
         channels["floating"] = np.asarray(result.floating, np.float32)
     channels.update({f"model.{n}": v for n, v in result.predicted.items()})

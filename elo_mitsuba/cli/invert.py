@@ -45,7 +45,9 @@ corrected units), start_height, scale (per-pixel material/current factor) and mo
 (the modelled corrected images), height_error (mm: the standard error of each height, relative to
 the mean: the images' noise propagated through the solution from --uncertainty-probes draws, the
 channel height_error_noise, scaled up by the local Birge ratio where the misfit exceeds the noise,
-with the regulariser's bias and a floating part's offset in quadrature; measured coverage in
+with the regulariser's bias, the model's slope gain (channel height_error_model: in proportion to
+the height above or below the mean, as the model and the renderer disagree on a facet's slope) and
+a floating part's offset in quadrature; measured coverage in
 validation/REPORT.md, rows D1-D4), floating (1 = a part cut off by bands of misfit, e.g. a raised part's
 cliff: its offset is not measured); the geometry, the solver's history, the local refinement's
 regions and height_error_rms_mm in the header, with the object's and the flat's own relative noise
