@@ -79,6 +79,13 @@ class EloOptions:
     far_field: int = _option(0, "far-field control variate of events >= 2: s x s cheap g_BSE samples per sample "
                              "against a cached wall response (0 = off; plugins/_far_field.py)", "int",
                              bounds=(0, MAX_FAR_FIELD))
+    far_roulette: float = _option(1.0, "probability q that a far-field path traces its events >= 3 (Russian "
+                                  "roulette, blocks of 32 lanes, weight 1/q; 1 = always, as the presets: q < 1 "
+                                  "did not pay; needs far_field >= 1)", "float", bounds=(0.0, 1.0))
+    far_field_later: bool = _option(False, "the far-field table also holds events >= 3 and every cheap sample looks "
+                                    "them up (their variate, as before issue 26's item 3: < 3 % less error in them "
+                                    "for ~1.5x the time at events 4; benchmarks/events_cost.py compares)", "bool",
+                                    xml=False)
     units: str = _option("fraction", "N_d/N_0 ('fraction') or detector voltage U_d = N_d/N_0 I_b T "
                          "('voltage', Eq. 9)", "str", choices=UNITS)
     beam_current: float = _option(BEAM_CURRENT_A, "beam current I_b (A) of Eq. 9", "float", bounds=(0.0, None))
@@ -95,6 +102,13 @@ class EloOptions:
             object.__setattr__(self, f.name, value)
         if self.bounce_detector_samples is None:
             object.__setattr__(self, "bounce_detector_samples", self.detector_samples)
+        if self.far_field_later and self.far_field == 0:
+            raise EloInputError("elo: far_field_later=True applies to the far field's table only and would be "
+                                "recorded but not applied with far_field=0; set far_field >= 1")
+        if self.far_roulette < 1.0 and self.far_field == 0:
+            raise EloInputError(f"elo: far_roulette={self.far_roulette!r} applies to the far field's paths only and "
+                                "would be recorded but not applied with far_field=0; set far_field >= 1, or "
+                                "far_roulette=1")
 
     # -- construction --
     @classmethod
@@ -153,7 +167,8 @@ def _coerce(f: dataclasses.Field, value):
 
 
 #: Bounds that are open (the value may not equal them), by option.
-_OPEN = {"bounce_fraction": "lo", "bounce_filter_angle": "both", "beam_current": "lo", "transimpedance": "lo"}
+_OPEN = {"bounce_fraction": "lo", "far_roulette": "lo", "bounce_filter_angle": "both", "beam_current": "lo",
+         "transimpedance": "lo"}
 _UNIT = {"bounce_filter": " mm", "bounce_filter_angle": " deg"}
 _NOTE = {"events": " (1 = first event only; each event is unrolled into the kernel, whose compile time grows "
                    "with events^2: 10 take about 2 min on 2 cores)", "bounce_filter": " (0 = off)", "bounce_min": " (0 = off)"}
@@ -298,7 +313,7 @@ QUALITY_PRESETS = {
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
 PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "bounce_min", "bounce_samples",
-                 "bounce_fraction", "far_field")
+                 "bounce_fraction", "far_field", "far_roulette", "far_field_later")
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
@@ -307,6 +322,11 @@ QUALITY_ACCURACY = {"draft": 0.18, "default": 0.09, "reference": 0.035}  # corru
 #: sample): fewer made the variate's own mean the larger noise (s = 2 at 128 paths per pixel: 1.60 %
 #: total on athene_flat's reference against 1.13 % without the variate).
 FAR_SAMPLES_PER_PATH = 8
+#: Probability that a far-field path of a preset goes on past its 2nd event (``far_roulette``, with
+#: events >= 3 and the far field on): 1. Measured (benchmarks/RESULTS.md, Far field, events 3 and 4):
+#: q = 0.5 raised the total's error at events 4 from 0.49 to 0.63 % on athene_flat (e3 12 -> 18 %)
+#: and saved at most 20 % of the time: events >= 3 are as noisy per path as the 2nd, and cheaper.
+FAR_ROULETTE = 1.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 
@@ -376,7 +396,9 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
                            bounce_filter=bounce_filter, bounce_min=bounce_min,
                            bounce_samples=bounce_samples,
-                           bounce_fraction=min(1.0, per_sample / bounce_samples), far_field=far)
+                           bounce_fraction=min(1.0, per_sample / bounce_samples), far_field=far,
+                           far_roulette=FAR_ROULETTE if far > 0 and traced_events > 2 else 1.0,
+                           far_field_later=base.far_field_later and far > 0)
     return options, spp
 
 

@@ -17,10 +17,10 @@ wide. This module tabulates once per scene geometry a fixed function
 on a coarse grid of :data:`NODES` x :data:`NODES` nodes over the field and :data:`N_U` x
 :data:`N_PHI` direction bins of the upper hemisphere (equal solid angle: cos(theta) x azimuth;
 looked up bilinearly in both),
-traced from the nodes with the integrator's own estimators: the 2nd event by the triangle
-quadrature of Appendix A with one shadow ray per triangle (deterministic), later events by its
-continuation paths (averaged over :data:`JITTER` fixed directions per bin; 0 below the horizon). The integrator
-then estimates each event as
+traced from the nodes with the integrator's own estimator of the 2nd event, the triangle
+quadrature of Appendix A with one shadow ray per triangle (deterministic; averaged over
+:data:`JITTER` fixed directions per bin; 0 below the horizon). The integrator then estimates the
+2nd event as
 
     (1/K) sum_k S_k L(node(p), wo_k)   +   (1/m) sum_j S_j [F_j - L(node(p), wo_j)]
 
@@ -31,7 +31,13 @@ stale or coarse table costs variance, never bias. Near-field paths (the object s
 itself, flanks that hide part of the hemisphere) are where F departs from L: they stay in the
 traced term, per pixel.
 
-The table is keyed by the geometry it depends on (:func:`geometry_key`: every shape's bounds,
+The table holds the 2nd event only. Events >= 3 of a far path are traced as they are, without a
+variate: one path's later events vary mostly with the directions after its first (which the
+table cannot know), so a variate of them lowered their error by < 3 % on athene_flat, while
+looking them up cost every cheap sample 16 gathers per channel and the table's build the tracing of
+them (benchmarks/RESULTS.md, Far field: events 3 and 4). ``far_roulette`` = q traces them for a
+fraction q of the far paths only (whole blocks of lanes, weight 1/q): unbiased, off in the presets
+(measured not to pay). The table is keyed by the geometry it depends on (:func:`geometry_key`: every shape's bounds,
 mesh vertices and materials, the beam, the events and which detectors collect on both faces) and
 rebuilt when the key changes: moving a detector rebuilds it before the next render; re-renders,
 the error estimate's halves and quality changes reuse it.
@@ -67,7 +73,7 @@ def geometry_key(scene, sensor, traced, two_sided):
     scene : mi.Scene
     sensor : the ``elo_beam`` sensor (field, work distance, projection)
     traced : int
-        Events traced (the table holds events 2 .. traced).
+        The last event the table holds (2; with the option ``far_field_later``: every traced one).
     two_sided : list of bool
         Per detector, whether it collects on both faces.
     """
@@ -127,7 +133,7 @@ def reduce_table(responses):
 
 
 class FarFieldTable:
-    """A built table: ``values`` [node, bin, channel] (channel = detector x events 2 .. traced),
+    """A built table: ``values`` [node, bin, channel] (channel = detector x the events it holds: the 2nd),
     the grid's node coordinates and the key it was built for."""
 
     def __init__(self, key, values, nodes_xy, n_channels):

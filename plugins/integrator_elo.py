@@ -118,6 +118,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._g_tables = None  # g_BSE tables of the scene's elo_bse BSDFs (None: dispatch)
         self._unblockable_regions = []  # per detector, see _occlusion.unblockable_regions
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
+        self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
@@ -184,7 +185,7 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _update_far_field(self, scene, sensor):
         """Build the far-field table (:mod:`._far_field`) unless the one held was built for this
         geometry: a table is never used for a geometry other than its own."""
-        traced = self.traced_events()
+        traced = self._table_events()
         key = geometry_key(scene, sensor, traced, self._two_sided)
         if self._far is not None and self._far.key == key:
             return
@@ -216,6 +217,13 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._n_shadow = outer
         self._far = FarFieldTable(key, reduce_table(responses), nodes, len(responses))
         self.far_field_builds += 1
+
+    def _table_events(self):
+        """The last event the far-field table holds: the 2nd (events >= 3 are traced without a
+        control variate: it lowered their error by < 3 % on athene_flat, for the cost of looking
+        them up in every cheap sample; benchmarks/RESULTS.md, Far field), or every traced event
+        with the option ``far_field_later`` (as before; benchmarks/events_cost.py compares both)."""
+        return self.traced_events() if self.far_field_later else min(self.traced_events(), 2)
 
     def far_field_table(self):
         """The far-field table in use (:class:`._far_field.FarFieldTable`), or None."""
@@ -360,6 +368,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         # the block selection of bounce_fraction: a fresh uniform shift per seed (unbiased)
         seed_value = int(np.array(seed, dtype=np.uint64).ravel()[0]) if not isinstance(seed, int) else seed
         self._block_offset = dr.opaque(mi.Float, float(np.random.default_rng([seed_value, 7]).random()))
+        self._roulette_key = dr.opaque(mi.UInt32, int(np.random.default_rng([seed_value, 26]).integers(1 << 32)))
         aovs = self.aov_names()
         planes, buffer = self._pass_planes(scene, sensor, sensor_obj, seed, spp, aovs)
         index = {name: i for i, name in enumerate(aovs)}
@@ -400,6 +409,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         spp2 = max(1, math.ceil(missing / k))
         saved = self.options
         self._top_up_pass = (mi.Bool(need.ravel()), dr.opaque(mi.UInt32, spp2))
+        saved_key = self._roulette_key  # far_roulette: other block numbers than the main pass's
+        self._roulette_key = dr.opaque(mi.UInt32, int(np.random.default_rng([seed, 27]).integers(1 << 32)))
         # same film channels as the main pass (hidden ones included) so the columns agree
         self.options = saved.replace(bounce_samples=k, bounce_fraction=1.0)
         names = self._bounce_channels()
@@ -408,6 +419,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         finally:
             self._top_up_pass = None
             self.options = saved
+            self._roulette_key = saved_key
         n2 = float(k * spp2)
         w1 = np.where(need, paths / (paths + n2), 1.0).astype(np.float32)
         for i, name in enumerate(names):
@@ -454,17 +466,32 @@ class EloIntegrator(mi.SamplingIntegrator):
 
             k_paths = self.bounce_samples
             far = self._far if self.far_field > 0 else None
-            mean = picks = None
+            mean = picks = block_u = q_far = None
             if far is not None:  # the cheap samples: the variate's mean and the traced paths' directions
                 mean, picks = self._far_mean(scene, sampler, si_first, ctx, bsdf, alive_first, k_paths)
+                if self.far_roulette < 1.0 and traced > 2:
+                    # far_roulette: one uniform number per block of lanes (neighbouring pixels) and
+                    # render, independent between blocks (a hash of the block and the render's key)
+                    block = dr.arange(mi.UInt32, dr.width(alive_first)) >> _BLOCK_SHIFT
+                    block_u = mi.sample_tea_float32(block, self._roulette_key, 4)
+                    q_far = dr.opaque(mi.Float, self.far_roulette)
 
             def bounces(si, ray, alive, sampler):
                 self._n_shadow = mi.Float(0.0) if counting else None
                 if picks is not None:  # one path per pick, times its stratum's share over its picks
                     later, n_hit = None, mi.Float(0.0)
+                    n_far = sum(1 for pick in picks if not pick[3])
+                    j_far = 0
                     for wo, w, share, is_near in picks:
+                        roulette = None
+                        if not is_near and block_u is not None:
+                            # the far picks of a block spread evenly over [0, 1): each uniform
+                            u = block_u + j_far / n_far
+                            roulette = (u - dr.floor(u), q_far)
+                            j_far += 1
                         more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive,
-                                                       traced, None if is_near else far, first=(wo, w))
+                                                       traced, None if is_near else far, first=(wo, w),
+                                                       roulette=roulette)
                         more = [[x * share for x in per] for per in more]
                         later = more if later is None else [[a + b for a, b in zip(x, y)] for x, y in zip(later, more)]
                         n_hit = n_hit + more_hit
@@ -507,7 +534,11 @@ class EloIntegrator(mi.SamplingIntegrator):
             else:
                 out = bounces(si, ray, alive, sampler)
             if mean is not None:  # the control variate's mean, from the cheap samples
-                out = tuple(a + b for a, b in zip(out, mean)) + tuple(out[len(mean):])
+                held = len(mean) // n_det  # events the table holds, from the 2nd on
+                out = list(out)
+                for d in range(n_det):
+                    for e in range(held):
+                        out[d * (traced - 1) + e] = out[d * (traced - 1) + e] + mean[d * held + e]
             for d in range(n_det):
                 per_event[d] += list(out[d * (traced - 1):(d + 1) * (traced - 1)])
             if counting:
@@ -539,20 +570,30 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._n_shadow = None
         return mi.Spectrum(total_all), mi.Bool(True), aovs
 
-    def _bounces(self, scene, sampler, si, ray, bsdf, ctx, alive, traced, far=None, first=None):
+    def _bounces(self, scene, sampler, si, ray, bsdf, ctx, alive, traced, far=None, first=None, roulette=None):
         """Events 2 .. traced for the paths alive after the 1st: per detector a list of their
         direct contributions, and the number of bounce rays cast (for count_rays). With ``far``
         (a far-field table) each contribution is less the control variate of the path's first
         direction (S L(node, wo)): the caller adds the variate's mean. ``first`` = (world
-        direction, weight S) gives the first continuation instead of sampling it."""
+        direction, weight S) gives the first continuation instead of sampling it.
+
+        The table holds the 2nd event (or, with ``far_field_later``, events 2 .. traced): only the
+        events it holds get the variate; later ones are traced as they are.
+
+        ``roulette`` = (u, q), with ``far`` and traced >= 3 (``far_roulette``): Russian roulette of
+        events >= 3: the path goes on past its 2nd event only where u < q (u is one uniform
+        number per block of 2**_BLOCK_SHIFT lanes, so whole SIMD packets skip the work), and its
+        events >= 3 (less the variate where the table holds them) are weighted 1/q there, 0
+        elsewhere: unbiased."""
         control = None
         n_det = len(self.detectors)
         later = [[] for _ in range(n_det)]
         alive = mi.Bool(alive)  # a copy: the &= below must not change the caller's mask
         throughput = mi.Float(1.0)
         n_hit = mi.Float(0.0)
-        stratify = self.detector_sampling != "independent"
-        for event in range(1, traced):
+        counting = self.count_rays
+        tail = 2 if (roulette is not None and far is not None and traced > 2) else traced
+        for event in range(1, tail):
             if first is not None and event == 1:
                 wo, w = first
             else:
@@ -560,45 +601,94 @@ class EloIntegrator(mi.SamplingIntegrator):
                 wo, w = si.to_world(bs.wo), weight[0]
             throughput = throughput * w
             alive &= throughput > 0
-            first_p = si.p
-            ray = si.spawn_ray(wo)
-            si = scene.ray_intersect(ray, alive)
             if far is not None and event == 1:  # a far pick: less the variate of its direction
-                control = [w * v for v in far.lookup(first_p, wo, alive)]
-            n_hit = n_hit + dr.select(alive, 1.0, 0.0)
-            if self._plate_keys:
-                # a backscattering detector plate is a surface too: its backscattered electrons
-                # travel on (crosstalk); a shielded back face absorbs
-                on_plate, back = self._plate_hit(si, ray)
-                alive &= si.is_valid() & (~si.shape.is_emitter() | on_plate)
-                bsdf = si.bsdf(ray)
-                si.sh_frame = mi.Frame3f(dr.select(back, -si.sh_frame.n, si.sh_frame.n))
-                si.wi = si.to_local(-ray.d)
-            else:
-                alive &= si.is_valid() & ~si.shape.is_emitter()
-                bsdf = si.bsdf(ray)
-            counting = self.count_rays
-
-            def direct_fn(si, ray, alive, sampler, bsdf=bsdf):
-                outer = self._n_shadow
-                self._n_shadow = mi.Float(0.0) if counting else None
-                out = self._sampled(scene, sampler, si, bsdf, ctx, ray, alive, self.bounce_detector_samples,
-                                    stratify)
-                extra = [self._n_shadow] if counting else []
-                self._n_shadow = outer
-                return tuple(out) + tuple(extra)
-
-            # paths that left the scene (most, without a chamber) skip the detector estimate:
-            # whole SIMD packets of escaped paths do no work at all
-            out = dr.if_stmt((si, ray, alive, sampler), alive, direct_fn,
-                             lambda *args: tuple(mi.Float(0.0) for _ in range(n_det + (1 if counting else 0))))
-            if counting:
-                self._n_shadow = self._n_shadow + out[-1]
+                control = [w * v for v in far.lookup(si.p, wo, alive)]
+                held = len(control) // n_det  # events the table holds, from the 2nd on
+            si, ray, bsdf, alive, out = self._event(scene, sampler, si, wo, ctx, alive)
+            n_hit = n_hit + out[-1]
             for d in range(n_det):
                 later[d].append(throughput * out[d])
+        if tail < traced:  # the roulette of events >= 3 (a far pick)
+            u, q = roulette
+            n_tail = traced - tail
+
+            def go_on(si, ray, alive, throughput, sampler):
+                outer = self._n_shadow
+                self._n_shadow = mi.Float(0.0) if counting else None
+                bsdf = si.bsdf(ray)
+                hits = mi.Float(0.0)
+                res = [[] for _ in range(n_det)]
+                for _ in range(n_tail):
+                    bs, weight = bsdf.sample(ctx, si, sampler.next_1d(alive), sampler.next_2d(alive), alive)
+                    throughput = throughput * weight[0]
+                    alive &= throughput > 0
+                    si, ray, bsdf, alive, out = self._event(scene, sampler, si, si.to_world(bs.wo), ctx, alive)
+                    hits = hits + out[-1]
+                    for d in range(n_det):
+                        res[d].append(throughput * out[d])
+                extra = [self._n_shadow] if counting else []
+                self._n_shadow = outer
+                return tuple(x for per in res for x in per) + (hits,) + tuple(extra)
+
+            keep = u < q
+            n_out = n_det * n_tail + 1 + (1 if counting else 0)
+            out = dr.if_stmt((si, ray, alive, throughput, sampler), alive & keep, go_on,
+                             lambda *args: tuple(mi.Float(0.0) for _ in range(n_out)))
+            n_hit = n_hit + out[n_det * n_tail]
+            if counting:
+                self._n_shadow = self._n_shadow + out[-1]
+            inv = 1.0 / q
+            for d in range(n_det):
+                for j in range(n_tail):
+                    e = tail - 1 + j  # index in later[d] (0 = the 2nd event)
+                    residual = out[d * n_tail + j]
+                    if e < held:
+                        residual = residual - control[d * held + e]
+                    later[d].append(dr.select(keep, residual * inv, 0.0))
         if control is not None:
-            later = [[x - control[d * (traced - 1) + e] for e, x in enumerate(later[d])] for d in range(n_det)]
+            later = [[x - control[d * held + e] if e < held and e < tail - 1 else x for e, x in enumerate(later[d])]
+                     for d in range(n_det)]
         return later, n_hit
+
+    def _event(self, scene, sampler, si, wo, ctx, alive):
+        """One more event of a path at ``si`` continuing towards ``wo`` (world): the continuation
+        ray, where it meets a surface and that surface's direct estimate per detector (times 1:
+        the caller multiplies by the throughput). Returns (si, ray, bsdf, alive, out) with out =
+        per detector the direct estimate, then the bounce rays cast (1 per alive lane)."""
+        n_det = len(self.detectors)
+        ray = si.spawn_ray(wo)
+        si = scene.ray_intersect(ray, alive)
+        hit = dr.select(alive, 1.0, 0.0)
+        if self._plate_keys:
+            # a backscattering detector plate is a surface too: its backscattered electrons
+            # travel on (crosstalk); a shielded back face absorbs
+            on_plate, back = self._plate_hit(si, ray)
+            alive &= si.is_valid() & (~si.shape.is_emitter() | on_plate)
+            bsdf = si.bsdf(ray)
+            si.sh_frame = mi.Frame3f(dr.select(back, -si.sh_frame.n, si.sh_frame.n))
+            si.wi = si.to_local(-ray.d)
+        else:
+            alive &= si.is_valid() & ~si.shape.is_emitter()
+            bsdf = si.bsdf(ray)
+        counting = self.count_rays
+        stratify = self.detector_sampling != "independent"
+
+        def direct_fn(si, ray, alive, sampler, bsdf=bsdf):
+            outer = self._n_shadow
+            self._n_shadow = mi.Float(0.0) if counting else None
+            out = self._sampled(scene, sampler, si, bsdf, ctx, ray, alive, self.bounce_detector_samples,
+                                stratify)
+            extra = [self._n_shadow] if counting else []
+            self._n_shadow = outer
+            return tuple(out) + tuple(extra)
+
+        # paths that left the scene (most, without a chamber) skip the detector estimate:
+        # whole SIMD packets of escaped paths do no work at all
+        out = dr.if_stmt((si, ray, alive, sampler), alive, direct_fn,
+                         lambda *args: tuple(mi.Float(0.0) for _ in range(n_det + (1 if counting else 0))))
+        if counting:
+            self._n_shadow = self._n_shadow + out[-1]
+        return si, ray, bsdf, alive, list(out[:n_det]) + [hit]
 
     def _plate_hit(self, si, ray):
         """(lanes on a backscattering detector plate that scatters them, lanes that hit it from
