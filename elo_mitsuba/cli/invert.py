@@ -96,7 +96,7 @@ def add_parser(subparsers):
     sol.add_argument("--uncertainty-probes", type=int, default=None, metavar="N",
                      help="noise draws propagated through the solution for the height_error channel (the "
                           "standard error the images' noise leaves in each height; each costs about one step; "
-                          "default 4, 0 = skip)")
+                          "default 8, 0 = skip)")
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
     sol.add_argument("--no-local", action="store_true",
                      help="skip the local refinement (regions whose misfit exceeds the noise are re-inverted on "
