@@ -29,13 +29,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 
 import numpy as np
 
-from .harness import DETS, FLOOR, ROOT
+from .harness import DETS, FLOOR, run_module
 
 SCENES = ("athene_flat", "shield_chamber")
 
@@ -139,14 +138,13 @@ def main(argv=None):
     print(f"machine: {os.cpu_count()} cores (shared with other jobs), load average at start "
           f"{os.getloadavg()[0]:.2f}\n")
     for name in a.scenes.split(","):
-        cmd = [sys.executable, "-m", "benchmarks.events_cost", "--one", name, "--res", str(a.res), "--q", a.q,
-               "--reps", str(a.reps), "--ref-factor", str(a.ref_factor)] + (["--no-errors"] if a.no_errors else [])
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-        if proc.returncode or not lines:
-            print(f"{name}: failed\n{proc.stderr[-3000:]}", file=sys.stderr)
+        try:
+            r = run_module("benchmarks.events_cost", ["--one", name, "--res", str(a.res), "--q", a.q, "--reps",
+                                                      str(a.reps), "--ref-factor", str(a.ref_factor)]
+                           + (["--no-errors"] if a.no_errors else []))
+        except RuntimeError as exc:
+            print(f"{name}: failed\n{exc}", file=sys.stderr)
             return 1
-        r = json.loads(lines[-1][7:])
         print(f"### {name}, {a.res}x{a.res}, `default` preset (load average {r['load_start']:.1f} -> "
               f"{r['load_end']:.1f})\n")
         print("| configuration | events | far_field, q | warm wall (s) | warm CPU (s) | CPU / events=1 | "

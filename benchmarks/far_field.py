@@ -16,13 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import subprocess
 import sys
 import time
 
 import numpy as np
 
-from .harness import DETS, ROOT, rel_error
+from .harness import DETS, rel_error, run_module
 
 SCENES = ("athene_flat", "corrugated_chamber", "melt_chamber", "shield_chamber")
 #: (label, quality, far_field: None = as the preset chooses, 0 = off as the presets were before
@@ -84,14 +83,12 @@ def main(argv=None):
         return 0
     rows = []
     for name in a.scenes.split(","):
-        cmd = [sys.executable, "-m", "benchmarks.far_field", "--one", name, "--res", str(a.res),
-               "--ref-factor", str(a.ref_factor), "--ref-far", str(a.ref_far)]
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-        if proc.returncode or not lines:
-            print(f"{name}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+        try:
+            r = run_module("benchmarks.far_field", ["--one", name, "--res", str(a.res), "--ref-factor",
+                                                    str(a.ref_factor), "--ref-far", str(a.ref_far)])
+        except RuntimeError as exc:
+            print(f"{name}: failed\n{exc}", file=sys.stderr)
             return 1
-        r = json.loads(lines[-1][7:])
         print(f"{name}: reference {r['reference_s']:.1f} s, its e2 noise {100 * r['reference_noise']:.2f} %, "
               f"peak RSS {r['peak_rss_mb']:.0f} MB", file=sys.stderr)
         for row in r["rows"]:

@@ -68,13 +68,7 @@ class Bench:
 
     def job(self, job, timeout=3600):
         """Run one job (a dict, see :mod:`benchmarks.worker`) in a new process; its result."""
-        cmd = [sys.executable, "-m", "benchmarks.worker", json.dumps(job)]
-        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout,
-                           stdin=subprocess.DEVNULL)
-        lines = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
-        if p.returncode or not lines:
-            raise RuntimeError(f"benchmark job failed ({p.returncode}): {json.dumps(job)}\n{p.stderr[-4000:]}")
-        out = json.loads(lines[-1][len("RESULT "):])
+        out = run_module("benchmarks.worker", [json.dumps(job)], timeout=timeout)
         out["load_avg"] = os.getloadavg()[0]
         return out
 
@@ -97,6 +91,17 @@ class Bench:
         path = CACHE / f"{name}.npz"
         out = self.job({**job, "save": str(path)})
         return out, _load(path)
+
+
+def run_module(module, args, timeout=None):
+    """Run ``python -m module args`` in a new process (its own memory and kernels) and return the
+    JSON of its last line that starts with ``RESULT ``; RuntimeError with its stderr when it fails."""
+    p = subprocess.run([sys.executable, "-m", module, *args], cwd=ROOT, capture_output=True, text=True,
+                       timeout=timeout, stdin=subprocess.DEVNULL)
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
+    if p.returncode or not lines:
+        raise RuntimeError(f"benchmark job failed ({p.returncode}): {module} {' '.join(args)}\n{p.stderr[-4000:]}")
+    return json.loads(lines[-1][len("RESULT "):])
 
 
 def _load(path):
