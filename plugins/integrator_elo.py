@@ -43,7 +43,8 @@ when ``detector_sampling`` is stratified or quadrature). Their budget is set apa
 event's, without bias: ``bounce_fraction`` f traces the continuation for a fraction f of the
 samples (whole blocks of 32 neighbouring lanes, chosen by a randomly shifted golden-ratio
 sequence, weight 1/f; skipped blocks really skip the work), ``bounce_samples`` k traces k
-continuation paths per sample (splitting, weight 1/k). ``bounce_filter`` (mm) estimates them in
+continuation paths per sample (splitting: their directions stratified over g_BSE's sample space,
+one per cell of :mod:`._strata`, each weighted by its cell's area). ``bounce_filter`` (mm) estimates them in
 space (:mod:`._bounce_filter`, biased where they vary inside the window); ``bounce_min`` (paths
 per pixel) then tops up, in a second pass of continuation paths only, the pixels left with fewer
 paths than that (e.g. at edges where the window had to shrink); both estimates are averaged by
@@ -90,6 +91,7 @@ from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
 from ._far_field import NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_rays, geometry_key, reduce_table, stratum
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
 from ._occlusion import shape_key, unblockable, unblockable_regions
+from ._strata import cell_area, cell_point, shifted_lattice, strata_cells
 from ._relief import relief_under_beam
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, scene_tables
 
@@ -497,15 +499,20 @@ class EloIntegrator(mi.SamplingIntegrator):
                         n_hit = n_hit + more_hit
                     extra = [n_hit, self._n_shadow] if counting else []
                     return tuple(x for per_det in later for x in per_det) + tuple(extra)
-                # k continuation paths from the same 1st event (splitting), each weighted 1/k
-                later, n_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced, far)
-                for _ in range(k_paths - 1):
+                # k continuation paths from the same 1st event (splitting): their directions
+                # stratified (one per cell of g_BSE's 2D sample space, the lobe choice on a shifted
+                # lattice), each weighted by its cell's area
+                later, n_hit = None, mi.Float(0.0)
+                shift = sampler.next_1d(alive) if k_paths > 1 else None
+                for j, cell in enumerate(strata_cells(k_paths)):
+                    first = self._direction_in(cell, j, k_paths, shift, si, ray, ctx, sampler, alive) \
+                        if k_paths > 1 else None
                     more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced,
-                                                   far)
-                    later = [[a + b for a, b in zip(x, y)] for x, y in zip(later, more)]
+                                                   far, first=first)
+                    if k_paths > 1:
+                        more = [[a * cell_area(cell) for a in x] for x in more]
+                    later = more if later is None else [[a + b for a, b in zip(x, y)] for x, y in zip(later, more)]
                     n_hit = n_hit + more_hit
-                if k_paths > 1:
-                    later = [[a * (1.0 / k_paths) for a in x] for x in later]
                 extra = [n_hit, self._n_shadow] if counting else []
                 return tuple(x for per_det in later for x in per_det) + tuple(extra)
 
@@ -650,6 +657,15 @@ class EloIntegrator(mi.SamplingIntegrator):
                      for d in range(n_det)]
         return later, n_hit
 
+    @staticmethod
+    def _direction_in(cell, j, k, shift, si, ray, ctx, sampler, alive):
+        """The j-th of k stratified continuation directions (world) and its weight S: g_BSE
+        sampled at a point of ``cell`` of the 2D sample space, the lobe chosen by the j-th point
+        of a shifted lattice (:mod:`._strata`)."""
+        u2 = cell_point(cell, sampler.next_2d(alive))
+        bs, weight = si.bsdf(ray).sample(ctx, si, shifted_lattice(j, k, shift), u2, alive)
+        return si.to_world(bs.wo), weight[0]
+
     def _event(self, scene, sampler, si, wo, ctx, alive):
         """One more event of a path at ``si`` continuing towards ``wo`` (world): the continuation
         ray, where it meets a surface and that surface's direct estimate per detector (times 1:
@@ -716,10 +732,7 @@ class EloIntegrator(mi.SamplingIntegrator):
 
     def _sampled(self, scene, sampler, si, bsdf, ctx, ray, alive, n_pts, stratify):
         """Per detector: sum over n_pts sampled points of g_BSE / pdf, with occlusion."""
-        if stratify:
-            rows = max(1, int(math.isqrt(n_pts)))
-            cols = [n_pts // rows + (1 if r < n_pts % rows else 0) for r in range(rows)]
-            cells = [(r, c, cols[r]) for r in range(rows) for c in range(cols[r])]
+        cells = strata_cells(n_pts) if stratify else None
         wos, weights = [], []
         for d, (_, shape) in enumerate(self.detectors):
             emitter = shape.emitter()
@@ -727,9 +740,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                 u = sampler.next_2d(alive)
                 w = 1.0 / n_pts
                 if stratify:
-                    r, c, nc = cells[i]
-                    u = mi.Point2f((c + u.x) / nc, (r + u.y) / rows)
-                    w = 1.0 / (rows * nc)
+                    u, w = cell_point(cells[i], u), cell_area(cells[i])
                 if self._two_sided[d]:
                     # a point by area on the detector, either face: weight |cos| A / r^2 = 1/pdf
                     ps = shape.sample_position(si.time, u, alive)

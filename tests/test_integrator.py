@@ -242,6 +242,39 @@ def test_bounce_fraction_and_samples_are_unbiased():
         np.testing.assert_allclose(part[f"{n}.e1"], full[f"{n}.e1"], rtol=1e-6)  # untouched
 
 
+def test_split_paths_weighted_by_their_cells_are_unbiased():
+    """bounce_samples = 5 splits g_BSE's sample space into 2 rows of 3 and 2 cells (areas 1/6
+    and 1/4): weighted by area the split keeps the mean; weighted 1/5 each it moved back.e2 by
+    -7 % and front.e2 by +7 % (measured), the rows being the two halves of the azimuth."""
+    scene = flat_scene(mi, res=16, field=80.0, wall=True, events=2)
+    opts = {"detector_sampling": "quadrature", "quadrature_triangles": 4}
+    full, _ = render(scene, spp=512, seed=1, **opts)
+    split, _ = render(scene, spp=128, seed=3, bounce_samples=5, **opts)
+    for n in DETECTORS:
+        # noise of the ratio (1 sigma): about 0.4 % (measured spread 0.6 % over the detectors)
+        assert split[f"{n}.e2"].mean() == pytest.approx(full[f"{n}.e2"].mean(), rel=0.025)
+
+
+def test_split_paths_are_stratified():
+    """k continuation paths of one sample take one cell each of g_BSE's sample space: at the same
+    number of paths per pixel (64) the 2nd event is less noisy than with one path per sample
+    (measured: 0.71-0.73 of the error on the right, back and front detectors; 0.93 on the left,
+    whose back face sees the wall from close by)."""
+    scene = flat_scene(mi, res=16, field=80.0, wall=True, events=2)
+    opts = {"detector_sampling": "quadrature", "quadrature_triangles": 4}
+    ref, _ = render(scene, spp=2048, seed=1, **opts)
+
+    def error(k, spp):
+        errs = []
+        for seed in range(3):
+            img, _ = render(scene, spp=spp, seed=100 + seed, bounce_samples=k, **opts)
+            errs += [np.sqrt(np.mean((img[f"{n}.e2"] - ref[f"{n}.e2"]) ** 2)) / ref[f"{n}.e2"].mean()
+                     for n in ("right", "back", "front")]
+        return float(np.mean(errs))
+
+    assert error(8, 8) < 0.85 * error(1, 64)
+
+
 def test_bounce_filter_reduces_noise_and_stops_at_edges():
     """Flat plate + wall: the filtered 2nd event is far less noisy at the same cost and keeps
     its mean; with a 45-degree ramp in the field the filter does not mix ramp and plate."""
