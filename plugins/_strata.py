@@ -39,5 +39,8 @@ def shifted_lattice(j: int, n: int, shift):
     p = max(1, round(_GOLDEN * n))
     while math.gcd(p, n) != 1:
         p += 1
-    u = shift + ((j * p) % n) / n
+    # j: a Python int or a UInt32 loop counter. A quotient then a sum, each rounded once: a
+    # product and a sum could be fused into one FMA on one CPU and not on another, and the lobe
+    # choice (u < q) would then differ between instruction sets
+    u = shift + mi.Float((j * p) % n) / n
     return u - dr.floor(u)
