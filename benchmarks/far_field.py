@@ -58,13 +58,17 @@ def measure(scene_name, res, ref_factor, ref_far):
         row = {"label": label, "seconds": min(times), "builds": scene.integrator.far_field_builds,
                "far_field": scene.integrator.far_field}
         for kind, key in (("total", lambda d: d), ("e1", lambda d: f"{d}.e1"), ("e2", lambda d: f"{d}.e2")):
-            errs, ests = [], []
+            errs, ests, ests_ref = [], [], []
             for d in DETS:
                 rms = rel_error(r.channels[key(d)], ref.channels[key(d)])[0]
                 errs.append(float(np.sqrt(max(rms**2 - noise[key(d)] ** 2, 0.0))))
                 ests.append(r.error_summary()[key(d)].get("rms_rel") or 0.0)
+                if key(d) in r.errors:  # the same per-pixel errors, relative to the reference's values
+                    ests_ref.append(rel_error(ref.channels[key(d)] + r.errors[key(d)], ref.channels[key(d)])[0])
             row[kind] = max(errs)
             row[kind + "_est"] = max(ests)
+            row[kind + "_est_ref"] = max(ests_ref, default=0.0)
+        row["e2_nonpositive"] = max(float(np.mean(r.channels[f"{d}.e2"] <= 0)) for d in DETS)
         out["rows"].append(row)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return out
@@ -94,11 +98,14 @@ def main(argv=None):
         for row in r["rows"]:
             rows.append(f"| {name} | {row['label']} (s = {row['far_field']}) | {row['seconds']:.2f} | {100 * row['total']:.2f} % "
                         f"({100 * row['total_est']:.2f} %) | {100 * row['e1']:.2f} % | {100 * row['e2']:.1f} % "
-                        f"({100 * row['e2_est']:.1f} %) | {r['peak_rss_mb']:.0f} |")
-    print(f"{a.res}x{a.res}, events 1 + 2, worst detector; in brackets the render's own error estimate.\n")
+                        f"({100 * row['e2_est']:.1f} %) | {100 * row['e2_est_ref']:.1f} % | "
+                        f"{100 * row['e2_nonpositive']:.2f} % | {r['peak_rss_mb']:.0f} |")
+    print(f"{a.res}x{a.res}, events 1 + 2, worst detector; in brackets the render's own error estimate "
+          "(relative to the render's own values). 'e2 estimate, reference's values': the same per-pixel "
+          "errors relative to the reference's values; 'e2 <= 0': share of e2 pixels at or below zero.\n")
     print("| scene | configuration | warm time (s) | total RMS (estimate) | e1 RMS | e2 RMS (estimate) | "
-          "peak RSS of the scene's process (MB) |")
-    print("|---|---|---|---|---|---|---|")
+          "e2 estimate, reference's values | e2 <= 0 | peak RSS of the scene's process (MB) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     return 0
 

@@ -45,15 +45,17 @@ Measured on every shipped scene at 128 x 128 (benchmarks/RESULTS.md, section pre
 RMS error of a detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   best scene (athene_flat)
-  draft       corrugated_chamber    17.5 %   0.15 s         0.61 % (estimate; was 1.3 %)
-  default     corrugated_chamber     8.7 %   0.43 s         0.30 % (was 0.74 %)
-  reference   corrugated_chamber     3.3 %   2.6 s          0.56 % (no window average; was 1.2 %)
+  draft       corrugated_chamber    16.5 %   0.09 s         0.65 %
+  default     corrugated_chamber     7.3 %   0.19 s         0.38 %
+  reference   corrugated_chamber     2.8 %   0.61 s         0.61 % (no window average)
 
 On athene_flat (no relief) the presets add the far-field control variate of events >= 2
 (issue 26; benchmarks/RESULTS.md, section Far field).
 
 Every render estimates its own error from two independent halves of the samples and prints it
-per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks;
+per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks
+for the totals; a single event's figure divides by its own noisy values: on relief with
+far_field it overstated e2 up to 3.6x, benchmarks/RESULTS.md, Far field;
 it sees noise only, not the quadrature's deterministic error of the 1st event, < 0.05 %);
 channels without sampling error (the 1st event by the quadrature with a single-ray beam) say
 "deterministic". The estimate is stored in the EXR header (error_estimate) and, with
