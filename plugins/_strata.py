@@ -1,7 +1,9 @@
-"""Strata of the unit square for n samples: rows x columns as square as n allows, one sample per
-cell (jittered), each weighted by its cell's area. Unbiased for any n: the cells partition the
-square. Used for the detector points of ``detector_sampling = stratified`` and for the
-continuation paths a sample splits into (``bounce_samples``)."""
+"""Strata for a few samples of one point: cells of the unit square (rows x columns as square as n
+allows, one sample per cell, jittered, each weighted by its cell's area: unbiased for any n, the
+cells partition the square), used for the detector points of ``detector_sampling = stratified``
+and, where g_BSE's tables are not available, for the continuation paths a sample splits into
+(``bounce_samples``); and the split of those paths between g_BSE's two components
+(:func:`allocated`, :func:`group_point`)."""
 
 import math
 
@@ -9,6 +11,8 @@ import drjit as dr
 import mitsuba as mi
 
 _GOLDEN = 0.6180339887498949
+#: The largest float32 below 1: a point of a stratum must stay inside the unit square.
+_BELOW_ONE = 0.99999994
 
 
 def strata_cells(n: int) -> list[tuple[int, int, int, int]]:
@@ -44,3 +48,24 @@ def shifted_lattice(j: int, n: int, shift):
     # choice (u < q) would then differ between instruction sets
     u = shift + mi.Float((j * p) % n) / n
     return u - dr.floor(u)
+
+
+def allocated(q, k: int, xi):
+    """How many of k samples go to a component of probability q: ceil(q k - xi), xi uniform, so
+    that its expectation is q k exactly (each of the k samples is then one cell of a shifted 1D
+    lattice of the component choice); the rest go to the other component."""
+    return dr.clip(dr.ceil(q * k - xi), 0.0, float(k))
+
+
+def group_point(j: int, k: int, n_first, rot_first, rot_second, u):
+    """Sample j of k when the first ``n_first`` go to one component and the others to the second:
+    (is_first, its point in that component's unit square). The m-th of a group of n takes the
+    m-th of n strata along x, jittered by ``u``, and along y the m-th point of a golden-ratio
+    lattice rotated by the group's ``rot_*``: each point uniform (so every sample is unbiased
+    however the groups split), the group spread over its square."""
+    is_first = mi.Float(j) < n_first
+    m = dr.select(is_first, mi.Float(j), mi.Float(j) - n_first)
+    n = dr.maximum(dr.select(is_first, n_first, float(k) - n_first), 1.0)
+    x = dr.minimum((m + u) / n, _BELOW_ONE)
+    y = dr.select(is_first, rot_first, rot_second) + m * _GOLDEN
+    return is_first, mi.Point2f(x, y - dr.floor(y))

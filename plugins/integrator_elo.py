@@ -91,9 +91,9 @@ from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
 from ._far_field import NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_rays, geometry_key, reduce_table, stratum
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
 from ._occlusion import shape_key, unblockable, unblockable_regions
-from ._strata import cell_area, cell_point, shifted_lattice, strata_cells
+from ._strata import allocated, cell_area, cell_point, group_point, shifted_lattice, strata_cells
 from ._relief import relief_under_beam
-from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, scene_tables
+from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, scene_tables, world_setup
 
 __doc__ += parameter_table() + "\n"
 
@@ -499,18 +499,26 @@ class EloIntegrator(mi.SamplingIntegrator):
                         n_hit = n_hit + more_hit
                     extra = [n_hit, self._n_shadow] if counting else []
                     return tuple(x for per_det in later for x in per_det) + tuple(extra)
-                # k continuation paths from the same 1st event (splitting): their directions
-                # stratified (one per cell of g_BSE's 2D sample space, the lobe choice on a shifted
-                # lattice), each weighted by its cell's area
+                # k continuation paths from the same 1st event (splitting), stratified: with g_BSE's
+                # tables, L of them go to its lobe and k - L to its diffuse part (E[L] = q k, q the
+                # lobe's probability), each group spread over its own sample space, each path
+                # weighted 1/k; else one per cell of the sample space, weighted by its area
                 later, n_hit = None, mi.Float(0.0)
                 shift = sampler.next_1d(alive) if k_paths > 1 else None
+                groups = None
+                if k_paths > 1 and self._g_tables is not None:
+                    groups = self._component_groups(si, ray, alive, k_paths, sampler)
                 for j, cell in enumerate(strata_cells(k_paths)):
-                    first = self._direction_in(cell, j, k_paths, shift, si, ray, ctx, sampler, alive) \
-                        if k_paths > 1 else None
+                    if groups is not None:
+                        first = self._direction_grouped(j, k_paths, groups, si, ray, ctx, sampler, alive)
+                    else:
+                        first = self._direction_in(cell, j, k_paths, shift, si, ray, ctx, sampler, alive) \
+                            if k_paths > 1 else None
                     more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced,
                                                    far, first=first)
                     if k_paths > 1:
-                        more = [[a * cell_area(cell) for a in x] for x in more]
+                        w_path = (1.0 / k_paths) if groups is not None else cell_area(cell)
+                        more = [[a * w_path for a in x] for x in more]
                     later = more if later is None else [[a + b for a, b in zip(x, y)] for x, y in zip(later, more)]
                     n_hit = n_hit + more_hit
                 extra = [n_hit, self._n_shadow] if counting else []
@@ -656,6 +664,26 @@ class EloIntegrator(mi.SamplingIntegrator):
             later = [[x - control[d * held + e] if e < held and e < tail - 1 else x for e, x in enumerate(later[d])]
                      for d in range(n_det)]
         return later, n_hit
+
+    def _component_groups(self, si, ray, alive, k, sampler):
+        """Per sample, for k continuation paths: how many go to g_BSE's lobe, L = ceil(q k - xi)
+        with xi uniform (so E[L] = q k; q = the lobe's share of eta, as ``elo_bse.sample`` picks
+        it), and a random rotation per group (:func:`._strata.group_point`)."""
+        diffuse, weight, exponent, _, _, ok = world_setup(self._g_tables, si, -ray.d, alive)
+        lobe_mass = weight * (2.0 * dr.pi) / (exponent + 1.0)  # (eta - eta0)/C, as elo_bse.sample
+        q = dr.select(ok, lobe_mass / (diffuse * dr.pi + lobe_mass), 0.0)
+        n_lobe = allocated(q, k, sampler.next_1d(alive))
+        return n_lobe, sampler.next_1d(alive), sampler.next_1d(alive)
+
+    @staticmethod
+    def _direction_grouped(j, k, groups, si, ray, ctx, sampler, alive):
+        """Path j of k (world direction, weight S): the lobe's if j < L, else the diffuse part's;
+        g_BSE sampled at its group's point (the component forced: u1 = 0 picks the lobe, 1 the
+        diffuse part). Weight 1/k per path: with E[L] = q k this is the mixture's estimate."""
+        n_lobe, rot_lobe, rot_diffuse = groups
+        is_lobe, u2 = group_point(j, k, n_lobe, rot_lobe, rot_diffuse, sampler.next_1d(alive))
+        bs, weight = si.bsdf(ray).sample(ctx, si, dr.select(is_lobe, 0.0, 1.0), u2, alive)
+        return si.to_world(bs.wo), weight[0]
 
     @staticmethod
     def _direction_in(cell, j, k, shift, si, ray, ctx, sampler, alive):

@@ -37,3 +37,27 @@ def test_shifted_lattice_has_one_point_per_interval(n):
         m = ((u - shift) % 1.0) * n  # the lattice index of each point: an integer
         assert np.max(np.abs(m - np.round(m))) < 1e-4
         assert sorted(np.round(m).astype(int) % n) == list(range(n))
+
+
+@pytest.mark.parametrize("k", [1, 3, 8])
+def test_allocated_is_q_k_on_average_and_never_further_than_one(k):
+    q = mi.Float(np.repeat(np.linspace(0.0, 1.0, 11), 4000))
+    xi = mi.Float(np.tile((np.arange(4000) + 0.5) / 4000, 11))  # xi over [0, 1) evenly
+    n = np.array(strata.allocated(q, k, xi)).reshape(11, 4000)
+    qk = np.linspace(0.0, 1.0, 11) * k
+    assert np.allclose(n.mean(axis=1), qk, atol=1e-3)
+    assert np.all((n >= np.floor(qk - 1e-6)[:, None]) & (n <= np.ceil(qk + 1e-6)[:, None]))
+
+
+@pytest.mark.parametrize("k, n_first", [(8, 0), (8, 3), (8, 8), (5, 2)])
+def test_group_points_stratify_each_group(k, n_first):
+    first, xs = [], []
+    for j in range(k):
+        is_first, p = strata.group_point(j, k, mi.Float(n_first), mi.Float(0.3), mi.Float(0.7), mi.Float(0.5))
+        first.append(bool(is_first[0]))
+        xs.append(float(p.x[0]))
+        assert 0.0 <= p.x[0] < 1.0 and 0.0 <= p.y[0] < 1.0
+    assert first == [j < n_first for j in range(k)]
+    for group, n in ((True, n_first), (False, k - n_first)):
+        cells = sorted(int(x * n) for x, f in zip(xs, first) if f == group)
+        assert cells == list(range(n))  # one point in each of the group's n strata
