@@ -66,8 +66,9 @@ class EloOptions:
                                         bounds=(4, MAX_QUADRATURE_TRIANGLES))
     quadrature_visibility: str = _option("sampled", "occlusion in the quadrature: one sampled ray per detector, "
                                          "or one ray per triangle", "str", choices=VISIBILITY)
-    bounce_samples: int = _option(1, "continuation paths per sample (splitting: directions stratified, one per cell of g_BSE's "
-                                  "sample space, each weighted by its cell's area)", "int",
+    bounce_samples: int = _option(1, "continuation paths per sample (splitting, stratified: about q k of them sample g_BSE's "
+                                  "lobe, q its probability, the rest its diffuse part, each group spread over its sample "
+                                  "space)", "int",
                                   bounds=(1, None))
     bounce_fraction: float = _option(1.0, "fraction f of the samples that trace events >= 2 (blocks of 32 "
                                      "lanes, weight 1/f)", "float", bounds=(0.0, 1.0))

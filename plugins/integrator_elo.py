@@ -43,8 +43,10 @@ when ``detector_sampling`` is stratified or quadrature). Their budget is set apa
 event's, without bias: ``bounce_fraction`` f traces the continuation for a fraction f of the
 samples (whole blocks of 32 neighbouring lanes, chosen by a randomly shifted golden-ratio
 sequence, weight 1/f; skipped blocks really skip the work), ``bounce_samples`` k traces k
-continuation paths per sample (splitting: their directions stratified over g_BSE's sample space,
-one per cell of :mod:`._strata`, each weighted by its cell's area). ``bounce_filter`` (mm) estimates them in
+continuation paths per sample (splitting, stratified: L of them sample g_BSE's lobe and k - L its
+diffuse part, L = ceil(q k - xi) so that E[L] = q k with q the lobe's probability, each group spread
+over its own sample space, each path weighted 1/k; where a scatterer has no ``elo_bse`` tables, one
+path per cell of g_BSE's sample space weighted by the cell's area; :mod:`._strata`). ``bounce_filter`` (mm) estimates them in
 space (:mod:`._bounce_filter`, biased where they vary inside the window); ``bounce_min`` (paths
 per pixel) then tops up, in a second pass of continuation paths only, the pixels left with fewer
 paths than that (e.g. at edges where the window had to shrink); both estimates are averaged by
