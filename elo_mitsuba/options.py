@@ -321,7 +321,7 @@ PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
-QUALITY_ACCURACY = {"draft": 0.17, "default": 0.08, "reference": 0.03}  # corrugated_chamber: 16.5, 7.3, 2.75 %
+QUALITY_ACCURACY = {"draft": 0.17, "default": 0.07, "reference": 0.025}  # corrugated_chamber: 16.7, 6.4, 2.4 %
 #: Cheap far-field samples per traced continuation path in the presets (s x s >= this x paths per
 #: sample): fewer made the variate's own mean the larger noise (s = 2 at 128 paths per pixel: 1.60 %
 #: total on athene_flat's reference against 1.13 % without the variate).

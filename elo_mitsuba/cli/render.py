@@ -45,9 +45,9 @@ Measured on every shipped scene at 128 x 128 (benchmarks/RESULTS.md, section pre
 RMS error of a detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   best scene (athene_flat)
-  draft       corrugated_chamber    16.5 %   0.09 s         0.65 %
-  default     corrugated_chamber     7.3 %   0.19 s         0.38 %
-  reference   corrugated_chamber     2.8 %   0.61 s         0.61 % (no window average)
+  draft       corrugated_chamber    16.7 %   0.10 s         0.65 %
+  default     corrugated_chamber     6.4 %   0.17 s         0.38 %
+  reference   corrugated_chamber     2.4 %   0.54 s         0.61 % (no window average)
 
 On athene_flat (no relief) the presets add the far-field control variate of events >= 2
 (issue 26; benchmarks/RESULTS.md, section Far field).
