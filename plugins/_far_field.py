@@ -183,10 +183,3 @@ class FarFieldTable:
                 acc = dr.fma(w, dr.gather(mi.Float, self.values, base + c, up), acc)
             out.append(acc)
         return out
-
-
-def stratum(i, s, u):
-    """The point of cell ``i`` (row-major, s x s cells of the unit square) at offset ``u`` in it."""
-    row = i // s
-    col = i - row * s
-    return mi.Point2f((mi.Float(col) + u.x) / s, (mi.Float(row) + u.y) / s)

@@ -2,8 +2,9 @@
 allows, one sample per cell, jittered, each weighted by its cell's area: unbiased for any n, the
 cells partition the square), used for the detector points of ``detector_sampling = stratified``
 and, where g_BSE's tables are not available, for the continuation paths a sample splits into
-(``bounce_samples``); and the split of those paths between g_BSE's two components
-(:func:`allocated`, :func:`group_point`)."""
+(``bounce_samples``); the s x s grid of the far field's cheap samples (:func:`stratum`); and the
+split of the continuation paths between g_BSE's two components (:func:`allocated`,
+:func:`group_point`)."""
 
 import math
 
@@ -21,6 +22,13 @@ def strata_cells(n: int) -> list[tuple[int, int, int, int]]:
     rows = max(1, int(math.isqrt(n)))
     cols = [n // rows + (1 if r < n % rows else 0) for r in range(rows)]
     return [(r, c, cols[r], rows) for r in range(rows) for c in range(cols[r])]
+
+
+def stratum(i, s, u):
+    """The point of cell ``i`` (row-major, s x s cells of the unit square) at offset ``u`` in it."""
+    row = i // s
+    col = i - row * s
+    return mi.Point2f((mi.Float(col) + u.x) / s, (mi.Float(row) + u.y) / s)
 
 
 def cell_area(cell) -> float:

@@ -131,8 +131,7 @@ class EloBSE(mi.BSDF):
     def sample(self, ctx, si, sample1, sample2, active=True):
         wi = si.wi
         k, weight = self._lobe(wi)
-        lobe_mass = weight * (2.0 * dr.pi) / (k + 1.0)  # (eta - eta0)/C
-        q_lobe = lobe_mass / (self.eta0 + lobe_mass)
+        q_lobe = lobe_probability(self.eta0, weight, k)
         pick_lobe = sample1 < q_lobe
 
         # Phong lobe about the mirror direction: cos(beta) = u^(1/(k+1))
@@ -161,6 +160,14 @@ class EloBSE(mi.BSDF):
         mode = "full" if self.lobe else "diffuse-only"
         return (f"EloBSE[material={self.material.describe()}, eta0={self.material.eta0:.5f}, "
                 f"lobe_width={float(self.lobe_width[0]):g} deg, {mode}]")
+
+
+def lobe_probability(eta0, weight, k):
+    """The probability that ``sample`` draws the lobe: its share (eta - eta0)/C = W 2 pi/(k + 1)
+    of S = eta0 + that (the mixture's normaliser), for the lobe weight W and exponent k of the
+    angle of incidence. The integrator's split of continuation paths uses the same share."""
+    lobe_mass = weight * (2.0 * dr.pi) / (k + 1.0)
+    return lobe_mass / (eta0 + lobe_mass)
 
 
 # ---- g_BSE in world coordinates, from the tables of every elo_bse of a scene ------------------------

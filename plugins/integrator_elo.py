@@ -90,12 +90,12 @@ from elo_mitsuba.physics.solid_angle import vos_denominator
 from elo_mitsuba.schema import event_channel, event_channels
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
-from ._far_field import NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_rays, geometry_key, reduce_table, stratum
+from ._far_field import NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_rays, geometry_key, reduce_table
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
 from ._occlusion import shape_key, unblockable, unblockable_regions
-from ._strata import allocated, cell_area, cell_point, group_point, shifted_lattice, strata_cells
+from ._strata import allocated, cell_area, cell_point, group_point, shifted_lattice, strata_cells, stratum
 from ._relief import relief_under_beam
-from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, scene_tables, world_setup
+from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
 __doc__ += parameter_table() + "\n"
 
@@ -506,10 +506,11 @@ class EloIntegrator(mi.SamplingIntegrator):
                 # lobe's probability), each group spread over its own sample space, each path
                 # weighted 1/k; else one per cell of the sample space, weighted by its area
                 later, n_hit = None, mi.Float(0.0)
-                shift = sampler.next_1d(alive) if k_paths > 1 else None
-                groups = None
+                groups = shift = None
                 if k_paths > 1 and self._g_tables is not None:
                     groups = self._component_groups(si, ray, alive, k_paths, sampler)
+                elif k_paths > 1:
+                    shift = sampler.next_1d(alive)
                 for j, cell in enumerate(strata_cells(k_paths)):
                     if groups is not None:
                         first = self._direction_grouped(j, k_paths, groups, si, ray, ctx, sampler, alive)
@@ -672,8 +673,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         with xi uniform (so E[L] = q k; q = the lobe's share of eta, as ``elo_bse.sample`` picks
         it), and a random rotation per group (:func:`._strata.group_point`)."""
         diffuse, weight, exponent, _, _, ok = world_setup(self._g_tables, si, -ray.d, alive)
-        lobe_mass = weight * (2.0 * dr.pi) / (exponent + 1.0)  # (eta - eta0)/C, as elo_bse.sample
-        q = dr.select(ok, lobe_mass / (diffuse * dr.pi + lobe_mass), 0.0)
+        q = dr.select(ok, lobe_probability(diffuse * dr.pi, weight, exponent), 0.0)
         n_lobe = allocated(q, k, sampler.next_1d(alive))
         return n_lobe, sampler.next_1d(alive), sampler.next_1d(alive)
 
@@ -684,8 +684,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         diffuse part). Weight 1/k per path: with E[L] = q k this is the mixture's estimate."""
         n_lobe, rot_lobe, rot_diffuse = groups
         is_lobe, u2 = group_point(j, k, n_lobe, rot_lobe, rot_diffuse, sampler.next_1d(alive))
-        bs, weight = si.bsdf(ray).sample(ctx, si, dr.select(is_lobe, 0.0, 1.0), u2, alive)
-        return si.to_world(bs.wo), weight[0]
+        return _sample_direction(si, ray, ctx, dr.select(is_lobe, 0.0, 1.0), u2, alive)
 
     @staticmethod
     def _direction_in(cell, j, k, shift, si, ray, ctx, sampler, alive):
@@ -693,8 +692,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         sampled at a point of ``cell`` of the 2D sample space, the lobe chosen by the j-th point
         of a shifted lattice (:mod:`._strata`)."""
         u2 = cell_point(cell, sampler.next_2d(alive))
-        bs, weight = si.bsdf(ray).sample(ctx, si, shifted_lattice(j, k, shift), u2, alive)
-        return si.to_world(bs.wo), weight[0]
+        return _sample_direction(si, ray, ctx, shifted_lattice(j, k, shift), u2, alive)
 
     def _event(self, scene, sampler, si, wo, ctx, alive):
         """One more event of a path at ``si`` continuing towards ``wo`` (world): the continuation
@@ -869,6 +867,12 @@ class EloIntegrator(mi.SamplingIntegrator):
         names = ", ".join(n for n, _ in self.detectors) or "(resolved at render time)"
         return (f"EloIntegrator[events={self.events}, detector_sampling={self.detector_sampling}, "
                 f"detector_samples={self.detector_samples}, units={self.units}, detectors={names}]")
+
+
+def _sample_direction(si, ray, ctx, u1, u2, alive):
+    """g_BSE at ``si`` sampled with (u1, u2): the world direction and its weight S."""
+    bs, weight = si.bsdf(ray).sample(ctx, si, u1, u2, alive)
+    return si.to_world(bs.wo), weight[0]
 
 
 def _check_scatterer(shape):
