@@ -45,7 +45,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import EloInputError
-from ..grid import pixel_coordinates, pixel_size
+from ..grid import pixel_size
 from ..schema import fwhm_to_sigma
 from .detector_model import DEFAULT_NODES, FacetModel
 
@@ -214,7 +214,7 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
     if top - float(h.min()) <= 0.0:
         return out  # a plane shadows nothing
     dx, dy = pixel_size(shape, geometry.field_mm)
-    x0, y0 = pixel_coordinates(shape, geometry.field_mm)
+    x0, y0 = geometry.aim_points()  # the grid's own aim points (a window of a scan is offset)
     col0, row0 = float(x0[0, 0]), float(y0[0, 0])
     inv_wd = 1.0 / geometry.work_distance_mm if geometry.projection == "perspective" else 0.0
     n_rows, n_cols = shape
