@@ -198,6 +198,9 @@ class InversionResult:
         takes, the held-fixed later events' error): ``discrepancy_level`` without the factor.
     regions : list of Region
         The local refinement's regions (:mod:`.local_inversion`); empty when it did not run.
+    steps : list of StepOffset
+        The floating parts whose offset was searched in their shadows (:mod:`.step_offsets`), each
+        ``lifted`` or ``kept``; empty when none floated or the local refinement did not run.
     """
 
     height: np.ndarray
@@ -220,6 +223,7 @@ class InversionResult:
     start_misfit: np.ndarray | None = None
     expected_misfit: float = 0.0
     regions: list = field(default_factory=list)
+    steps: list = field(default_factory=list)
     #: what :func:`height_uncertainty` needs of the solution, dropped once it has run
     _linearised: tuple | None = field(default=None, repr=False, compare=False)
 
@@ -614,6 +618,18 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         from .local_inversion import offset_errors, threshold
 
         limit = threshold(detectors=len(full.names))
+        if local and iterations > 0 and (budget is None or time.perf_counter() - t0 < budget):
+            from .step_offsets import search_offsets
+
+            left = None if budget is None else max(budget - (time.perf_counter() - t0), 0.0)
+            lifted, result.steps = search_offsets(result.height, result.misfit, result.expected_misfit, limit,
+                                                  images, flats, geometry, fwhm_mm=fwhm_mm, noise=full.noise,
+                                                  alpha=full.problem.alpha, later=later, flat_later=flat_later,
+                                                  nodes=nodes, time_budget_s=left)
+            n_lifted = sum(p.status == "lifted" for p in result.steps)
+            if n_lifted:
+                _take_heights(full, result, lifted)
+                result.stopped += f"; {n_lifted} of {len(result.steps)} floating part(s) lifted to their shadows"
         chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
         result.floating, offset = offset_errors(result.height, chi2, limit)
         band = result.floating & (chi2 > limit)
@@ -674,14 +690,21 @@ def _cut_across(setup: _Setup, result: InversionResult, band, settings) -> None:
     if len(res.history) < 2 or res.stopped.endswith("start kept"):
         result.stopped += "; cut across the cliffs: no step"
         return
-    corners_h = p.start_corners(res.height)
+    _take_heights(setup, result, res.height)
+    result.stopped += f"; cut across the cliffs: {len(res.history) - 1} steps"
+
+
+def _take_heights(setup: _Setup, result: InversionResult, heights) -> None:
+    """``result`` takes the pixel heights ``heights`` with the misfit, scale, predicted images and
+    mask of the full data there."""
+    p = setup.problem
+    corners_h = p.start_corners(heights)
     _, r, s_, m = p.cost(corners_h, p.model.evaluate(corners_h), HUBER_K * setup.noise)
-    result.height = res.height
+    result.height = np.array(heights, float)
     result.misfit = np.sqrt(np.sum(r ** 2, axis=0) / np.maximum(np.sum(p.w, axis=0), 1.0))
     result.scale = s_
     result.predicted = {n: s_ * m[k] for k, n in enumerate(setup.names)}
     result.mask = (result.misfit > max(MISFIT_SIGMAS * setup.noise, MIN_MISFIT)) | (np.sum(p.w, axis=0) < 3)
-    result.stopped += f"; cut across the cliffs: {len(res.history) - 1} steps"
 
 
 def _misfit_of(setup: _Setup, heights) -> np.ndarray:

@@ -328,7 +328,7 @@ def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | No
     bias, the model's slope gain, a floating part's offset), height_error_noise (its noise part),
     height_error_model (the model's systematic part), floating (1 = a part whose
     offset to the field no trusted pixel measures) and ``model.<detector>`` (the modelled corrected
-    images), the scan geometry, the solver's history, the local refinement's regions and
+    images), the scan geometry, the solver's history, the local refinement's regions, the floating parts' step search and
     ``height_error_rms_mm`` in the header; ``.npy`` / ``.tif`` the height alone (as
     :func:`write_height`)."""
     path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
@@ -337,6 +337,8 @@ def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | No
         meta["height_error_rms_mm"] = result.height_error_rms
     if result.regions:
         meta["regions"] = [r.as_dict() for r in result.regions]
+    if result.steps:
+        meta["steps"] = [p.as_dict() for p in result.steps]
     if path.suffix.lower() != ".exr":
         return write_height(path, result.height, untrusted, meta, overwrite=overwrite)
     channels = {"height": result.height, "mask": np.asarray(untrusted, np.float32), "misfit": result.misfit,

@@ -301,12 +301,6 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
     return regions
 
 
-#: Pixels (per side) a floating component's surroundings are searched in, beyond its band.
-RING_PX = 12
-#: Components smaller than this (pixels) are part of the band around them.
-MIN_COMPONENT_PX = 16
-
-
 def offset_errors(height, chi2, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """Where the height map floats, and by how much: the parts of the field that bands of misfit
     above the noise (``chi2`` > ``limit``, e.g. the cliff around a raised part) cut off from its
@@ -316,7 +310,7 @@ def offset_errors(height, chi2, limit: float) -> tuple[np.ndarray, np.ndarray]:
     on the stepped layer (400^2, 1 % noise) the inversion recovers 12-62 % of steps of 0.1-1 mm, so
     a plateau's pixels fit their images to the noise while their offset is wrong by up to 0.66 mm.
     Their error is taken as the offset as recovered (the median height inside less the median in a
-    ring of :data:`RING_PX` beyond the band), a 100 % uncertainty of the step: the images bound it
+    ring of :data:`~.step_offsets.RING_PX` beyond the band), a 100 % uncertainty of the step: the images bound it
     only from below; measured, it covers the true step's error within 1x on 5 of the 8 steps and
     within 2x on all. The band's own pixels get the same.
 
@@ -335,34 +329,11 @@ def offset_errors(height, chi2, limit: float) -> tuple[np.ndarray, np.ndarray]:
     >>> bool(floating[20, 20]), round(float(error[20, 20]), 3), bool(floating[2, 2])
     (True, 0.3, False)
     """
-    from scipy.ndimage import binary_dilation, label
+    from .step_offsets import floating_parts
 
-    bad = np.asarray(chi2) > limit
-    labels, n = label(~bad)
-    floating = np.zeros(bad.shape, bool)
-    error = np.zeros(bad.shape)
-    if n < 2:
-        return floating, error
-    sizes = np.bincount(labels.ravel())
-    sizes[0] = 0
-    reference = int(np.argmax(sizes))
-    for k in range(1, n + 1):
-        if k == reference or sizes[k] < MIN_COMPONENT_PX:
-            continue
-        comp = labels == k
-        # the band around it: the untrusted pixels the component's growth crosses before it
-        # reaches trusted pixels of another part
-        grown, band, ring = comp, np.zeros_like(comp), np.zeros_like(comp)
-        for _ in range(4 * RING_PX):
-            nxt = binary_dilation(grown)
-            new = nxt & ~grown
-            band |= new & bad
-            ring |= new & ~bad & ~comp
-            grown = nxt
-            if ring.sum() >= min(sizes[k], 4 * RING_PX * RING_PX):
-                break
-        if not ring.any():
-            continue
+    floating = np.zeros(np.shape(chi2), bool)
+    error = np.zeros(np.shape(chi2))
+    for comp, band, ring in floating_parts(chi2, limit):
         step = abs(float(np.median(height[comp]) - np.median(height[ring])))
         sel = comp | band
         floating |= sel

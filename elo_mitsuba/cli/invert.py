@@ -100,7 +100,8 @@ def add_parser(subparsers):
     sol.add_argument("--no-shadows", action="store_true", help="leave the surface's shadowing out of the model")
     sol.add_argument("--no-local", action="store_true",
                      help="skip the local refinement (regions whose misfit exceeds the noise are re-inverted on "
-                          "their own after the field's solve; each is reported)")
+                          "their own after the field's solve; parts cut off by a cliff get the step their shadows "
+                          "show; each is reported)")
     sol.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its later events are held "
                           "fixed in the model of the flat (and of the object, unless --chamber-later); written "
@@ -200,6 +201,11 @@ def run(args) -> int:
             counts[key] = counts.get(key, 0) + 1
         print(f"{len(res.regions)} region(s) whose misfit exceeds the noise: "
               + ", ".join(f"{v} {k}" for k, v in counts.items()) + " (header: regions)")
+    if res.steps:
+        lifted = [p for p in res.steps if p.status == "lifted"]
+        print(f"{len(res.steps)} floating part(s) searched for the step their shadows show, {len(lifted)} lifted"
+              + "".join(f"; {p.step_before:+.3f} -> {p.step_after:+.3f} mm at rows {p.rows[0]}-{p.rows[1]}, "
+                        f"cols {p.cols[0]}-{p.cols[1]}" for p in lifted) + " (header: steps)")
     if res.floating is not None and res.floating.any():
         print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by bands of misfit (a cliff), "
               "their offset not measured (channel floating; height_error holds it)")

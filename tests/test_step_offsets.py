@@ -1,0 +1,66 @@
+"""The step of a part that a cliff cuts off, searched in its shadows (analysis/step_offsets.py).
+
+Model images (the inversion's own forward model on a surface four times as fine as the scan, so
+that the cliff is a wall one sub-pixel (0.05 mm) wide, as the search's refinement models it) of a raised square of 0.6 mm beside
+flat powder; the start has the square integrated short (a third of its height) and smeared, as
+the model gradient leaves a cliff. Gradient steps cannot use the shadow that the square casts (it
+has no derivative); the search must.
+"""
+
+import numpy as np
+import pytest
+
+from elo_mitsuba.analysis.height_model import HeightModel, SuperResolvedModel, corners_from_pixels
+from elo_mitsuba.analysis.inversion import invert_heights
+from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+N = 64
+FWHM = 0.25
+STEP = 0.6
+
+
+def _step(height, part, powder):
+    return float(np.median(height[part]) - np.median(height[powder]))
+
+
+@pytest.fixture(scope="module")
+def square_case():
+    from scipy.ndimage import binary_dilation, binary_erosion, gaussian_filter
+
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    yy, xx = np.mgrid[0:4 * N, 0:4 * N].astype(float)
+    fine = STEP * ((np.abs(yy - 127.5) < 40) & (np.abs(xx - 127.5) < 40))   # cliffs on pixel edges
+    rng = np.random.default_rng(5)
+    lin = SuperResolvedModel(geo, 4, fwhm_mm=FWHM).evaluate(corners_from_pixels(fine))
+    img = {k: lin.images[i] * (1 + 0.003 * rng.standard_normal((N, N))) for i, k in enumerate(geo.detectors)}
+    flat = {k: v * (1 + 0.003 * rng.standard_normal(v.shape))
+            for k, v in HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N))).items()}
+    part = fine[::4, ::4] > 0
+    start = gaussian_filter(STEP / 3.0 * part.astype(float), 1.5)
+    inside = binary_erosion(part, iterations=4)
+    powder = ~binary_dilation(part, iterations=12)
+    kw = dict(start=start, fwhm_mm=FWHM, noise=0.003 * np.sqrt(2), uncertainty_probes=0, scales=1, iterations=3)
+    return img, flat, geo, kw, inside, powder
+
+
+def test_the_shadow_gives_the_step_that_the_slopes_miss(square_case):
+    img, flat, geo, kw, inside, powder = square_case
+    res = invert_heights(img, flat, geo, **kw)
+    assert [p.status for p in res.steps] == ["lifted"], res.stopped
+    step = _step(res.height, inside, powder)
+    assert abs(step - STEP) < 0.1 * STEP, step
+    assert res.steps[0].objective_after < res.steps[0].objective_before
+    # without the search (no local refinement) the gradient steps keep most of the start's shortfall
+    plain = invert_heights(img, flat, geo, local=False, **kw)
+    assert _step(plain.height, inside, powder) < 0.7 * STEP
+    assert plain.steps == []
+
+
+def test_a_part_whose_images_hold_its_step_is_kept(square_case):
+    # started at the true heights the search finds nothing better: kept
+    img, flat, geo, kw, inside, powder = square_case
+    yy, xx = np.mgrid[0:N, 0:N]
+    truth = STEP * ((np.abs(yy - 31.5) < 10) & (np.abs(xx - 31.5) < 10))
+    res = invert_heights(img, flat, geo, **dict(kw, start=truth, iterations=1))
+    assert all(p.status != "lifted" or abs(p.step_after - STEP) < 0.1 * STEP for p in res.steps)
+    assert abs(_step(res.height, inside, powder) - STEP) < 0.1 * STEP
