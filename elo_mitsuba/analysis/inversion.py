@@ -180,8 +180,9 @@ class InversionResult:
         Its RMS over the image (mm; NaN when not computed).
     floating : ndarray of bool (H, W) or None
         Parts of the field that bands of misfit above the noise (a cliff) cut off from its largest
-        part: their offset to it is not measured, and ``height_error`` holds the offset as
-        recovered (:func:`~.local_inversion.offset_errors`).
+        part: their offset to it is not measured by the slopes, and ``height_error`` holds the
+        offset as recovered (:func:`~.local_inversion.offset_errors`), or, where the part was lifted
+        to the step its shadows show, that step's uncertainty (:mod:`.step_offsets`).
     height_error_noise : ndarray (H, W) or None
         The noise's part alone (:func:`height_uncertainty`): the height error the images' noise
         leaves, pixel by pixel.
@@ -618,11 +619,12 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         from .local_inversion import offset_errors, threshold
 
         limit = threshold(detectors=len(full.names))
+        known = None
         if local and iterations > 0 and (budget is None or time.perf_counter() - t0 < budget):
             from .step_offsets import search_offsets
 
             left = None if budget is None else max(budget - (time.perf_counter() - t0), 0.0)
-            lifted, result.steps = search_offsets(result.height, result.misfit, result.expected_misfit, limit,
+            lifted, result.steps, known = search_offsets(result.height, result.misfit, result.expected_misfit, limit,
                                                   images, flats, geometry, fwhm_mm=fwhm_mm, noise=full.noise,
                                                   alpha=full.problem.alpha, later=later, flat_later=flat_later,
                                                   nodes=nodes, time_budget_s=left)
@@ -631,12 +633,12 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                 _take_heights(full, result, lifted)
                 result.stopped += f"; {n_lifted} of {len(result.steps)} floating part(s) lifted to their shadows"
         chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-        result.floating, offset = offset_errors(result.height, chi2, limit)
+        result.floating, offset = offset_errors(result.height, chi2, limit, known)
         band = result.floating & (chi2 > limit)
         if local and band.any() and iterations > 0 and (budget is None or time.perf_counter() - t0 < budget):
             _cut_across(full, result, band, dict(settings, discrepancy=0.0))
             chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-            result.floating, offset = offset_errors(result.height, chi2, limit)
+            result.floating, offset = offset_errors(result.height, chi2, limit, known)
         if result.height_error is not None:
             result.height_error_noise = result.height_error
             result.height_error_model = MODEL_SLOPE_GAIN * np.abs(result.height - np.mean(result.height))

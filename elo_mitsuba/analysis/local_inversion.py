@@ -301,18 +301,23 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
     return regions
 
 
-def offset_errors(height, chi2, limit: float) -> tuple[np.ndarray, np.ndarray]:
+def offset_errors(height, chi2, limit: float, known=None) -> tuple[np.ndarray, np.ndarray]:
     """Where the height map floats, and by how much: the parts of the field that bands of misfit
     above the noise (``chi2`` > ``limit``, e.g. the cliff around a raised part) cut off from its
     largest part, whose offset to it no trusted pixel measures.
 
     A cliff's height comes from integrating slopes across it, and the slopes saturate at a wall:
-    on the stepped layer (400^2, 1 % noise) the inversion recovers 12-62 % of steps of 0.1-1 mm, so
-    a plateau's pixels fit their images to the noise while their offset is wrong by up to 0.66 mm.
+    on the stepped layer (400^2, 1 % noise) the Gauss-Newton steps recover 33-62 % of steps of
+    0.1-1 mm, so a plateau's pixels fit their images to the noise while their offset is wrong by up
+    to 0.66 mm (the shadows then give the larger steps back, :mod:`.step_offsets`).
     Their error is taken as the offset as recovered (the median height inside less the median in a
     ring of :data:`~.step_offsets.RING_PX` beyond the band), a 100 % uncertainty of the step: the images bound it
     only from below; measured, it covers the true step's error within 1x on 5 of the 8 steps and
     within 2x on all. The band's own pixels get the same.
+
+    ``known`` (H, W; NaN elsewhere): an offset uncertainty measured otherwise, e.g. a part whose
+    step was searched in its shadows (:func:`~.step_offsets.search_offsets`); a part whose pixels
+    mostly hold one takes it instead.
 
     Returns
     -------
@@ -335,6 +340,8 @@ def offset_errors(height, chi2, limit: float) -> tuple[np.ndarray, np.ndarray]:
     error = np.zeros(np.shape(chi2))
     for comp, band, ring in floating_parts(chi2, limit):
         step = abs(float(np.median(height[comp]) - np.median(height[ring])))
+        if known is not None and np.mean(np.isfinite(known[comp])) > 0.5:
+            step = float(np.nanmedian(known[comp]))
         sel = comp | band
         floating |= sel
         error[sel] = np.maximum(error[sel], step)

@@ -28,9 +28,12 @@ has no derivative (:mod:`.height_model`). Here the offset of each floating part 
 Measured (validation/REPORT.md, row D2): steps of 0.5 and 1 mm come out within 1-9 %, against
 33-52 % recovered before; 0.1 and 0.2 mm steps (shadows of 0.1-0.25 mm at 0.2 mm pixels) are kept.
 
+A lifted step's uncertainty is how far the finer facets moved it (halving the facets halved the
+step's bias on the truth, so what is left is about half that); it replaces the floating part's
+100 % uncertainty in ``height_error`` (:func:`~.local_inversion.offset_errors`).
+
 What it cannot do: a step whose shadow falls on masked or unmeasured pixels, a part whose band does
-not close all round (it does not float), shadows shorter than about a pixel. The lifted heights'
-offset error is the floating part's (:func:`~.local_inversion.offset_errors`).
+not close all round (it does not float), shadows shorter than about a pixel.
 """
 
 from __future__ import annotations
@@ -90,6 +93,10 @@ class StepOffset:
         best lift (None: not searched).
     status : str
         ``lifted`` or ``kept`` (no lift lowered the data term by :data:`MIN_GAIN`).
+    error : float or None
+        A lifted step's uncertainty (mm): how far the finer facets moved it (at least the last
+        refinement's spacing); the heights of a kept part keep the floating part's error
+        (:func:`~.local_inversion.offset_errors`).
     seconds : float
     """
 
@@ -101,6 +108,7 @@ class StepOffset:
     objective_before: float | None
     objective_after: float | None
     status: str
+    error: float | None = None
     seconds: float = 0.0
 
     def as_dict(self) -> dict:
@@ -187,6 +195,25 @@ def _factor(pixel_mm: float, facet_mm: float) -> int:
     return max(1, int(round(pixel_mm / facet_mm)))
 
 
+def _refine(objective, background, part, s, width):
+    """Two refinements of the step ``s`` (each over FINE_STEPS values within ``width`` either way,
+    then half of it), then the parabola through the best and its neighbours: (step, objective)."""
+    for _ in range(2):
+        grid = s + np.linspace(-1.0, 1.0, FINE_STEPS) * width
+        values = [objective(background, part, v) for v in grid]
+        j = int(np.argmin(values))
+        s, best, width = float(grid[j]), values[j], width / 2.0
+    if 0 < j < FINE_STEPS - 1:
+        a, c = values[j - 1], values[j + 1]
+        curvature = a - 2.0 * best + c
+        if curvature > 0:
+            shifted = s + 0.5 * (a - c) / curvature * (grid[1] - grid[0])
+            value = objective(background, part, shifted)
+            if value < best:
+                s, best = float(shifted), value
+    return s, float(best)
+
+
 def _part(height, comp, band, level_in, level_out):
     """The component and the band pixels whose height lies nearer the component's level than the
     surroundings' (on the stepped layer this put the boundary within 1-2 pixels of the cliff; the
@@ -234,6 +261,8 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
     -------
     height : ndarray (H, W)
     parts : list of StepOffset
+    error : ndarray (H, W)
+        Each lifted part's step uncertainty (mm) on its pixels, NaN elsewhere.
     """
     from .height_model import corners_from_pixels
     from .inversion import HUBER_K, NODES, _huber, _ScaleData, _set_up, upsample
@@ -244,6 +273,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
     h = np.array(height, float)
     names = tuple(geometry.detectors)
     chi2 = local_chi2(misfit, max(float(expected), 1e-12))
+    error = np.full(h.shape, np.nan)
     pixel = max(pixel_size(h.shape, geometry.field_mm))
     margin = int(np.ceil(MARGIN_MM / pixel))
     move = max(1, int(round(BOUNDARY_MM / pixel)))
@@ -308,27 +338,19 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             record.seconds = time.perf_counter() - t1
             parts.append(record)
             continue
-        # then refined on facets of refine_facet_mm (a narrower wall casts a truer shadow)
+        # refined on the search's facets, then on facets of refine_facet_mm (a narrower wall casts a
+        # truer shadow); what the finer facets moved the step by bounds what facets finer still
+        # would (halving the facets halved the bias on the stepped layer's truth)
+        width = coarse[1] - coarse[0]
+        s_coarse, _ = _refine(objective, background, p, s_best, width)
         objective = objective_at(_factor(pixel, refine_facet_mm))
         record.objective_before = objective(background, p, s0)
-        width = coarse[1] - coarse[0]
-        for _ in range(2):  # two refinements, each halving the spacing
-            grid = s_best + np.linspace(-1.0, 1.0, FINE_STEPS) * width
-            values = [objective(background, p, s) for s in grid]
-            j = int(np.argmin(values))
-            s_best, width = float(grid[j]), width / 2.0
-        if 0 < j < FINE_STEPS - 1:  # the parabola through the best and its neighbours
-            a, b_, c = values[j - 1], values[j], values[j + 1]
-            curvature = a - 2.0 * b_ + c
-            if curvature > 0:
-                shifted = s_best + 0.5 * (a - c) / curvature * (grid[1] - grid[0])
-                value = objective(background, p, shifted)
-                if value < values[j]:
-                    s_best, values[j] = float(shifted), value
-        record.objective_after = float(values[j])
+        s_best, record.objective_after = _refine(objective, background, p, s_coarse, width)
+        record.error = max(abs(s_best - s_coarse), width / (2.0 * (FINE_STEPS - 1)))
         lifted = _clean_step(h, comp, band, part) + (s_best - s0) * part
         h[sl] = np.where(np.isfinite(lifted[sl]), lifted[sl], h[sl])
+        error[part] = record.error
         record.step_after, record.status = s_best, "lifted"
         record.seconds = time.perf_counter() - t1
         parts.append(record)
-    return h, parts
+    return h, parts, error
