@@ -709,6 +709,33 @@ def _take_heights(setup: _Setup, result: InversionResult, heights) -> None:
     result.mask = (result.misfit > max(MISFIT_SIGMAS * setup.noise, MIN_MISFIT)) | (np.sum(p.w, axis=0) < 3)
 
 
+def data_term(images: Mapping, flats: Mapping, geometry, *, fwhm_mm: float, noise: float, alpha: float,
+              later: Mapping | None = None, flat_later: Mapping | None = None, nodes=NODES,
+              factor: int = 1) -> Callable[[np.ndarray], float]:
+    """The objective's data term (Huber's norm of the corrected residuals, without the regulariser)
+    as a function of the model's corner heights, on a surface ``factor`` times finer than the scan,
+    with the shadowing evaluated at each call: for searches that Gauss-Newton steps cannot make (a
+    cliff's shadow has no derivative; :mod:`.step_offsets`).
+
+    Examples
+    --------
+    >>> from .scan_geometry import ScanGeometry
+    >>> geo = ScanGeometry.nominal((16, 16), 3.2, 100.0, 150.0)
+    >>> flat = HeightModel(geo, shadows=False).images(np.zeros((16, 16)))
+    >>> term = data_term(flat, flat, geo, fwhm_mm=0.0, noise=0.01, alpha=1e-3)
+    >>> term(corners_from_pixels(np.zeros((16, 16)))) < 1e-12
+    True
+    """
+    setup = _set_up(_ScaleData(images, flats, later, flat_later, None, None), geometry, fwhm_mm=fwhm_mm,
+                    alpha=alpha, noise=noise, shadows=True, nodes=nodes, factor=int(factor))
+    problem, k = setup.problem, HUBER_K * setup.noise
+
+    def value(corners) -> float:
+        _, r, _, _ = problem.cost(corners, problem.model.evaluate(corners), k)
+        return float(np.sum(_huber(r, k)))
+    return value
+
+
 def _misfit_of(setup: _Setup, heights) -> np.ndarray:
     """The misfit (RMS over the detectors, per pixel) of pixel heights ``heights``."""
     problem = setup.problem

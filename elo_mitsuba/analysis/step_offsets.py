@@ -265,7 +265,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
         Each lifted part's step uncertainty (mm) on its pixels, NaN elsewhere.
     """
     from .height_model import corners_from_pixels
-    from .inversion import HUBER_K, NODES, _huber, _ScaleData, _set_up, upsample
+    from .inversion import NODES, data_term, upsample
     from .local_inversion import crop_geometry
     from .noise import local_chi2
 
@@ -296,20 +296,18 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
         def crop(d):
             return None if d is None else {n: np.asarray(d[n])[sl] for n in names}
 
-        data = _ScaleData(crop(images), crop(flats), crop(later), crop(flat_later), None, None)
+        data = [crop(d) for d in (images, flats)]
+        kw = dict(fwhm_mm=fwhm_mm, noise=noise, alpha=alpha, later=crop(later), flat_later=crop(flat_later),
+                  nodes=NODES if nodes is None else nodes)
 
         def objective_at(f):
             """The window's data term of background + s x part on a surface f times finer."""
-            setup = _set_up(data, sub, fwhm_mm=fwhm_mm, alpha=alpha, noise=noise, shadows=True,
-                            nodes=NODES if nodes is None else nodes, factor=f)
-            problem, k = setup.problem, HUBER_K * setup.noise
+            term = data_term(*data, sub, factor=f, **kw)
             shape = (sub.shape[0] * f, sub.shape[1] * f)
 
             def objective(background, part, s):
                 fine = upsample(background, f, shape) if f > 1 else background
-                g = corners_from_pixels(fine + s * np.kron(part, np.ones((f, f))))
-                _, r, _, _ = problem.cost(g, problem.model.evaluate(g), k)
-                return float(np.sum(_huber(r, k)))
+                return term(corners_from_pixels(fine + s * np.kron(part, np.ones((f, f)))))
             return objective
 
         part0 = _part(h, comp, band, level_in, level_out)
