@@ -20,17 +20,18 @@ has no derivative (:mod:`.height_model`). Here the offset of each floating part 
    facet per 0.2 mm pixel the ramp of a cliff spans two pixels and casts too short a shadow: on the
    stepped layer's truth the best-fitting step is then 0.2 mm too high). s runs over a grid of
    :data:`COARSE_STEPS` values within :data:`SPAN` times the current step either way, for each
-   boundary; the best is refined twice on facets of :data:`REFINE_FACET_MM`. A part is lifted only
-   if the best lift lowers the objective by more than :data:`MIN_GAIN` against the clean step at
-   its current height: where the images say nothing more about the step (a shadow shorter than a
-   pixel), the solve's step stays.
+   boundary; the best is refined twice on facets of :data:`REFINE_FACET_MM`. Where the coarser
+   facets find no better step (a shadow of about a pixel, which they blur), the grid is run once
+   more on the finer facets with the boundary found. A part is lifted only if the best lift lowers
+   the objective by more than :data:`MIN_GAIN` against the clean step at its current height: where
+   the images say nothing more about the step, the solve's step stays.
 
 Measured (validation/REPORT.md, row D2): steps of 0.5 and 1 mm come out within 1-9 %, against
 33-52 % recovered before; 0.1 and 0.2 mm steps (shadows of 0.1-0.25 mm at 0.2 mm pixels) are kept.
 
-A lifted step's uncertainty is how far the finer facets moved it (halving the facets halved the
-step's bias on the truth, so what is left is about half that); it replaces the floating part's
-100 % uncertainty in ``height_error`` (:func:`~.local_inversion.offset_errors`).
+A lifted step's uncertainty is how far the finer facets moved it, at least their width (halving
+the facets halved the step's bias on the truth: about one facet's width is left); it replaces the
+floating part's 100 % uncertainty in ``height_error`` (:func:`~.local_inversion.offset_errors`).
 
 What it cannot do: a step whose shadow falls on masked or unmeasured pixels, a part whose band does
 not close all round (it does not float), shadows shorter than about a pixel.
@@ -94,9 +95,9 @@ class StepOffset:
     status : str
         ``lifted`` or ``kept`` (no lift lowered the data term by :data:`MIN_GAIN`).
     error : float or None
-        A lifted step's uncertainty (mm): how far the finer facets moved it (at least the last
-        refinement's spacing); the heights of a kept part keep the floating part's error
-        (:func:`~.local_inversion.offset_errors`).
+        A lifted step's uncertainty (mm): how far the finer facets moved it, at least their width
+        (the bias a facet's width leaves); the heights of a kept part keep the floating part's
+        error (:func:`~.local_inversion.offset_errors`).
     seconds : float
     """
 
@@ -330,21 +331,38 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
                 best = (values[j], float(coarse[j]), part, background, p)
         value, s_best, part, background, p = best
         record.objective_before = objective(background, p, s0)  # the clean step at the solve's height
-        if value >= (1.0 - MIN_GAIN) * record.objective_before:
+        width = coarse[1] - coarse[0]
+        fine_factor = _factor(pixel, refine_facet_mm)
+        finer = fine_factor != _factor(pixel, facet_mm)
+        if value < (1.0 - MIN_GAIN) * record.objective_before:
+            # refined on the search's facets, then on facets of refine_facet_mm (a narrower wall
+            # casts a truer shadow); what the finer facets moved the step by bounds what facets
+            # finer still would (halving the facets halved the bias on the stepped layer's truth)
+            s_coarse, value = _refine(objective, background, p, s_best, width)
+            s_best = s_coarse
+            if finer:
+                objective = objective_at(fine_factor)
+                record.objective_before = objective(background, p, s0)
+                s_best, value = _refine(objective, background, p, s_coarse, width)
+        elif finer:
+            # a short shadow (a small step) the coarser facets blur: the coarse grid once more on
+            # the finer facets, with the boundary found
+            objective = objective_at(fine_factor)
+            record.objective_before = objective(background, p, s0)
+            values = [objective(background, p, v) for v in coarse]
+            j = int(np.argmin(values))
+            if values[j] < (1.0 - MIN_GAIN) * record.objective_before:
+                s_coarse = float(coarse[j])
+                s_best, value = _refine(objective, background, p, s_coarse, width)
+        if s_best == s0 or value >= (1.0 - MIN_GAIN) * record.objective_before:
             # the images say no more about the step than the solve did: kept
             record.objective_after = value
             record.seconds = time.perf_counter() - t1
             parts.append(record)
             continue
-        # refined on the search's facets, then on facets of refine_facet_mm (a narrower wall casts a
-        # truer shadow); what the finer facets moved the step by bounds what facets finer still
-        # would (halving the facets halved the bias on the stepped layer's truth)
-        width = coarse[1] - coarse[0]
-        s_coarse, _ = _refine(objective, background, p, s_best, width)
-        objective = objective_at(_factor(pixel, refine_facet_mm))
-        record.objective_before = objective(background, p, s0)
-        s_best, record.objective_after = _refine(objective, background, p, s_coarse, width)
-        record.error = max(abs(s_best - s_coarse), width / (2.0 * (FINE_STEPS - 1)))
+        record.objective_after = value
+        # a facet of width w biased the step by about w (0.2 mm facets: +0.2 mm, 0.1 mm: +0.1 mm)
+        record.error = max(abs(s_best - s_coarse), pixel / fine_factor)
         lifted = _clean_step(h, comp, band, part) + (s_best - s0) * part
         h[sl] = np.where(np.isfinite(lifted[sl]), lifted[sl], h[sl])
         error[part] = record.error
