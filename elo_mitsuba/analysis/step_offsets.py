@@ -334,6 +334,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
         width = coarse[1] - coarse[0]
         fine_factor = _factor(pixel, refine_facet_mm)
         finer = fine_factor != _factor(pixel, facet_mm)
+        s_coarse = None
         if value < (1.0 - MIN_GAIN) * record.objective_before:
             # refined on the search's facets, then on facets of refine_facet_mm (a narrower wall
             # casts a truer shadow); what the finer facets moved the step by bounds what facets
@@ -351,10 +352,11 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             record.objective_before = objective(background, p, s0)
             values = [objective(background, p, v) for v in coarse]
             j = int(np.argmin(values))
-            if values[j] < (1.0 - MIN_GAIN) * record.objective_before:
+            value = values[j]
+            if value < (1.0 - MIN_GAIN) * record.objective_before:
                 s_coarse = float(coarse[j])
                 s_best, value = _refine(objective, background, p, s_coarse, width)
-        if s_best == s0 or value >= (1.0 - MIN_GAIN) * record.objective_before:
+        if s_coarse is None or value >= (1.0 - MIN_GAIN) * record.objective_before:
             # the images say no more about the step than the solve did: kept
             record.objective_after = value
             record.seconds = time.perf_counter() - t1
