@@ -65,3 +65,20 @@ def test_a_part_whose_images_hold_its_step_is_kept(square_case):
     res = invert_heights(img, flat, geo, **dict(kw, start=truth, iterations=1))
     assert all(p.status != "lifted" or abs(p.step_after - step) < 0.1 * step for p in res.steps)
     assert abs(_step(res.height, inside, powder) - step) < 0.1 * step
+
+
+def test_a_step_whose_shadow_leaves_the_window_is_not_searched():
+    # a 5 mm plateau (the top of a hill cut off by masked slopes): its shadow at 40 degrees reaches
+    # 6 mm, beyond the window's 3.2 mm margin, so the search would measure nothing; reported, kept
+    from elo_mitsuba.analysis.step_offsets import search_offsets
+
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    h = np.zeros((N, N))
+    h[20:44, 20:44] = 5.0
+    misfit = np.full((N, N), 1e-3)
+    misfit[16:48, 16:48] = 1.0
+    misfit[22:42, 22:42] = 1e-3
+    flat = HeightModel(geo, shadows=False).images(np.zeros((N, N)))
+    out, parts, error = search_offsets(h, misfit, 1e-3, 2.0, flat, flat, geo, fwhm_mm=FWHM, noise=1e-3, alpha=1e-3)
+    assert [p.status for p in parts] == ["not searched (step beyond its window)"]
+    assert np.array_equal(out, h) and np.isnan(error).all()

@@ -63,7 +63,9 @@ REFINE_FACET_MM = 0.05
 BOUNDARY_MM = 0.2
 BOUNDARY_MOVES = 2
 #: The window of the search: the part and its band, and this much around them (mm; a 1 mm step's
-#: shadow and penumbra reach 2.4 mm at 40 degrees of elevation).
+#: shadow and penumbra reach 2.4 mm at 40 degrees of elevation). Steps whose shadow the margin
+#: cannot hold (MARGIN_MM x tan(the lowest detector's elevation): 2.7 mm at 40 degrees, 0.86 mm at
+#: 15) are not searched.
 MARGIN_MM = 3.2
 #: Half-width of the search grid: three times the current step either way (the solve recovers a
 #: third of a 1 mm step), at least this (mm).
@@ -75,6 +77,9 @@ COARSE_STEPS = 11
 FINE_STEPS = 5
 #: A lift is kept if it lowers the window's data term by more than this fraction.
 MIN_GAIN = 0.05
+#: At most this many facets per window: finer facets are given up first (a window of 100^2 pixels
+#: of 0.2 mm at 0.05 mm facets holds 160 000).
+MAX_FACETS = 160_000
 
 
 @dataclasses.dataclass
@@ -93,7 +98,8 @@ class StepOffset:
         The window's data term (Huber, corrected units squared) of the heights before and of the
         best lift (None: not searched).
     status : str
-        ``lifted`` or ``kept`` (no lift lowered the data term by :data:`MIN_GAIN`).
+        ``lifted``, ``kept`` (no lift lowered the data term by :data:`MIN_GAIN`), ``not searched
+        (step beyond its window)`` (:data:`MARGIN_MM`) or ``not searched (time budget)``.
     error : float or None
         A lifted step's uncertainty (mm): how far the finer facets moved it, at least their width
         (the bias a facet's width leaves); the heights of a kept part keep the floating part's
@@ -278,6 +284,8 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
     pixel = max(pixel_size(h.shape, geometry.field_mm))
     margin = int(np.ceil(MARGIN_MM / pixel))
     move = max(1, int(round(BOUNDARY_MM / pixel)))
+    elevation = min(np.arctan2(d.center[2], np.hypot(d.center[0], d.center[1])) for d in geometry.detectors.values())
+    max_step = MARGIN_MM * float(np.tan(elevation))
     parts = []
     for comp, band, ring in floating_parts(chi2, limit):
         t1 = time.perf_counter()
@@ -291,8 +299,14 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             record.status = "not searched (time budget)"
             parts.append(record)
             continue
+        window = (rows[1] - rows[0]) * (cols[1] - cols[0])
+        if abs(s0) > max_step:  # e.g. a hill's top that masked slopes cut off, seen from 15 degrees
+            record.status = "not searched (step beyond its window)"
+            parts.append(record)
+            continue
         sl = (slice(*rows), slice(*cols))
         sub = crop_geometry(geometry, rows, cols)
+        most = max(1, int(np.sqrt(MAX_FACETS / window)))
 
         def crop(d):
             return None if d is None else {n: np.asarray(d[n])[sl] for n in names}
@@ -313,9 +327,9 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
 
         part0 = _part(h, comp, band, level_in, level_out)
         span = max(SPAN * abs(s0), MIN_SPAN_MM)
-        coarse = s0 + np.linspace(-span, span, COARSE_STEPS)
+        coarse = np.linspace(max(s0 - span, -max_step), min(s0 + span, max_step), COARSE_STEPS)
         # the step and the part's boundary on the coarse grid, on facets of facet_mm
-        objective = objective_at(_factor(pixel, facet_mm))
+        objective = objective_at(min(_factor(pixel, facet_mm), most))
         best = (np.inf, s0, part0, None, None)
         for b in [0] + [move * v for a in range(1, BOUNDARY_MOVES + 1) for v in (-a, a)]:
             if abs(b) > move and best[0] >= (1.0 - MIN_GAIN) * clean0:
@@ -325,15 +339,15 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             p = part[sl].astype(float)
             values = [objective(background, p, s) for s in coarse]
             if b == 0:
-                clean0 = values[COARSE_STEPS // 2]  # the clean step at the solve's height
+                clean0 = objective(background, p, s0)  # the clean step at the solve's height
             j = int(np.argmin(values))
             if values[j] < best[0]:
                 best = (values[j], float(coarse[j]), part, background, p)
         value, s_best, part, background, p = best
         record.objective_before = objective(background, p, s0)  # the clean step at the solve's height
         width = coarse[1] - coarse[0]
-        fine_factor = _factor(pixel, refine_facet_mm)
-        finer = fine_factor != _factor(pixel, facet_mm)
+        fine_factor = min(_factor(pixel, refine_facet_mm), most)
+        finer = fine_factor != min(_factor(pixel, facet_mm), most)
         s_coarse = None
         if value < (1.0 - MIN_GAIN) * record.objective_before:
             # refined on the search's facets, then on facets of refine_facet_mm (a narrower wall
