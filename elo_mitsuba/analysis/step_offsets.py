@@ -174,21 +174,22 @@ def floating_parts(chi2, limit: float):
     return out
 
 
-def _clean_step(height, comp, band, part):
-    """``height`` with each band pixel replaced by its own side's nearest pixel outside the band
-    (the part's side: the component), less the step: (background, step)."""
+def _side_heights(height, comp, band):
+    """The height of each pixel's nearest pixel of the component, and of its nearest pixel outside
+    the component and the band: what a band pixel takes on either side of the cliff."""
     from scipy.ndimage import distance_transform_edt
 
-    inner = comp
-    outer = ~(comp | band)
-    _, (ia, ja) = distance_transform_edt(~inner, return_indices=True)
-    _, (ib, jb) = distance_transform_edt(~outer, return_indices=True)
-    clean = np.array(height, float)
-    sel = band & part
-    clean[sel] = height[ia, ja][sel]
-    sel = band & ~part
-    clean[sel] = height[ib, jb][sel]
-    return clean
+    _, (ia, ja) = distance_transform_edt(~comp, return_indices=True)
+    _, (ib, jb) = distance_transform_edt(comp | band, return_indices=True)
+    return height[ia, ja], height[ib, jb]
+
+
+def _clean_step(height, band, part, sides):
+    """``height`` with each band pixel replaced by its own side's nearest height outside the band
+    (``sides``, :func:`_side_heights`; the part's side is the component's): the ramp of the solve
+    becomes a clean step."""
+    inner, outer = sides
+    return np.where(band & part, inner, np.where(band & ~part, outer, height))
 
 
 def _factor(pixel_mm: float, facet_mm: float) -> int:
@@ -326,6 +327,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             return objective
 
         part0 = _part(h, comp, band, level_in, level_out)
+        sides = _side_heights(h, comp, band)
         span = max(SPAN * abs(s0), MIN_SPAN_MM)
         coarse = np.linspace(max(s0 - span, -max_step), min(s0 + span, max_step), COARSE_STEPS)
         # the step and the part's boundary on the coarse grid, on facets of facet_mm
@@ -335,7 +337,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             if abs(b) > move and best[0] >= (1.0 - MIN_GAIN) * clean0:
                 break  # neither the boundary as found nor one move either way lifts it: kept
             part = _moved(part0, comp, band, b)
-            background = (_clean_step(h, comp, band, part) - s0 * part)[sl]
+            background = (_clean_step(h, band, part, sides) - s0 * part)[sl]
             p = part[sl].astype(float)
             values = [objective(background, p, s) for s in coarse]
             if b == 0:
@@ -379,7 +381,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
         record.objective_after = value
         # a facet of width w biased the step by about w (0.2 mm facets: +0.2 mm, 0.1 mm: +0.1 mm)
         record.error = max(abs(s_best - s_coarse), pixel / fine_factor)
-        lifted = _clean_step(h, comp, band, part) + (s_best - s0) * part
+        lifted = _clean_step(h, band, part, sides) + (s_best - s0) * part
         h[sl] = np.where(np.isfinite(lifted[sl]), lifted[sl], h[sl])
         error[part] = record.error
         record.step_after, record.status = s_best, "lifted"
