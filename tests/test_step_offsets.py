@@ -82,3 +82,56 @@ def test_a_step_whose_shadow_leaves_the_window_is_not_searched():
     out, parts, error = search_offsets(h, misfit, 1e-3, 2.0, flat, flat, geo, fwhm_mm=FWHM, noise=1e-3, alpha=1e-3)
     assert [p.status for p in parts] == ["not searched (step beyond its window)"]
     assert np.array_equal(out, h) and np.isnan(error).all()
+
+
+def _floating_parts_whole_field(chi2, limit):
+    """floating_parts as first written: every growth dilates the whole field (the reference that
+    the bounding-box version must reproduce exactly)."""
+    from scipy.ndimage import binary_dilation, label
+
+    from elo_mitsuba.analysis.step_offsets import MIN_COMPONENT_PX, RING_PX
+
+    bad = chi2 > limit
+    labels, n = label(~bad)
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    reference = int(np.argmax(sizes))
+    out = []
+    for k in range(1, n + 1):
+        if k == reference or sizes[k] < MIN_COMPONENT_PX:
+            continue
+        comp = labels == k
+        grown, band, ring = comp, np.zeros_like(comp), np.zeros_like(comp)
+        for _ in range(4 * RING_PX):
+            nxt = binary_dilation(grown)
+            new = nxt & ~grown
+            band |= new & bad
+            ring |= new & ~bad & ~comp
+            grown = nxt
+            if ring.sum() >= min(sizes[k], 4 * RING_PX * RING_PX):
+                break
+        if ring.any():
+            out.append((comp, band, ring))
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_floating_parts_grown_in_a_box_are_those_grown_over_the_whole_field(seed):
+    """Rings of misfit of random size and width (some cut by the field's edge, some wider than the
+    growth reaches) around random parts: the same parts, bands and rings as the whole-field growth."""
+    from elo_mitsuba.analysis.step_offsets import floating_parts
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:300, 0:260].astype(float)
+    chi2 = np.ones(yy.shape)
+    for _ in range(9):
+        cy, cx = rng.uniform(-10, 310), rng.uniform(-10, 270)
+        r, w = rng.uniform(4, 40), rng.uniform(1, 60)
+        d = np.hypot(yy - cy, xx - cx)
+        chi2[(d > r) & (d < r + w)] = 9.0
+    got, want = floating_parts(chi2, 2.0), _floating_parts_whole_field(chi2, 2.0)
+    assert len(want) >= 3
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        for a, b in zip(g, w):
+            assert np.array_equal(a, b)

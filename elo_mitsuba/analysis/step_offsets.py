@@ -146,7 +146,7 @@ def floating_parts(chi2, limit: float):
     >>> [(int(c.sum()), bool(r[7, 20]), bool(b[10, 10])) for c, b, r in floating_parts(chi2, 2.0)]
     [(256, True, True)]
     """
-    from scipy.ndimage import binary_dilation, label
+    from scipy.ndimage import binary_dilation, find_objects, label
 
     bad = np.asarray(chi2) > limit
     labels, n = label(~bad)
@@ -155,22 +155,32 @@ def floating_parts(chi2, limit: float):
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
     reference = int(np.argmax(sizes))
+    grow = 4 * RING_PX
     out = []
-    for k in range(1, n + 1):
+    for k, box in enumerate(find_objects(labels), start=1):
         if k == reference or sizes[k] < MIN_COMPONENT_PX:
             continue
-        comp = labels == k
+        # the growth reaches at most `grow` pixels: a box that much larger than the component holds
+        # all of it (dilating the whole field instead took 47 s of a 1500^2 inversion)
+        sub = tuple(slice(max(s.start - grow - 1, 0), min(s.stop + grow + 1, size))
+                    for s, size in zip(box, bad.shape))
+        bad_k, comp = bad[sub], labels[sub] == k
         grown, band, ring = comp, np.zeros_like(comp), np.zeros_like(comp)
-        for _ in range(4 * RING_PX):
+        for _ in range(grow):
             nxt = binary_dilation(grown)
             new = nxt & ~grown
-            band |= new & bad
-            ring |= new & ~bad & ~comp
+            band |= new & bad_k
+            ring |= new & ~bad_k & ~comp
             grown = nxt
             if ring.sum() >= min(sizes[k], 4 * RING_PX * RING_PX):
                 break
         if ring.any():
-            out.append((comp, band, ring))
+            masks = []
+            for m in (comp, band, ring):
+                full = np.zeros(bad.shape, bool)
+                full[sub] = m
+                masks.append(full)
+            out.append(tuple(masks))
     return out
 
 
