@@ -75,6 +75,8 @@ MIN_SPAN_MM = 0.3
 #: (each halving the spacing, then a parabola through the best and its neighbours).
 COARSE_STEPS = 11
 FINE_STEPS = 5
+#: A moved boundary is tried only at the grid's steps within this many of the best so far.
+NEAR_STEPS = 2
 #: A lift is kept if it lowers the window's data term by more than this fraction.
 MIN_GAIN = 0.05
 #: At most this many facets per window: finer facets are given up first (a window of 100^2 pixels
@@ -349,12 +351,17 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             part = _moved(part0, comp, band, b)
             background = (_clean_step(h, band, part, sides) - s0 * part)[sl]
             p = part[sl].astype(float)
-            values = [objective(background, p, s) for s in coarse]
+            if b == 0:
+                grid = coarse
+            else:  # a moved boundary shifts the best step by less than a grid spacing or two
+                j = int(np.argmin(np.abs(coarse - best[1])))
+                grid = coarse[max(j - NEAR_STEPS, 0):j + NEAR_STEPS + 1]
+            values = [objective(background, p, s) for s in grid]
             if b == 0:
                 clean0 = objective(background, p, s0)  # the clean step at the solve's height
             j = int(np.argmin(values))
             if values[j] < best[0]:
-                best = (values[j], float(coarse[j]), part, background, p)
+                best = (values[j], float(grid[j]), part, background, p)
         value, s_best, part, background, p = best
         record.objective_before = objective(background, p, s0)  # the clean step at the solve's height
         width = coarse[1] - coarse[0]
