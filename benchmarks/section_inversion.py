@@ -73,9 +73,11 @@ def run(b):
                          f"{r['steps']} ({r['stopped']})", fmt(r["maxrss_gb"]),
                          f"{r['model_um']:.1f} → {r['inv_um']:.1f}", f"{r['floor_um']:.1f}"])
             b.facts[f"inversion_{surface}_{res}_s"] = r["total_s"]
+    from elo_mitsuba.analysis.inversion import UNCERTAINTY_PROBES
+
     return ("Each in a fresh process (renders not timed): the model gradient (the start), then the inversion "
-            "(`invert_heights`, defaults: its time includes the height_error, 4 noise draws propagated through the "
-            "solution), on images with the ATHENE beam blur (0.27 mm FWHM) and 1 % noise per "
+            f"(`invert_heights`, defaults: its time includes the local refinement, the step search and the "
+            f"height_error, {UNCERTAINTY_PROBES} noise draws propagated through the solution), on images with the ATHENE beam blur (0.27 mm FWHM) and 1 % noise per "
             "pixel. Height RMSE against the truth at the landing points (mean removed):\n\n"
             + table(["size", "surface", "model gradient (s)", "inversion (s)", "total (s)", "steps",
                      "peak memory (GB)", "height RMSE (µm): start → inverted", "height_error RMS (µm)"], rows))

@@ -26,8 +26,11 @@ stops when a step gains < --tol, after --iterations steps or after --time-budget
 Then, region by region: where the misfit averaged over 7x7 pixels exceeds what noise reaches, the
 region is re-inverted on its own (its edge held), and kept only if it fits better than both the
 field's solve and the start (a pore or a bump on a layer that fits to the noise as a whole;
---no-local skips it). A cliff is not recovered (12-62 % of steps of 0.1-1 mm at 0.2 mm pixels):
-the parts it cuts off are marked floating, their error bar holds the offset.
+--no-local skips it). Slopes recover only 12-62 % of a cliff of 0.1-1 mm (0.2 mm pixels): each
+part a cliff cuts off (floating) is then lifted as a whole to the step its shadow shows (on the
+stepped layer of row D2 the 0.2-1 mm steps within 1-11 %, each with its uncertainty; the summary
+lists them); a part whose shadow says no more (0.1 mm: half a pixel) keeps its step, and its error
+bar holds the offset.
 
 Where it wins (validation/REPORT.md, rows I1-I5; 0.27 mm beam blur, 1 % noise): steep relief,
 masked and shadowed pixels (a per-pixel fit must drop them; here the model predicts them): height
