@@ -412,3 +412,32 @@ def test_relative_noise_tells_object_and_flat_apart(sigma_object, sigma_flat):
     assert sf == pytest.approx(sigma_flat, rel=0.05)
     ratio = np.stack([obj[n] / flat[n] for n in obj])
     assert np.hypot(so, sf) == pytest.approx(estimate_noise(ratio, np.ones_like(ratio)), rel=0.05)
+
+
+@pytest.mark.parametrize("block", [4, 8, 16])
+def test_the_shadow_march_skips_only_what_no_surface_can_block(block, monkeypatch):
+    """The march skips a block's width where the ray is above the highest height of the 3 x 3
+    blocks around it (height_model.SKIP_BLOCK_PX): with a raised plateau of 1 mm, walls one pixel
+    thin and 0.6 mm high, and roughness, on 0.05 mm pixels (a 1500^2 scan's), its shadows are
+    those of the march by the slope bound alone but for rays that graze a thin wall between two
+    samples (61, 39 and 0 of 69 446 shadowed rays for blocks of 4, 8 and 16 pixels; a dense march
+    sides with the skipping one on 60-72 % of them). Skips of a length other than a whole number of
+    steps met or missed the thin walls by chance: 1099 rays differed."""
+    import elo_mitsuba.analysis.height_model as hm
+
+    n = 160
+    geo = ScanGeometry.nominal((n, n), 0.05 * n, 100.0, 150.0)
+    rng = np.random.default_rng(3)
+    h = 0.01 * rng.standard_normal((n, n))
+    h[40:90, 30:100] += 1.0
+    h[120, 20:140] += 0.6
+    h[20:150, 130] += 0.6
+    model = HeightModel(geo)
+    points, nodes = model.landing_points(h), model.facets.node_positions()
+    monkeypatch.setattr(hm, "SKIP_BLOCK_PX", 0)
+    plain = hm.visibility(geo, h, points, nodes)
+    monkeypatch.setattr(hm, "SKIP_BLOCK_PX", block)
+    skipping = hm.visibility(geo, h, points, nodes)
+    shadowed = int((~plain).sum())
+    assert shadowed > 0.02 * plain.size                     # the case has shadows to lose
+    assert int((plain != skipping).sum()) <= 0.002 * shadowed

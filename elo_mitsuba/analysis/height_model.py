@@ -56,6 +56,12 @@ _CORNER = {"tl": (0, 0), "tr": (0, 1), "bl": (1, 0), "br": (1, 1)}  # (row, colu
 #: stepped over); most steps per ray.
 SHADOW_STEP_PX = 0.5
 MAX_SHADOW_STEPS = 4096
+#: Blocks (pixels) of the shadow march's height bound: a ray above the highest height of the 3 x 3
+#: blocks around it skips a block's width at once (0: the global slope bound alone). Rays rise
+#: towards the detectors, so they cannot meet the surface within that neighbourhood. A cliff makes
+#: the slope bound useless (a 1 mm wall in one 0.053 mm pixel: 19): lifting 0.7 mm of a 1500^2 field
+#: took the march from 0.5 to 2.5 s, and 0.45 s with blocks of 8 pixels.
+SKIP_BLOCK_PX = 8
 #: A beam FWHM below this many pixels is not convolved (the Gaussian would be a delta on the grid).
 MIN_BLUR_PX = 0.25
 
@@ -240,6 +246,21 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
     gx = np.abs(np.diff(h, axis=1)).max(initial=0.0) / dx
     gy = np.abs(np.diff(h, axis=0)).max(initial=0.0) / dy
     bound = 1.01 * float(np.hypot(gx, gy)) + 1e-6
+    # the highest height of each block and its 8 neighbours (bilinear cells reach no higher than
+    # their corners): a rising ray above it cannot meet the surface within a block's width
+    block = int(SKIP_BLOCK_PX)
+    if block > 0:
+        from scipy.ndimage import maximum_filter
+
+        nbr, nbc = -(-n_rows // block), -(-n_cols // block)
+        padded = np.full((nbr * block, nbc * block), -np.inf)
+        padded[:n_rows, :n_cols] = h
+        local = maximum_filter(padded.reshape(nbr, block, nbc, block).max(axis=(1, 3)), size=3, mode="nearest")
+        tex_max = mi.Float(np.ascontiguousarray(local, np.float32).ravel())
+        # (block - 1) pixels of the finer axis, less the perspective's magnification, keep the ray
+        # within the 3 x 3 blocks; a whole number of steps keeps its samples where the march
+        # without the skip puts them (else a wall one pixel thin is met or missed by chance)
+        block_mm = step * np.floor((block - 1) * min(dx, dy) * (1.0 - max(top, 0.0) * inv_wd) / step)
     for k in range(targets.shape[0]):
         for j in range(targets.shape[1]):
             # opaque: one kernel for every target (literals would compile one each)
@@ -262,6 +283,10 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
                 gap = wz - height_at(row, col)
                 hit = inside & (gap < 0)
                 skip = dr.maximum(step, gap / (bound - slope))
+                if block > 0:
+                    b = (UInt32(dr.clip(dr.floor(row * (1.0 / block)), 0, nbr - 1)) * nbc
+                         + UInt32(dr.clip(dr.floor(col * (1.0 / block)), 0, nbc - 1)))
+                    skip = dr.select(wz > dr.gather(Float, tex_max, b), dr.maximum(skip, block_mm), skip)
                 # leaving the grid ends the march: what lies beyond is not known (counted clear)
                 return dr.select(inside, d + skip, MAX_SHADOW_STEPS * step), blocked | hit
 
