@@ -84,6 +84,32 @@ def test_a_step_whose_shadow_leaves_the_window_is_not_searched():
     assert np.array_equal(out, h) and np.isnan(error).all()
 
 
+
+def test_an_island_smaller_than_a_part_is_not_searched():
+    # islands of trusted pixels that bands of misfit cut off, as on steep slopes, on 0.05 mm pixels:
+    # the part the misfit leaves of a 1 x 1 mm island (its core, less the misfit window's reach) is
+    # too small to be a part beside powder: reported, kept; that of a 1.5 x 1.5 mm one is searched
+    from elo_mitsuba.analysis.step_offsets import MIN_PART_MM2, search_offsets
+
+    geo = ScanGeometry.nominal((N, N), 0.05 * N, 100.0, 150.0)
+    flat = HeightModel(geo, shadows=False).images(np.zeros((N, N)))
+    statuses = []
+    for side in (20, 30):
+        a, b = 32 - side // 2, 32 + side // 2
+        h = np.zeros((N, N))
+        h[a:b, a:b] = 0.2
+        misfit = np.full((N, N), 1e-3)
+        misfit[a - 8:b + 8, a - 8:b + 8] = 1.0
+        misfit[a:b, a:b] = 1e-3
+        out, parts, error = search_offsets(h, misfit, 1e-3, 2.0, flat, flat, geo, fwhm_mm=FWHM, noise=1e-3,
+                                           alpha=1e-3)
+        assert len(parts) == 1
+        statuses.append((parts[0].status, parts[0].pixels * 0.05 ** 2))
+        if parts[0].status.startswith("not searched"):
+            assert np.array_equal(out, h) and np.isnan(error).all()
+    assert statuses[0][0] == "not searched (smaller than MIN_PART_MM2)" and statuses[0][1] < MIN_PART_MM2
+    assert not statuses[1][0].startswith("not searched") and statuses[1][1] >= MIN_PART_MM2
+
 def _floating_parts_whole_field(chi2, limit):
     """floating_parts as first written: every growth dilates the whole field (the reference that
     the bounding-box version must reproduce exactly)."""
