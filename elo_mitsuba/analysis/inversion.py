@@ -426,17 +426,23 @@ def height_uncertainty(eq: _NormalEquations, sigma: float, probes: int, cg_itera
     from concurrent.futures import ThreadPoolExecutor
 
     rng = np.random.default_rng(seed)
-    draws = [rng.standard_normal(eq.problem.c.shape) for _ in range(int(probes))]
+    n = int(probes)
 
     def propagated(z):
         dh = eq.problem.scan_heights(eq.solve(eq.data_rhs(sigma * eq.problem.w * z), cg_iterations))
         return (dh - dh.mean()) ** 2
 
     # the probes are independent solves whose numpy work releases the GIL: on two cores four probes
-    # at 1500^2 took 20.9 s in four threads and 38.6 s in one, with identical results
-    with ThreadPoolExecutor(max(1, min(len(draws), os.cpu_count() or 1, MAX_PROBE_THREADS))) as pool:
-        acc = sum(pool.map(propagated, draws), np.zeros(eq.problem.c.shape[1:]))
-    return np.sqrt(acc / max(int(probes), 1))
+    # at 1500^2 took 20.9 s in four threads and 38.6 s in one, with identical results; drawn and
+    # summed in order, as many at a time as there are threads (a draw is 72 MB at 1500^2)
+    threads = max(1, min(n, os.cpu_count() or 1, MAX_PROBE_THREADS))
+    acc = np.zeros(eq.problem.c.shape[1:])
+    with ThreadPoolExecutor(threads) as pool:
+        for first in range(0, n, threads):
+            draws = [rng.standard_normal(eq.problem.c.shape) for _ in range(min(threads, n - first))]
+            for term in pool.map(propagated, draws):
+                acc += term
+    return np.sqrt(acc / max(n, 1))
 
 
 # ---- start and solver ---------------------------------------------------------------------------
