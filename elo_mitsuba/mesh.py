@@ -190,14 +190,92 @@ def _add_walls_and_base(vertices, faces, idx, base):
     return vertices, faces
 
 
+# --- PLY files ----------------------------------------------------------------------------------------
+#: Largest vertex count whose face indices Mitsuba 3 (3.9) reads exactly when the PLY stores them as a
+#: signed type (``int``): its loader converts those through float32, which rounds every index above
+#: 2**24 (16777217 -> 16777216) and so joins triangles to the wrong vertices, silently. Indices stored
+#: as ``uint`` (what :func:`write_mesh` writes) are copied exactly. A 1500^2 scan's mesh at three
+#: facets per pixel has 22.3 M vertices (tests/test_mesh_ply.py shows both).
+EXACT_SIGNED_INDICES = 1 << 24
+
+def ply_header(path) -> dict:
+    """The element counts and the face index type of a PLY file, from its header alone.
+
+    Returns
+    -------
+    dict
+        ``format`` (``ascii``, ``binary_little_endian``, ...), ``vertices`` and ``faces`` (counts,
+        0 when absent) and ``index_type`` (the scalar type of the face list's indices, ``None``
+        without faces).
+
+    Raises :class:`EloInputError` naming the file when it has no PLY header.
+    """
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    if not head.startswith(b"ply") or b"end_header" not in head:
+        raise EloInputError(f"mesh file {path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    out = {"format": None, "vertices": 0, "faces": 0, "index_type": None}
+    element = None
+    for line in head[:head.index(b"end_header")].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "format":
+            out["format"] = words[1]
+        elif len(words) == 3 and words[0] == "element":
+            element = words[1]
+            if element in ("vertex", "face") and words[2].isdigit():
+                out["vertices" if element == "vertex" else "faces"] = int(words[2])
+        elif len(words) == 5 and words[:2] == ["property", "list"] and element == "face":
+            out["index_type"] = words[3]
+    return out
+
+
+def check_ply_indices(path) -> None:
+    """Refuse, in one line, a PLY file whose face indices Mitsuba would read wrongly
+    (:data:`EXACT_SIGNED_INDICES`); rewriting it with :func:`write_mesh` (``elo-mitsuba mesh``)
+    stores them as ``uint``."""
+    h = ply_header(path)
+    if h["vertices"] > EXACT_SIGNED_INDICES and h["index_type"] not in ("uint", "uint32"):
+        raise EloInputError(
+            f"mesh file {path}: {h['vertices']} vertices with face indices of type {h['index_type']!r}; Mitsuba "
+            f"reads such indices through float32 and corrupts every one above {EXACT_SIGNED_INDICES} (2^24): "
+            "store them as 'uint' (elo_mitsuba.mesh.write_mesh does) or use fewer vertices")
+
+
 def write_mesh(mesh, path, *, overwrite: bool = False) -> Path:
-    """Write ``mesh`` as binary little-endian PLY (positions and triangles only, no normals).
+    """Write ``mesh`` as binary little-endian PLY: float32 positions and triangles with ``uint``
+    (uint32) indices, no normals, no other attributes.
+
+    The indices are unsigned because Mitsuba reads signed ones through float32
+    (:data:`EXACT_SIGNED_INDICES`).
 
     Raises :class:`EloInputError` if ``path`` does not end in ``.ply``, its folder does not exist,
     or it exists and ``overwrite`` is false.
-    """
-    from trimesh.exchange.ply import export_ply
 
+    Examples
+    --------
+    >>> import tempfile, trimesh
+    >>> from pathlib import Path
+    >>> tri = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0]], faces=[[0, 1, 2]], process=False)
+    >>> p = write_mesh(tri, Path(tempfile.mkdtemp()) / "t.ply")
+    >>> ply_header(p)["index_type"], ply_header(p)["faces"]
+    ('uint', 1)
+    """
     path = check_output(path, (".ply",), overwrite=overwrite)
-    data = export_ply(mesh, encoding="binary", vertex_normal=False, include_attributes=False)
-    return atomic_write(path, lambda tmp: tmp.write_bytes(data))
+    vertices = np.ascontiguousarray(mesh.vertices, dtype="<f4")
+    faces = np.asarray(mesh.faces)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise EloInputError(f"{path}: face indices outside 0..{len(vertices) - 1}")
+    rows = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<u4", (3,))])
+    rows["n"] = 3
+    rows["i"] = faces
+    header = ("ply\nformat binary_little_endian 1.0\ncomment elo-mitsuba write_mesh\n"
+              f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar uint vertex_indices\nend_header\n").encode("ascii")
+
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            f.write(header)
+            f.write(vertices.tobytes())
+            f.write(rows.tobytes())
+
+    return atomic_write(path, write)

@@ -19,6 +19,7 @@ from typing import Mapping
 from .constants import DEFAULT_MATERIAL, TABLE1_LAYOUTS
 from .errors import EloInputError
 from .files import atomic_write, check_output
+from .mesh import check_ply_indices
 
 
 def scenes_dir() -> Path:
@@ -91,8 +92,9 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> N
 
 
 def _check_ply(path: Path, node, known: Mapping) -> None:
-    """A ``<shape type="ply">`` whose file is missing or not a PLY: say which file, in one line
-    (Mitsuba's own message on binary garbage is a UTF-8 decode error)."""
+    """A ``<shape type="ply">`` whose file is missing, not a PLY, or one whose indices Mitsuba would
+    corrupt (:func:`~elo_mitsuba.mesh.check_ply_indices`): say which file, in one line (Mitsuba's own
+    message on binary garbage is a UTF-8 decode error; on the indices it says nothing)."""
     for child in node:
         if child.tag == "string" and child.get("name") == "filename" and child.get("value"):
             name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), child.get("value"))
@@ -101,10 +103,10 @@ def _check_ply(path: Path, node, known: Mapping) -> None:
             mesh = path.parent / name
             if not mesh.is_file():
                 raise EloInputError(f"{path}: mesh file {name!r} not found (relative to {path.parent})")
-            with open(mesh, "rb") as f:
-                head = f.read(4096)
-            if not head.startswith(b"ply") or b"end_header" not in head:
-                raise EloInputError(f"{path}: mesh file {mesh} is not a PLY file (no 'ply' ... 'end_header' header)")
+            try:
+                check_ply_indices(mesh)
+            except EloInputError as e:
+                raise EloInputError(f"{path}: {e}") from None
 
 
 def _refuse_value_without_file(path: Path, pattern: str, values: Mapping) -> None:
