@@ -198,6 +198,7 @@ def _add_walls_and_base(vertices, faces, idx, base):
 #: facets per pixel has 22.3 M vertices (tests/test_mesh_ply.py shows both).
 EXACT_SIGNED_INDICES = 1 << 24
 
+
 def ply_header(path) -> dict:
     """The element counts and the face index type of a PLY file, from its header alone.
 
@@ -231,8 +232,8 @@ def ply_header(path) -> dict:
 
 def check_ply_indices(path) -> None:
     """Refuse, in one line, a PLY file whose face indices Mitsuba would read wrongly
-    (:data:`EXACT_SIGNED_INDICES`); rewriting it with :func:`write_mesh` (``elo-mitsuba mesh``)
-    stores them as ``uint``."""
+    (:data:`EXACT_SIGNED_INDICES`); :func:`write_mesh` (and so ``elo-mitsuba mesh``) stores them as
+    ``uint``: ``write_mesh(trimesh.load(path), new_path)`` re-saves such a file."""
     h = ply_header(path)
     if h["vertices"] > EXACT_SIGNED_INDICES and h["index_type"] not in ("uint", "uint32"):
         raise EloInputError(
