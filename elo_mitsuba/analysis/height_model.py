@@ -48,6 +48,7 @@ from ..errors import EloInputError
 from ..grid import pixel_size
 from ..schema import fwhm_to_sigma
 from .detector_model import DEFAULT_NODES, FacetModel
+from .grid_kernels import GridKernels
 
 #: The stencil of one pixel's facet: its four corners (top = the +y side, row i of the corner grid).
 STENCIL = ("tl", "tr", "bl", "br")
@@ -312,12 +313,15 @@ class Linearisation:
     visible : ndarray of bool (K, J, H, W) or None
         The shadowing held fixed: True where the surface lets the landing point see node j of
         detector k's disc rule (None: no shadowing modelled).
+    partials_dr : list or None
+        ``partials`` as Dr.Jit arrays (4 lists of K Floats of H * W), what the Jacobian's products use.
     """
 
     sharp: np.ndarray
     images: np.ndarray
     partials: np.ndarray | None
     visible: np.ndarray | None
+    partials_dr: list | None = None
 
 
 class HeightModel:
@@ -363,6 +367,7 @@ class HeightModel:
         self._aim = (ax, ay)
         _, dirs = geometry.beam(None)  # the beam's direction does not depend on where it lands
         mi = self.facets.mi
+        self.kernels = GridKernels(self.shape, self.sigma_px)
         self._dirs = mi.Vector3f(*[mi.Float(np.ascontiguousarray(dirs[..., c], np.float32).ravel()) for c in range(3)])
 
     # -- pieces --
@@ -380,8 +385,9 @@ class HeightModel:
         return mi.Point3f(x, y, h)
 
     def _sharp(self, g, visible, derivatives: bool):
-        """1st event (K, H, W) of the corner heights ``g`` and, with ``derivatives``, its partials
-        (4, K, H, W) with respect to each pixel's corners: one forward-mode AD pass per corner."""
+        """1st event (K Floats of H * W) of the corner heights ``g`` and, with ``derivatives``, its
+        partials with respect to each pixel's corners (4 lists, :data:`STENCIL` order, of K Floats):
+        one forward-mode AD pass per corner."""
         facets = self.facets
         mi, dr = facets.mi, facets.dr
         dx, dy = pixel_size(self.shape, self.geometry.field_mm)
@@ -408,23 +414,20 @@ class HeightModel:
             sig = facets.signals(self._landing_dr(h_c, *centre), self._dirs, [n], visible=vis)[0]
             return [v_s * gain for v_s, gain in zip(sig, gains)]
 
-        k, shape = len(self.names), self.shape
         values = evaluate(hs)
         dr.eval(values)
-        sharp = np.stack([np.asarray(v, np.float32).reshape(shape) for v in values])
         if not derivatives:
-            return sharp, None
-        partials = np.empty((len(STENCIL), k) + shape, np.float32)
-        for m, c in enumerate(STENCIL):
+            return values, None
+        partials = []
+        for c in STENCIL:
             hv = {key: mi.Float(v) for key, v in hs.items()}
             dr.enable_grad(hv[c])
             out = evaluate(hv)
             dr.forward(hv[c])
-            grads = [dr.grad(o) for o in out]
+            grads = [dr.detach(dr.grad(o)) for o in out]
             dr.eval(grads)
-            for kk, gr in enumerate(grads):
-                partials[m, kk] = np.asarray(gr, np.float32).reshape(shape)
-        return sharp, partials
+            partials.append(grads)
+        return values, partials
 
     # -- public --
     def evaluate(self, corners, *, derivatives: bool = False, visible=None) -> Linearisation:
@@ -443,9 +446,13 @@ class HeightModel:
                 visible = visibility(self.geometry, h, self.landing_points(h), self.facets.node_positions())
             else:
                 visible = None
-        sharp, partials = self._sharp(g, visible, derivatives)
-        images = np.stack([blur(v, self.sigma_px) for v in sharp]) + self.later
-        return Linearisation(sharp=sharp, images=images, partials=partials, visible=visible)
+        values, partials_dr = self._sharp(g, visible, derivatives)
+        shape = self.shape
+        sharp = np.stack([np.asarray(v, np.float32).reshape(shape) for v in values])
+        images = np.stack([np.asarray(v, np.float32).reshape(shape) for v in self.kernels.blur(values)]) + self.later
+        partials = None if partials_dr is None else np.stack(
+            [np.stack([np.asarray(v, np.float32).reshape(shape) for v in per]) for per in partials_dr])
+        return Linearisation(sharp=sharp, images=images, partials=partials, visible=visible, partials_dr=partials_dr)
 
     def images(self, heights) -> dict[str, np.ndarray]:
         """The model images by detector name, each (H, W) float64, for pixel heights ``heights``
@@ -456,15 +463,41 @@ class HeightModel:
         lin = self.evaluate(g)
         return {n: lin.images[k].astype(np.float64) for k, n in enumerate(self.names)}
 
+    def _partials_dr(self, lin: Linearisation) -> list:
+        if lin.partials_dr is None:  # a linearisation built elsewhere: its numpy partials
+            mi = self.facets.mi
+            lin.partials_dr = [[mi.Float(np.ascontiguousarray(a, np.float32).ravel()) for a in per]
+                               for per in lin.partials]
+        return lin.partials_dr
+
+    def jacobian_dr(self, lin: Linearisation, dg) -> list:
+        """d images . dg in Dr.Jit: K Floats of H * W for a change ``dg`` of the corner heights
+        (Float of (H + 1) * (W + 1)), shadowing held fixed."""
+        partials = self._partials_dr(lin)
+        at = self.kernels.corners(dg)
+        dsharp = [sum(partials[m][kk] * at[m] for m in range(len(STENCIL))) for kk in range(len(self.names))]
+        return self.kernels.blur(dsharp)
+
+    def jacobian_t_dr(self, lin: Linearisation, v: list):
+        """The transpose of :meth:`jacobian_dr`: a Float of (H + 1) * (W + 1) for image-space weights
+        ``v`` (K Floats of H * W)."""
+        partials = self._partials_dr(lin)
+        bv = self.kernels.blur(v)
+        per_corner = [sum(partials[m][kk] * bv[kk] for kk in range(len(self.names))) for m in range(len(STENCIL))]
+        self.facets.dr.eval(per_corner)
+        return self.kernels.corners_t(per_corner)
+
     def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
         """d images . dg: (K, H, W) for a change ``dg`` of the corner heights, shadowing held fixed."""
-        dsharp = sum(lin.partials[m] * corner(dg, c) for m, c in enumerate(STENCIL))
-        return np.stack([blur(d, self.sigma_px) for d in dsharp])
+        mi = self.facets.mi
+        out = self.jacobian_dr(lin, mi.Float(np.ascontiguousarray(dg, np.float32).ravel()))
+        return np.stack([np.asarray(o, np.float32).reshape(self.shape) for o in out]).astype(float)
 
     def apply_jacobian_t(self, lin: Linearisation, v) -> np.ndarray:
         """The transpose of :meth:`apply_jacobian`: (H + 1, W + 1) for image-space weights ``v`` (K, H, W)."""
-        bv = np.stack([blur(x, self.sigma_px) for x in v])
-        return sum(corner_t(np.sum(lin.partials[m] * bv, axis=0), c) for m, c in enumerate(STENCIL))
+        mi = self.facets.mi
+        out = self.jacobian_t_dr(lin, [mi.Float(np.ascontiguousarray(x, np.float32).ravel()) for x in v])
+        return np.asarray(out, np.float32).reshape(self.shape[0] + 1, self.shape[1] + 1).astype(float)
 
 
 def sub_pixel_fwhm(fwhm_mm: float, pixel_mm: float, factor: int) -> float:
@@ -548,6 +581,14 @@ class SuperResolvedModel:
         lin = self.fine.evaluate(corners, derivatives=derivatives, visible=visible)
         lin.images = sub_pixel_mean(lin.images, self.factor) + self.later
         return lin
+
+    def jacobian_dr(self, lin: Linearisation, dg) -> list:
+        """d images . dg on the scan grid (K Floats) for a change ``dg`` of the fine corners (a Float)."""
+        return self.fine.kernels.sub_pixel_mean(self.fine.jacobian_dr(lin, dg), self.factor)
+
+    def jacobian_t_dr(self, lin: Linearisation, v: list):
+        """The transpose of :meth:`jacobian_dr`: the fine corners (a Float) from scan-grid weights ``v``."""
+        return self.fine.jacobian_t_dr(lin, self.fine.kernels.sub_pixel_spread(v, self.factor))
 
     def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
         """d images . dg on the scan grid for a change ``dg`` of the fine corners."""
