@@ -55,7 +55,7 @@ from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
 from .noise import MIN_FLAT, estimate_noise, local_chi2
-from .height_model import (HeightModel, SuperResolvedModel, corners_from_pixels, neighbour, neighbour_t,
+from .height_model import (HeightModel, SuperResolvedModel, corners_from_pixels,
                            pixels_from_corners)
 
 #: Disc rule of the model: its 16 nodes also resolve a disc's partial shadowing (the RMS
@@ -235,13 +235,25 @@ class InversionResult:
 
 # ---- the objective ------------------------------------------------------------------------------
 def _second_differences(h):
-    return (neighbour(h, "left") + neighbour(h, "right") - 2.0 * h,
-            neighbour(h, "up") + neighbour(h, "down") - 2.0 * h)
+    """Second differences along columns and rows; 0 on the border (the neighbour beyond it is
+    extrapolated linearly, :func:`~.height_model.neighbour`, so the border is straight)."""
+    lx, ly = np.zeros_like(h), np.zeros_like(h)
+    lx[:, 1:-1] = h[:, :-2] + h[:, 2:] - 2.0 * h[:, 1:-1]
+    ly[1:-1] = h[:-2] + h[2:] - 2.0 * h[1:-1]
+    return lx, ly
 
 
 def _second_differences_t(vx, vy):
-    return (neighbour_t(vx, "left") + neighbour_t(vx, "right") - 2.0 * vx
-            + neighbour_t(vy, "up") + neighbour_t(vy, "down") - 2.0 * vy)
+    """The transpose of :func:`_second_differences` (the border's values do not enter)."""
+    out = np.zeros_like(vx)
+    ix, iy = vx[:, 1:-1], vy[1:-1]
+    out[:, :-2] += ix
+    out[:, 2:] += ix
+    out[:, 1:-1] -= 2.0 * ix
+    out[:-2] += iy
+    out[2:] += iy
+    out[1:-1] -= 2.0 * iy
+    return out
 
 
 def _huber(r, k):
