@@ -124,3 +124,10 @@ def test_gauss_newton_products_against_numpy(mi):
     assert np.max(np.abs(eq.apply(v) - ref)) < 10 * F32 * np.max(np.abs(ref))
     ref_rhs = jac_t(gain * wt * project(r))
     assert np.max(np.abs(eq.data_rhs(r) - ref_rhs)) < 10 * F32 * np.max(np.abs(ref_rhs))
+
+    # the projection does not depend on m's scale: faint model images (m ~ 1e-25, m^2 below float32's
+    # range) give the same products, not NaN
+    faint = inv._NormalEquations(problem, lin, s, m * 1e-25, weights)
+    got = faint.apply(v)
+    assert np.all(np.isfinite(got))
+    assert np.max(np.abs(got - ref)) < 10 * F32 * np.max(np.abs(ref))

@@ -374,10 +374,12 @@ class _NormalEquations:
         self._mi = ensure_variant()
         self._corner_shape = corners
         self._g = self._to_dr(np.broadcast_to(self.g, m.shape))
-        self._m = self._to_dr(m)
-        self._wt_m = self._to_dr(self.wt * m)
+        # m normalised per pixel (sum_k W m^2 = 1): the projection m (m^T W u) / (m^T W m) without a
+        # 1 / (m^T W m) that float32 cannot hold where the model's images are faint
+        m_unit = m / np.sqrt(self.wmm)
+        self._m = self._to_dr(m_unit)
+        self._wt_m = self._to_dr(self.wt * m_unit)
         self._gw = self._to_dr(self.g * self.wt)
-        self._inv_wmm = self._mi.Float(np.ascontiguousarray(1.0 / self.wmm, np.float32).ravel())
 
     def _to_dr(self, a) -> list:
         mi = self._mi
@@ -385,7 +387,7 @@ class _NormalEquations:
 
     def _weighted_projection(self, u: list) -> list:
         """g W (u - m (m^T W u) / (m^T W m)) per pixel, in Dr.Jit (K Floats)."""
-        along = sum(wm * x for wm, x in zip(self._wt_m, u)) * self._inv_wmm
+        along = sum(wm * x for wm, x in zip(self._wt_m, u))
         return [gw * (x - m * along) for gw, m, x in zip(self._gw, self._m, u)]
 
     def _corners_np(self, c) -> np.ndarray:
