@@ -10,7 +10,7 @@ import pytest
 
 from elo_mitsuba.analysis.detector_model import model_images
 from elo_mitsuba.analysis.height_model import (
-    STENCIL, HeightModel, blur, corner, corner_mean, corner_t, corners_from_pixels, neighbour, neighbour_t,
+    STENCIL, HeightModel, blur, corner, corner_mean, corner_t, corners_from_pixels,
 )
 from elo_mitsuba.analysis.inversion import NODES, invert_heights, start_heights
 from elo_mitsuba.analysis.model_gradient import model_gradient
@@ -42,12 +42,15 @@ def _render(scene, layout, quality="default"):
 
 
 def test_linear_maps_and_their_transposes():
-    """<A x, y> = <x, A^T y> for the stencil maps, the corner maps and the beam blur; a plane's
+    """<A x, y> = <x, A^T y> for the regulariser's second differences, the corner maps and the beam blur; a plane's
     corners from its pixel heights are the plane's."""
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(2, 9, 13))
-    for side in ("left", "right", "up", "down"):
-        assert abs(np.sum(neighbour(a, side) * b) - np.sum(a * neighbour_t(b, side))) < 1e-12
+    from elo_mitsuba.analysis.inversion import _second_differences, _second_differences_t
+
+    c = rng.normal(size=(9, 13))
+    lx, ly = _second_differences(a)  # the regulariser's maps
+    assert abs(np.sum(lx * b) + np.sum(ly * c) - np.sum(a * _second_differences_t(b, c))) < 1e-12
     g = rng.normal(size=(10, 14))
     for c in STENCIL:
         assert abs(np.sum(corner(g, c) * b) - np.sum(g * corner_t(b, c))) < 1e-12

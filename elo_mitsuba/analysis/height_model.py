@@ -68,42 +68,6 @@ MIN_BLUR_PX = 0.25
 
 
 # ---- the stencil, as linear maps of the height array (and their transposes) ----------------------
-def neighbour(h, side: str) -> np.ndarray:
-    """Heights of each pixel's neighbour on ``side`` (left/right along columns, up/down along rows:
-    up is row i - 1, the +y side), extrapolated linearly beyond the border."""
-    if side == "centre":
-        return h
-    axis = 1 if side in ("left", "right") else 0
-    sign = -1 if side in ("left", "up") else 1
-    out = np.roll(h, -sign, axis=axis)
-    edge = 0 if sign < 0 else -1
-    inner = 1 if sign < 0 else -2
-    sl_e = [slice(None)] * 2
-    sl_i = [slice(None)] * 2
-    sl_e[axis], sl_i[axis] = edge, inner
-    out[tuple(sl_e)] = 2.0 * h[tuple(sl_e)] - h[tuple(sl_i)]
-    return out
-
-
-def neighbour_t(v, side: str) -> np.ndarray:
-    """The transpose of :func:`neighbour`: sum_ij v_ij * neighbour(h)_ij = sum_ij neighbour_t(v)_ij h_ij."""
-    if side == "centre":
-        return v
-    axis = 1 if side in ("left", "right") else 0
-    sign = -1 if side in ("left", "up") else 1
-    sl_e = [slice(None)] * 2
-    sl_i = [slice(None)] * 2
-    edge = 0 if sign < 0 else -1
-    inner = 1 if sign < 0 else -2
-    sl_e[axis], sl_i[axis] = edge, inner
-    inner_v = v.copy()
-    inner_v[tuple(sl_e)] = 0.0  # the border's own value is extrapolated, not rolled in
-    out = np.roll(inner_v, sign, axis=axis)
-    out[tuple(sl_e)] += 2.0 * v[tuple(sl_e)]
-    out[tuple(sl_i)] -= v[tuple(sl_e)]
-    return out
-
-
 def corner(g, which: str) -> np.ndarray:
     """The (H, W) heights of each pixel's corner ``which`` from the corner grid ``g`` (H + 1, W + 1)."""
     di, dj = _CORNER[which]
@@ -591,13 +555,16 @@ class SuperResolvedModel:
         return self.fine.jacobian_t_dr(lin, self.fine.kernels.sub_pixel_spread(v, self.factor))
 
     def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
-        """d images . dg on the scan grid for a change ``dg`` of the fine corners."""
-        return sub_pixel_mean(self.fine.apply_jacobian(lin, dg), self.factor)
+        """d images . dg on the scan grid (K, H, W) for a change ``dg`` of the fine corners."""
+        mi = self.fine.facets.mi
+        out = self.jacobian_dr(lin, mi.Float(np.ascontiguousarray(dg, np.float32).ravel()))
+        return np.stack([np.asarray(o, np.float32).reshape(self.coarse_shape) for o in out]).astype(float)
 
     def apply_jacobian_t(self, lin: Linearisation, v) -> np.ndarray:
         """The transpose of :meth:`apply_jacobian`: fine corners from scan-grid weights ``v`` (K, H, W)."""
-        f = self.factor
-        return self.fine.apply_jacobian_t(lin, np.repeat(np.repeat(np.asarray(v), f, axis=-2), f, axis=-1) / (f * f))
+        mi = self.fine.facets.mi
+        out = self.jacobian_t_dr(lin, [mi.Float(np.ascontiguousarray(x, np.float32).ravel()) for x in v])
+        return np.asarray(out, np.float32).reshape(self.shape[0] + 1, self.shape[1] + 1).astype(float)
 
     def scan_heights(self, corners) -> np.ndarray:
         """Heights at the scan pixels' centres (H, W): the fine corners there (odd factors: the

@@ -235,8 +235,8 @@ class InversionResult:
 
 # ---- the objective ------------------------------------------------------------------------------
 def _second_differences(h):
-    """Second differences along columns and rows; 0 on the border (the neighbour beyond it is
-    extrapolated linearly, :func:`~.height_model.neighbour`, so the border is straight)."""
+    """Second differences along columns and rows; 0 on the border (the border is free: a plane
+    there costs nothing)."""
     lx, ly = np.zeros_like(h), np.zeros_like(h)
     lx[:, 1:-1] = h[:, :-2] + h[:, 2:] - 2.0 * h[:, 1:-1]
     ly[1:-1] = h[:-2] + h[2:] - 2.0 * h[1:-1]
