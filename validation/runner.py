@@ -41,6 +41,14 @@ class Renderer:
             self._scenes[key] = em.load_scene(scene, **params)
         return self._scenes[key]
 
+    def release(self) -> None:
+        """Drop the loaded scenes: every scene alive joins the virtual calls that each render's kernel
+        traces, so another study's scenes would make this one's kernels larger and compile anew."""
+        import gc
+
+        self._scenes.clear()
+        gc.collect()
+
     def render(self, scene, *, spp, events=1, seed=0, detector_samples=None, options=None, **params):
         """Render a shipped scene (name or XML path) with scene parameters ``params``.
 
@@ -166,6 +174,7 @@ def run_validation(quick=False, output_dir=None, only=None, log=print, json_path
             ctx.say(f"[validation] {name}: {module.TITLE} ...")
             s0, r0, t0 = renderer.samples, renderer.seconds, time.perf_counter()
             result: StudyResult = module.run(ctx)
+            renderer.release()
             result.seconds = time.perf_counter() - t0
             result.samples = renderer.samples - s0
             result.render_seconds = renderer.seconds - r0

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 
+from elo_mitsuba.render import MAX_SPP_PER_PASS
 from elo_mitsuba.schema import event_channels
 
 from .report import Row, StudyResult, fmt, verdict_from
@@ -34,7 +35,10 @@ def run(ctx):
     kw = dict(res=res, field=FIELD)
     chans = event_channels(["right"], events) + ["right"]
     labels = {c: (f"event {c[-1]}" if ".e" in c else "total") for c in chans}
-    r.render("athene_flat", spp=1, events=events, seed=999, **kw)  # compile the kernel before timing
+    # compile the very kernel that is timed: a pass's sample count can select another kernel (17 spp
+    # compiles anew after 16), and a 1-spp warm-up left the timed renders compiling when other
+    # studies' scenes were loaded (C3's time for 8 detector samples x4.4 instead of x1.5)
+    r.render("athene_flat", spp=min(ref_spp, MAX_SPP_PER_PASS), events=events, seed=999, **kw)
     t0 = time.perf_counter()
     ref = r.render("athene_flat", spp=ref_spp, events=events, seed=1000, **kw).channels
     sps = res * res * ref_spp / max(time.perf_counter() - t0, 1e-9)
@@ -95,7 +99,7 @@ def run(ctx):
     # detector samples at fixed spp
     ds_err, ds_time = {c: [] for c in chans}, []
     for i, ds in enumerate(cfg["ds_list"]):
-        r.render("athene_flat", spp=1, events=events, seed=2999, detector_samples=ds, **kw)  # compile first
+        r.render("athene_flat", spp=cfg["ds_spp"], events=events, seed=2999, detector_samples=ds, **kw)  # compile first
         t0 = time.perf_counter()
         img = r.render("athene_flat", spp=cfg["ds_spp"], events=events, seed=3000 + i, detector_samples=ds, **kw).channels
         ds_time.append(time.perf_counter() - t0)
