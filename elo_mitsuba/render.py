@@ -29,6 +29,7 @@ from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
 from .grid import ORIENTATION
 from .error_estimate import METHOD, combine_channels, split_render
+from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
@@ -544,7 +545,9 @@ class EloScene:
         pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
         per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
         halves, first_status = split_render(spp, self.integrator, self.sensor.fwhm)
-        n_passes = sum(math.ceil(n / per_pass) for n, _ in halves)
+        sampler = self.sensor.sampler()
+        passes = [pass_sizes(sampler, n, per_pass) for n, _ in halves]
+        n_passes = sum(pass_count(sizes) for sizes in passes)
         names = self.integrator.channel_names()
         notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(),
                              max(n_passes, 2 if len(halves) > 1 else 1),
@@ -563,13 +566,11 @@ class EloScene:
         t0 = time.perf_counter()
         saved = self.integrator.options
         try:
-            for n_half, options in halves:
+            for (n_half, options), sizes in zip(halves, passes):
                 if options is not None:
                     self.integrator.configure(options)
                 acc = None
-                left = n_half
-                while left > 0:
-                    n = min(per_pass, left)
+                for n in each_pass(sizes):
                     # (channels, H, W) float32, straight from the film's storage
                     planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n)
                     if acc is None and n == n_half:
@@ -579,7 +580,6 @@ class EloScene:
                             acc = np.zeros(planes.shape, np.float64)
                         acc += planes * (n / n_half)
                     del planes
-                    left -= n
                     p += 1
                     done += n
                     report(done, time.perf_counter() - t0)

@@ -87,6 +87,7 @@ from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.film import film_tensor, raw_planes
 from elo_mitsuba.options import EloOptions, parameter_table
 from elo_mitsuba.physics.solid_angle import vos_denominator
+from elo_mitsuba.sample_counts import count_at_least
 from elo_mitsuba.schema import event_channel, event_channels
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
@@ -410,7 +411,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             return
         missing = float(np.max(self.bounce_min - paths[need]))
         k = max(1, min(8, math.ceil(missing)))
-        spp2 = max(1, math.ceil(missing / k))
+        spp2 = count_at_least(sensor_obj.sampler(), max(1, math.ceil(missing / k)))  # weighted as rendered
         saved = self.options
         self._top_up_pass = (mi.Bool(need.ravel()), dr.opaque(mi.UInt32, spp2))
         saved_key = self._roulette_key  # far_roulette: other block numbers than the main pass's
