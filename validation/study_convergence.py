@@ -65,7 +65,10 @@ def run(ctx):
     settings = (f"athene_flat (chamber), right detector, {res}² px over {FIELD:g} mm, events {events}, "
                 f"reference {ref_spp} spp; spp = {', '.join(str(s) for s in cfg['spp_list'])}")
     slopes = [fits[c]["slope"] for c in chans if np.isfinite(fits[c]["slope"])]
-    ok = len(slopes) > 0 and all(abs(s + 0.5) < 0.12 for s in slopes)
+    # unbiased: the error keeps falling, at least as spp^-0.5 (independent samples) and at most as
+    # spp^-1 (stratified samples of a smooth 2-D integrand: the shipped scenes' multijitter); a bias
+    # flattens the exponent towards 0
+    ok = len(slopes) > 0 and all(-1.0 - 0.12 < s < -0.5 + 0.12 for s in slopes)
     f1 = fits["right.e1"]
     st.add(Row(
         "C1", "Sec. 2.1.1, App. A: the number of rays l (2nd event) and the detector discretisation must be "
@@ -73,7 +76,9 @@ def run(ctx):
         "per-pixel error ∝ spp^(" + ", ".join(f"{fits[c]['slope']:.2f}" for c in chans) + ") for "
         + ", ".join(labels[c] for c in chans) + f"; 1 %: {f1['spp1']} spp (event 1), "
         f"{fits['right']['spp1']} spp (total); table below", settings,
-        verdict_from(ok), "criterion: exponents −0.5 ± 0.12 (unbiased Monte Carlo); the 2nd and 3rd events are "
+        verdict_from(ok), "criterion: exponents between −1 and −0.5 (± 0.12): an unbiased estimate falls as spp^−0.5 "
+        "with independent samples, up to spp^−1 with the stratified ones of the shipped scenes (multijitter) "
+        "where the integrand is smooth, as the 1st event's; a bias flattens it. The 2nd and 3rd events are "
         "much noisier per pixel but small, see the table",
         {f"exponent_{labels[c].replace(' ', '')}": fits[c]["slope"] for c in chans}
         | {f"a_{labels[c].replace(' ', '')}": fits[c]["a"] for c in chans}, "convergence"))
