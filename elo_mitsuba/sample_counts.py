@@ -1,8 +1,9 @@
 """Sample counts a scene's sampler takes exactly, and render passes made of them.
 
 The shipped scenes sample with Mitsuba's ``multijitter``: per pixel, the beam profile's offsets
-(and every other 2-D sample) are stratified, which halves the per-pixel error where the signal
-changes inside the beam spot (a pore's rim) at no extra cost (docs/rendering.md, "Sampler").
+(and every other 2-D sample) are stratified, which cuts the per-pixel error by about 40 % where
+the signal changes inside the beam spot (a pore's rim) at no extra cost (docs/rendering.md, the
+paragraph on the stratified beam profile).
 Stratified samplers round a count they cannot stratify (``multijitter``: a x b with
 a = floor(sqrt(n)), so 7 becomes 8; ``ldsampler``: powers of four), which would change how many
 samples a pass renders while its weight counts the asked number. A render is therefore split

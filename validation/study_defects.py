@@ -28,9 +28,8 @@ NAMES = ("right", "left", "back", "front")
 #: Monte Carlo error, and the simulated one must not carry more than the 1 % noise added to it where
 #: it is judged: at the pores of the rough layer (1500², 0.27 mm beam, default preset, stratified)
 #: 16 spp leave 3.6 % per pixel (5.9 % with independent samples), four times the spp halve that.
-#: Measured: within 1 mm of the defects ``invert`` ends at 0.56 of its start on 16-spp renders,
-#: 0.47 on renders with about a third of the pores' Monte Carlo error. The flat plate, smooth, keeps
-#: the preset's count (0.17 %).
+#: Measured there: within 1 mm of the defects ``invert`` ends at 0.56 of its start on 16-spp
+#: renders and at 0.47 on 64-spp ones. The flat plate, smooth, keeps the preset's count (0.17 %).
 MEASUREMENT_SPP = 64
 
 
