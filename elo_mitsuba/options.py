@@ -83,6 +83,10 @@ class EloOptions:
                              "single event's image can then hold values <= 0 where its residual outweighs the "
                              "variate (0.3-0.4 % of e2 pixels on relief at s = 8)", "int",
                              bounds=(0, MAX_FAR_FIELD))
+    far_table: bool = _option(False, "far-field control variate of events >= 2 with its mean tabulated once per "
+                              "geometry (M(p, n) = int g_BSE L over the table's bins, bilinear in the nodes and the "
+                              "normal) instead of sampled: no cheap samples, no ray per pixel; directions that meet "
+                              "the relief again carry the variate too (plugins/_far_field.py)", "bool")
     far_roulette: float = _option(1.0, "probability q that a far-field path traces its events >= 3 (Russian "
                                   "roulette, blocks of 32 lanes, weight 1/q; 1 = always, as the presets: q < 1 "
                                   "did not pay; needs far_field >= 1)", "float", bounds=(0.0, 1.0))
@@ -106,6 +110,12 @@ class EloOptions:
             object.__setattr__(self, f.name, value)
         if self.bounce_detector_samples is None:
             object.__setattr__(self, "bounce_detector_samples", self.detector_samples)
+        if self.far_table and self.far_field > 0:
+            raise EloInputError(f"elo: far_table=True tabulates the far field's mean; far_field={self.far_field} "
+                                "(its s x s sampled mean) would be recorded but not applied; set far_field=0")
+        if self.far_table and self.far_field_later:
+            raise EloInputError("elo: far_table=True tabulates the 2nd event's mean only; far_field_later=True "
+                                "would be recorded but not applied; drop it")
         if self.far_field_later and self.far_field == 0:
             raise EloInputError("elo: far_field_later=True applies to the far field's table only and would be "
                                 "recorded but not applied with far_field=0; set far_field >= 1")
@@ -301,11 +311,12 @@ def parameter_table() -> str:
 #: events >= 2 vary along a flank whose normals agree, where the window average is biased
 #: (+9 % in e2 on the corrugated sheet in the chamber): there the presets do not filter and give
 #: every pixel ``relief_paths`` continuation paths instead. ``scene`` keeps the scene file's own
-#: settings. On scenes without such relief events >= 2 also get the far-field control variate
-#: (``far_field`` = s, plugins/_far_field.py) with s x s >= 8 cheap samples per traced path (s >= 2):
-#: measured at 1500^2, athene_flat default 1.08 -> 0.30 % total for ~25 % more time
-#: (benchmarks/RESULTS.md, Far field). On relief it stays off: on corrugated_chamber it gained
-#: nothing per second.
+#: settings. Events >= 2 also get the far-field control variate with its mean tabulated
+#: (``far_table``, plugins/_far_field.py) wherever less than :data:`NEAR_SHARE_MAX` of the 2nd
+#: event's electrons meet the relief again (``near_share``): measured at 128^2, `default`,
+#: athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the sampled mean, ``far_field``),
+#: melt_chamber 2.5 -> 1.4 % in 0.14 -> 0.20 s (no variate before); corrugated_chamber (43 % of them
+#: meet the facing flank) 6.1 -> 6.2 % (benchmarks/RESULTS.md, Far field).
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},
@@ -317,20 +328,17 @@ QUALITY_PRESETS = {
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
 PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "bounce_min", "bounce_samples",
-                 "bounce_fraction", "far_field", "far_roulette", "far_field_later")
+                 "bounce_fraction", "far_field", "far_table", "far_roulette", "far_field_later")
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
 QUALITY_ACCURACY = {"draft": 0.17, "default": 0.07, "reference": 0.025}  # corrugated_chamber: 16.7, 6.4, 2.4 %
-#: Cheap far-field samples per traced continuation path in the presets (s x s >= this x paths per
-#: sample): fewer made the variate's own mean the larger noise (s = 2 at 128 paths per pixel: 1.60 %
-#: total on athene_flat's reference against 1.13 % without the variate).
-FAR_SAMPLES_PER_PATH = 8
-#: Probability that a far-field path of a preset goes on past its 2nd event (``far_roulette``, with
-#: events >= 3 and the far field on): 1. Measured (benchmarks/RESULTS.md, Far field, events 3 and 4):
-#: q = 0.5 raised the total's error at events 4 from 0.49 to 0.63 % on athene_flat (e3 12 -> 18 %)
-#: and saved at most 20 % of the time: events >= 3 are as noisy per path as the 2nd, and cheaper.
-FAR_ROULETTE = 1.0
+#: The presets use the far field's variate (``far_table``) on scenes where less than this share of
+#: the 2nd event's electrons (g_BSE-weighted) meet a surface again within the far field's near
+#: distance: those directions carry the variate too, where it only adds noise. Measured shares
+#: (plugins/_far_field.near_share): 0 on the flat scenes, 0.09 % on melt_chamber, 43 % on
+#: corrugated_chamber; the threshold lies between them and was not tuned on a scene in between.
+NEAR_SHARE_MAX = 0.1
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 
@@ -346,7 +354,7 @@ def filter_window_levels(half_width_mm: float, pixel_mm: float) -> int | None:
 
 
 def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm: float,
-                    traced_events: int, relief: bool = False) -> tuple[EloOptions, int]:
+                    traced_events: int, relief: bool = False, near_share: float = 0.0) -> tuple[EloOptions, int]:
     """The options and spp of a preset for a scene.
 
     Parameters
@@ -364,6 +372,9 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     relief : bool
         The scene has relief that can scatter onto itself (a scattering surface that is not one
         plane): no bounce filter, ``relief_paths`` continuation paths per pixel.
+    near_share : float
+        The share of the 2nd event's electrons that meet a surface again near where the beam hit
+        (plugins/_far_field.near_share); the far field's variate only below :data:`NEAR_SHARE_MAX`.
 
     Returns
     -------
@@ -394,15 +405,12 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         # which the error estimate's two halves see only as a whole (its estimate then scattered
         # 0.76-1.6x in variance on athene_flat, against 0.9-1.0x with every sample tracing)
         per_sample = float(bounce_samples)
-    far = 0
-    if traced_events > 1 and not relief:  # the far-field variate: s x s >= FAR_SAMPLES_PER_PATH x paths
-        far = min(MAX_FAR_FIELD, max(2, math.ceil(math.sqrt(FAR_SAMPLES_PER_PATH * per_sample))))
+    far_table = traced_events > 1 and near_share < NEAR_SHARE_MAX
     options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
                            bounce_filter=bounce_filter, bounce_min=bounce_min,
                            bounce_samples=bounce_samples,
-                           bounce_fraction=min(1.0, per_sample / bounce_samples), far_field=far,
-                           far_roulette=FAR_ROULETTE if far > 0 and traced_events > 2 else 1.0,
-                           far_field_later=base.far_field_later and far > 0)
+                           bounce_fraction=min(1.0, per_sample / bounce_samples), far_field=0,
+                           far_table=far_table, far_roulette=1.0, far_field_later=False)
     return options, spp
 
 

@@ -32,8 +32,20 @@ def relief_under_beam(scene, sensor, surfaces):
     candidates = [s for s in surfaces if not is_planar(s)]
     if not candidates:
         return []
+    si = beam_probe(scene, sensor)
+    hit_ids = set()
+    for shape in candidates:  # few shapes: one comparison each, vectorised over the grid
+        mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))
+        if bool(dr.any(mask)):
+            hit_ids.add(id(shape))
+    return [s.id() or "a shape" for s in candidates if id(s) in hit_ids]
+
+
+def beam_probe(scene, sensor, grid=GRID):
+    """Where the beam of ``sensor`` meets the scene on a ``grid`` x ``grid`` grid over its field
+    (plus a margin of 3 beam sigmas): the surface interactions (a Dr.Jit array of them)."""
     margin = 3.0 * float(np.ravel(getattr(sensor, "sigma", 0.0))[0])
-    u = np.linspace(-0.5, 0.5, GRID)
+    u = np.linspace(-0.5, 0.5, grid)
     x, y = np.meshgrid(u * (float(sensor.field) + 2 * margin), u * (float(sensor.field_y) + 2 * margin))
     x, y = x.ravel().astype(np.float32), y.ravel().astype(np.float32)
     wd = float(sensor.wd)
@@ -43,10 +55,4 @@ def relief_under_beam(scene, sensor, surfaces):
     else:
         o = mi.Point3f(0.0, 0.0, wd)
         d = dr.normalize(mi.Vector3f(mi.Float(x), mi.Float(y), -wd))
-    si = scene.ray_intersect(mi.Ray3f(o, d))
-    hit_ids = set()
-    for shape in candidates:  # few shapes: one comparison each, vectorised over the grid
-        mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))
-        if bool(dr.any(mask)):
-            hit_ids.add(id(shape))
-    return [s.id() or "a shape" for s in candidates if id(s) in hit_ids]
+    return scene.ray_intersect(mi.Ray3f(o, d))

@@ -220,11 +220,23 @@ def world_setup(tables, si, wi_world, alive):
     slot = dr.gather(mi.UInt32, t["slot_of"], bid, alive & (bid < dr.width(t["slot_of"])))
     eta0 = dr.gather(mi.Float, t["eta0"], slot, alive)
     inv_width = dr.gather(mi.Float, t["inv_width"], slot, alive)
-    n = si.sh_frame.n
+    return _setup(eta0, inv_width, lambda theta_deg: table_lookup(t["lobe"], theta_deg, size, slot * size, alive),
+                  si.sh_frame.n, wi_world, alive)
+
+
+def normal_setup(bsdf, n, wi_world, alive=True):
+    """:func:`world_setup` of one ``elo_bse`` for given (world) normals ``n`` and incident
+    directions ``wi_world``, without a surface interaction (the far field's tabulated mean)."""
+    return _setup(bsdf.eta0, 1.0 / bsdf.lobe_width,
+                  lambda theta_deg: table_lookup(bsdf.lobe_table, theta_deg, TABLE_SIZE, None, alive),
+                  n, wi_world, alive)
+
+
+def _setup(eta0, inv_width, lobe_weight, n, wi_world, alive):
     cos_t = dr.dot(n, wi_world)
     theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
     k = theta_deg * inv_width
-    weight = table_lookup(t["lobe"], theta_deg, size, slot * size, alive)
+    weight = lobe_weight(theta_deg)
     mirror = n * (2.0 * cos_t) - wi_world  # mirror direction of p_E = -wi about n
     return (eta0 * (1.0 / dr.pi), weight, k, n, mirror, alive & (cos_t > 0))
 

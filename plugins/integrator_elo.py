@@ -91,11 +91,12 @@ from elo_mitsuba.sample_counts import count_at_least
 from elo_mitsuba.schema import event_channel, event_channels
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
-from ._far_field import NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_rays, geometry_key, reduce_table
+from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, build_rays, geometry_key,
+                         near_share, reduce_table)
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
 from ._occlusion import shape_key, unblockable, unblockable_regions
 from ._strata import allocated, cell_area, cell_point, group_point, shifted_lattice, strata_cells, stratum
-from ._relief import relief_under_beam
+from ._relief import beam_probe, relief_under_beam
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
 __doc__ += parameter_table() + "\n"
@@ -128,6 +129,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
+        self._far_mean_table = None  # its tabulated mean (_far_field.MeanTable, option far_table), or None
+        self._scene = None  # the scene last prepared (near_share)
         self.far_field_builds = 0  # how many times the far-field table was built (tests, benchmarks)
 
     # ---- options --------------------------------------------------------------------------------
@@ -164,6 +167,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         # relief, also along a flank whose normals agree (where the bounce filter is biased)
         beam = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
         self.relief = relief_under_beam(scene, beam, surfaces) if self.bounce_possible and beam is not None else []
+        self._scene = scene
         self.notes = []
         if self.events > 1 and not self.bounce_possible:
             self.notes.append(
@@ -184,8 +188,45 @@ class EloIntegrator(mi.SamplingIntegrator):
             sensor = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
             if sensor is not None:
                 self._unblockable_regions = unblockable_regions(scene, sensor, detectors)
-        if self.far_field > 0 and self.traced_events() > 1 and beam is not None:
+        if self._far_on() and self.traced_events() > 1 and beam is not None:
             self._update_far_field(scene, beam)
+            if self.far_table:
+                self._update_mean_table(scene, beam)
+
+    def _far_on(self):
+        return self.far_field > 0 or self.far_table
+
+    def near_share(self, scene=None, sensor=None):
+        """The share of the 2nd event's electrons that meet a surface again within NEAR_MM of the
+        beam's hit (:func:`._far_field.near_share`) on the scene last prepared; 0 without relief
+        under the beam (a plane cannot scatter onto itself) or when nothing scatters twice."""
+        scene = scene if scene is not None else self._scene
+        if not self.relief or not self.bounce_possible or scene is None:
+            return 0.0
+        sensor = sensor if sensor is not None else scene.sensors()[0]
+        return near_share(scene, sensor)
+
+    def _update_mean_table(self, scene, sensor):
+        """Tabulate the far field's mean (option ``far_table``) for the BSDF the beam meets most
+        and the normals it meets (:func:`._far_field.build_mean`), unless held for this table."""
+        si = beam_probe(scene, sensor)
+        hit = np.array(si.is_valid() & ~si.shape.is_emitter())
+        keys = np.array(dr.reinterpret_array(mi.UInt32, si.bsdf()))[hit]
+        bsdfs = {int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(sh.bsdf()))[0]): sh.bsdf()
+                 for sh in scene.shapes() if not sh.is_emitter() and is_elo_bse(sh.bsdf())}
+        keys = keys[np.isin(keys, list(bsdfs))]
+        if keys.size == 0:
+            self._far_mean_table = None
+            return
+        values, counts = np.unique(keys, return_counts=True)
+        bsdf_key = int(values[np.argmax(counts)])
+        normals = np.stack([np.array(c) for c in si.sh_frame.n], axis=1)[hit][np.array(dr.reinterpret_array(
+            mi.UInt32, si.bsdf()))[hit] == bsdf_key]
+        key = (self._far.key, bsdf_key, np.round(normals, 6).tobytes())
+        held = self._far_mean_table
+        if held is not None and held.key == key:
+            return
+        self._far_mean_table = build_mean(self._far, bsdfs[bsdf_key], bsdf_key, sensor, normals, key)
 
     def _update_far_field(self, scene, sensor):
         """Build the far-field table (:mod:`._far_field`) unless the one held was built for this
@@ -232,7 +273,7 @@ class EloIntegrator(mi.SamplingIntegrator):
 
     def far_field_table(self):
         """The far-field table in use (:class:`._far_field.FarFieldTable`), or None."""
-        return self._far if self.far_field > 0 else None
+        return self._far if self._far_on() else None
 
     def _far_mean(self, scene, sampler, si, ctx, bsdf, alive, k_paths):
         """The cheap samples of the far field: s x s stratified samples of g_BSE at the 1st event
@@ -470,9 +511,17 @@ class EloIntegrator(mi.SamplingIntegrator):
             outer_shadow = self._n_shadow
 
             k_paths = self.bounce_samples
-            far = self._far if self.far_field > 0 else None
+            far = self._far if self._far_on() else None
             mean = picks = block_u = q_far = None
-            if far is not None:  # the cheap samples: the variate's mean and the traced paths' directions
+            far_mask = True
+            if far is not None and self.far_table:  # the mean tabulated: the variate where it covers
+                table = self._far_mean_table
+                if table is None:
+                    far = None
+                else:
+                    mean, far_mask = table.lookup(si_first.p, si_first.sh_frame.n,
+                                                  dr.reinterpret_array(mi.UInt32, bsdf), alive_first)
+            elif far is not None:  # the cheap samples: the variate's mean and the traced paths' directions
                 mean, picks = self._far_mean(scene, sampler, si_first, ctx, bsdf, alive_first, k_paths)
                 if self.far_roulette < 1.0 and traced > 2:
                     # far_roulette: one uniform number per block of lanes (neighbouring pixels) and
@@ -519,7 +568,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                         first = self._direction_in(cell, j, k_paths, shift, si, ray, ctx, sampler, alive) \
                             if k_paths > 1 else None
                     more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced,
-                                                   far, first=first)
+                                                   far, first=first, far_mask=far_mask)
                     if k_paths > 1:
                         w_path = (1.0 / k_paths) if groups is not None else cell_area(cell)
                         more = [[a * w_path for a in x] for x in more]
@@ -589,11 +638,12 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._n_shadow = None
         return mi.Spectrum(total_all), mi.Bool(True), aovs
 
-    def _bounces(self, scene, sampler, si, ray, bsdf, ctx, alive, traced, far=None, first=None, roulette=None):
+    def _bounces(self, scene, sampler, si, ray, bsdf, ctx, alive, traced, far=None, first=None, roulette=None,
+                 far_mask=True):
         """Events 2 .. traced for the paths alive after the 1st: per detector a list of their
         direct contributions, and the number of bounce rays cast (for count_rays). With ``far``
         (a far-field table) each contribution is less the control variate of the path's first
-        direction (S L(node, wo)): the caller adds the variate's mean. ``first`` = (world
+        direction (S L(node, wo); only where ``far_mask``): the caller adds the variate's mean. ``first`` = (world
         direction, weight S) gives the first continuation instead of sampling it.
 
         The table holds the 2nd event (or, with ``far_field_later``, events 2 .. traced): only the
@@ -621,7 +671,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             throughput = throughput * w
             alive &= throughput > 0
             if far is not None and event == 1:  # a far pick: less the variate of its direction
-                control = [w * v for v in far.lookup(si.p, wo, alive)]
+                control = [w * v for v in far.lookup(si.p, wo, alive & far_mask)]
                 held = len(control) // n_det  # events the table holds, from the 2nd on
             si, ray, bsdf, alive, out = self._event(scene, sampler, si, wo, ctx, alive)
             n_hit = n_hit + out[-1]
