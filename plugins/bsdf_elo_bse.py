@@ -36,6 +36,14 @@ TABLE_SIZE = 4097  # linear interpolation of W(theta): < 3e-6 relative even for 
 _INV_PI = 1.0 / np.pi
 
 
+def incidence_deg(cos_t, sin_t):
+    """The angle of incidence (deg) from its cosine and sine, 0 where grazing from below. Not
+    acos(cos): near normal incidence acos turns a last-bit change of the cosine (an FMA on one CPU,
+    not on another) into 1e-4 of the angle, enough to change how many of a sample's paths go to
+    the lobe (ceil(q k - xi)) between instruction sets."""
+    return dr.atan2(sin_t, dr.maximum(cos_t, 0.0)) * (180.0 / dr.pi)
+
+
 def table_lookup(table, theta_deg, size, offset=None, active=True):
     """A function of the incidence angle (W(theta), eta(theta)) by linear interpolation of
     ``table`` on the uniform 0..90 deg grid of ``size`` nodes, starting at index ``offset``
@@ -98,7 +106,7 @@ class EloBSE(mi.BSDF):
     # ---- g_BSE ----------------------------------------------------------------------------------
     def _lobe(self, wi):
         """(k, W(theta)) for the local incident direction: exponent and tabulated lobe weight."""
-        theta_deg = dr.acos(dr.clip(wi.z, 0.0, 1.0)) * (180.0 / dr.pi)
+        theta_deg = incidence_deg(wi.z, dr.sqrt(dr.fma(wi.x, wi.x, wi.y * wi.y)))
         k = theta_deg / self.lobe_width
         return k, table_lookup(self.lobe_table, theta_deg, TABLE_SIZE)
 
@@ -234,7 +242,7 @@ def normal_setup(bsdf, n, wi_world, alive=True):
 
 def _setup(eta0, inv_width, lobe_weight, n, wi_world, alive):
     cos_t = dr.dot(n, wi_world)
-    theta_deg = dr.acos(dr.clip(cos_t, 0.0, 1.0)) * (180.0 / dr.pi)
+    theta_deg = incidence_deg(cos_t, dr.norm(dr.cross(n, wi_world)))
     k = theta_deg * inv_width
     weight = lobe_weight(theta_deg)
     mirror = n * (2.0 * cos_t) - wi_world  # mirror direction of p_E = -wi about n

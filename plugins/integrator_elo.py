@@ -130,7 +130,6 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
         self._far_mean_table = None  # its tabulated mean (_far_field.MeanTable, option far_table), or None
-        self._scene = None  # the scene last prepared (near_share)
         self.far_field_builds = 0  # how many times the far-field table was built (tests, benchmarks)
 
     # ---- options --------------------------------------------------------------------------------
@@ -167,7 +166,6 @@ class EloIntegrator(mi.SamplingIntegrator):
         # relief, also along a flank whose normals agree (where the bounce filter is biased)
         beam = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
         self.relief = relief_under_beam(scene, beam, surfaces) if self.bounce_possible and beam is not None else []
-        self._scene = scene
         self.notes = []
         if self.events > 1 and not self.bounce_possible:
             self.notes.append(
@@ -196,14 +194,14 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _far_on(self):
         return self.far_field > 0 or self.far_table
 
-    def near_share(self, scene=None, sensor=None):
+    def near_share(self, scene, sensor):
         """The share of the 2nd event's electrons that meet a surface again within NEAR_MM of the
-        beam's hit (:func:`._far_field.near_share`) on the scene last prepared; 0 without relief
-        under the beam (a plane cannot scatter onto itself) or when nothing scatters twice."""
-        scene = scene if scene is not None else self._scene
-        if not self.relief or not self.bounce_possible or scene is None:
+        beam's hit (:func:`._far_field.near_share`) in ``scene`` (prepared: its relief known); 0
+        without relief under the beam (a plane cannot scatter onto itself) or when nothing scatters
+        twice. The scene is not kept: an integrator holding its scene would keep both alive, and
+        every live scene slows the compilation of every render's kernels."""
+        if not self.relief or not self.bounce_possible:
             return 0.0
-        sensor = sensor if sensor is not None else scene.sensors()[0]
         return near_share(scene, sensor)
 
     def _update_mean_table(self, scene, sensor):

@@ -242,7 +242,7 @@ def test_far_table_options_are_checked_and_the_presets_choose_it_by_the_near_sha
     for name in ("athene_flat", "melt_chamber", "corrugated_chamber"):
         scene = em.load_scene(name, res=8)
         scene.set_quality("default")
-        chosen[name] = (scene.integrator.far_table, scene.integrator.far_field, round(scene.integrator.near_share(), 3))
+        chosen[name] = (scene.integrator.far_table, scene.integrator.far_field, round(scene.integrator.near_share(scene.scene, scene.sensor), 3))
     # measured shares: 0 (a plane), 0.001 (the melt plate), 0.43 (the corrugated sheet's flanks)
     assert chosen == {"athene_flat": (True, 0, 0.0), "melt_chamber": (True, 0, 0.001),
                       "corrugated_chamber": (False, 0, 0.429)}, chosen
