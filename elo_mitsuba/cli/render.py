@@ -45,12 +45,13 @@ Measured on every shipped scene at 128 x 128 (benchmarks/RESULTS.md, section pre
 RMS error of a detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   best scene (athene_flat)
-  draft       corrugated_chamber    16.7 %   0.10 s         0.65 %
-  default     corrugated_chamber     6.4 %   0.17 s         0.38 %
-  reference   corrugated_chamber     2.4 %   0.54 s         0.61 % (no window average)
+  draft       corrugated_chamber    16.4 %   0.12 s         0.56 %
+  default     corrugated_chamber     6.4 %   0.13 s         0.34 %
+  reference   corrugated_chamber     1.9 %   0.52 s         0.52 % (no window average)
 
-On athene_flat (no relief) the presets add the far-field control variate of events >= 2
-(issue 26; benchmarks/RESULTS.md, section Far field).
+Where few of the 2nd event's electrons meet the relief again (every shipped chamber scene but
+corrugated_chamber) the presets add the far-field control variate of events >= 2 with its mean
+tabulated once per geometry (issue 26; benchmarks/RESULTS.md, section Far field).
 
 Every render estimates its own error from two independent halves of the samples and prints it
 per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks
