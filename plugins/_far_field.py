@@ -187,10 +187,13 @@ class FarFieldTable:
 
 # ---- the variate's mean, tabulated (option ``far_table``) --------------------------------------
 #: Polar step (deg) of the normal nodes of the tabulated mean on relief (from world +z); a scene
-#: whose beam meets one plane gets a table for that plane's normal alone.
+#: whose beam meets one plane gets a table for that plane's normal alone. Measured on melt_chamber
+#: against 32 x 1024 g_BSE samples at 200 beam hits (z RMS of the difference, worst detector):
+#: 5 deg 1.17, 10 deg 1.41 (mean +0.06 % of M against +0.04 %).
 MEAN_DTHETA_DEG = 5.0
-#: Azimuth nodes of the tabulated mean's normals on relief.
-MEAN_N_PHI = 24
+#: Azimuth nodes of the tabulated mean's normals on relief: 12 and 24 gave the same agreement
+#: there (z RMS 1.18 and 1.17) and the build 0.28 against 0.45 s.
+MEAN_N_PHI = 12
 #: A beam hit whose normal lies within this angle (rad) of a planar scene's normal uses its table.
 PLANE_TOL = 1e-3
 
