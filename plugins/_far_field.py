@@ -156,11 +156,6 @@ class FarFieldTable:
         nodes and between the direction bins' centres (azimuth periodic), so that L is continuous
         in p and wo (a last-bit change of a direction moves it by as little); 0 below the horizon."""
         up = active & (wo.z > 0)
-        fx = dr.clip((p.x - self._x0) / self._dx, 0.0, NODES - 1.0)
-        fy = dr.clip((p.y - self._y0) / self._dy, 0.0, NODES - 1.0)
-        ix = dr.minimum(dr.floor(fx), NODES - 2.0)
-        iy = dr.minimum(dr.floor(fy), NODES - 2.0)
-        tx, ty = fx - ix, fy - iy
         fu = dr.clip(wo.z * N_U - 0.5, 0.0, N_U - 1.0)
         iu = dr.minimum(dr.floor(fu), N_U - 2.0)
         tu = fu - iu
@@ -169,20 +164,34 @@ class FarFieldTable:
         tp = fp - ip
         ip0 = mi.UInt32(dr.select(ip < 0, ip + N_PHI, ip))
         ip1 = mi.UInt32(dr.select(ip + 1 >= N_PHI, ip + 1 - N_PHI, ip + 1))
-        n0 = mi.UInt32(iy) * NODES + mi.UInt32(ix)
         corners = []
-        for node, wn in ((n0, (1 - tx) * (1 - ty)), (n0 + 1, tx * (1 - ty)), (n0 + NODES, (1 - tx) * ty),
-                         (n0 + NODES + 1, tx * ty)):
+        for node, wn in self.node_corners(p):
             for u_i, wu in ((mi.UInt32(iu), 1 - tu), (mi.UInt32(iu) + 1, tu)):
                 for p_i, wp in ((ip0, 1 - tp), (ip1, tp)):
                     corners.append(((node * (N_U * N_PHI) + u_i * N_PHI + p_i) * self.n_channels, wn * wu * wp))
-        out = []
-        for c in range(self.n_channels):
-            acc = mi.Float(0.0)
-            for base, w in corners:
-                acc = dr.fma(w, dr.gather(mi.Float, self.values, base + c, up), acc)
-            out.append(acc)
-        return out
+        return weighted_gathers(self.values, corners, self.n_channels, up)
+
+    def node_corners(self, p):
+        """The four nodes around ``p`` (world; clamped to the grid) and their bilinear weights."""
+        fx = dr.clip((p.x - self._x0) / self._dx, 0.0, NODES - 1.0)
+        fy = dr.clip((p.y - self._y0) / self._dy, 0.0, NODES - 1.0)
+        ix = dr.minimum(dr.floor(fx), NODES - 2.0)
+        iy = dr.minimum(dr.floor(fy), NODES - 2.0)
+        tx, ty = fx - ix, fy - iy
+        n0 = mi.UInt32(iy) * NODES + mi.UInt32(ix)
+        return ((n0, (1 - tx) * (1 - ty)), (n0 + 1, tx * (1 - ty)), (n0 + NODES, (1 - tx) * ty),
+                (n0 + NODES + 1, tx * ty))
+
+
+def weighted_gathers(values, corners, n_channels, active):
+    """Per channel, the sum over ``corners`` ((base index, weight)) of weight x values[base + channel]."""
+    out = []
+    for c in range(n_channels):
+        acc = mi.Float(0.0)
+        for base, w in corners:
+            acc = dr.fma(w, dr.gather(mi.Float, values, base + c, active), acc)
+        out.append(acc)
+    return out
 
 
 # ---- the variate's mean, tabulated (option ``far_table``) --------------------------------------
@@ -229,18 +238,10 @@ class MeanTable:
     def lookup(self, p, n, bsdf_key, active):
         """(M per channel, covered): bilinear in the node grid and in (theta, phi) of the normal
         about the pole (azimuth periodic); 0 where not covered."""
-        far = self._far
         local = self.frame.to_local(n)
-        theta = dr.acos(dr.clip(local.z, -1.0, 1.0))
+        # atan2, not acos: well conditioned at the pole, where a planar scene's normals lie
+        theta = dr.atan2(dr.sqrt(dr.fma(local.x, local.x, local.y * local.y)), local.z)
         covered = active & (bsdf_key == self.bsdf_key) & (theta <= self.theta_max)
-        fx = dr.clip((p.x - far._x0) / far._dx, 0.0, NODES - 1.0)
-        fy = dr.clip((p.y - far._y0) / far._dy, 0.0, NODES - 1.0)
-        ix = dr.minimum(dr.floor(fx), NODES - 2.0)
-        iy = dr.minimum(dr.floor(fy), NODES - 2.0)
-        tx, ty = fx - ix, fy - iy
-        n0 = mi.UInt32(iy) * NODES + mi.UInt32(ix)
-        spatial = ((n0, (1 - tx) * (1 - ty)), (n0 + 1, tx * (1 - ty)), (n0 + NODES, (1 - tx) * ty),
-                   (n0 + NODES + 1, tx * ty))
         if self.n_theta > 1:
             ft = dr.clip(theta / self.dtheta, 0.0, self.n_theta - 1.0)
             it = dr.minimum(dr.floor(ft), self.n_theta - 2.0)
@@ -255,14 +256,9 @@ class MeanTable:
         else:
             normal = [(mi.UInt32(0), mi.Float(1.0))]
         per_node = self.n_theta * self.n_phi
-        corners = [((node * per_node + j) * self.n_channels, wn * wj) for node, wn in spatial for j, wj in normal]
-        out = []
-        for c in range(self.n_channels):
-            acc = mi.Float(0.0)
-            for base, w in corners:
-                acc = dr.fma(w, dr.gather(mi.Float, self.values, base + c, covered), acc)
-            out.append(acc)
-        return out, covered
+        corners = [((node * per_node + j) * self.n_channels, wn * wj)
+                   for node, wn in self._far.node_corners(p) for j, wj in normal]
+        return weighted_gathers(self.values, corners, self.n_channels, covered), covered
 
 
 def mean_grid(normals):

@@ -18,7 +18,7 @@ from ._occlusion import shape_key
 GRID = 65
 
 
-def relief_under_beam(scene, sensor, surfaces):
+def relief_under_beam(scene, sensor, surfaces, probe=None):
     """Ids (or ``"a shape"``) of the ``surfaces`` that the beam of ``sensor`` hits on a
     :data:`GRID` x :data:`GRID` grid over its field and that are not one plane.
 
@@ -28,11 +28,13 @@ def relief_under_beam(scene, sensor, surfaces):
     sensor : the ``elo_beam`` sensor (``field``, ``field_y``, ``wd``, ``projection``, ``sigma``)
     surfaces : list of mi.Shape
         The scattering surfaces (objects, walls, backscattering detector plates).
+    probe : callable, optional
+        Returns :func:`beam_probe`'s hits (shared with other users of the same probe).
     """
     candidates = [s for s in surfaces if not is_planar(s)]
     if not candidates:
         return []
-    si = beam_probe(scene, sensor)
+    si = probe() if probe is not None else beam_probe(scene, sensor)
     hit_ids = set()
     for shape in candidates:  # few shapes: one comparison each, vectorised over the grid
         mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))

@@ -165,7 +165,14 @@ class EloIntegrator(mi.SamplingIntegrator):
         # relief under the beam can scatter onto itself, so events >= 2 vary on the scale of its
         # relief, also along a flank whose normals agree (where the bounce filter is biased)
         beam = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
-        self.relief = relief_under_beam(scene, beam, surfaces) if self.bounce_possible and beam is not None else []
+        probed = []
+
+        def probe():  # the beam probe, cast once per prepare for whoever needs it
+            if not probed:
+                probed.append(beam_probe(scene, beam))
+            return probed[0]
+
+        self.relief = relief_under_beam(scene, beam, surfaces, probe) if self.bounce_possible and beam is not None else []
         self.notes = []
         if self.events > 1 and not self.bounce_possible:
             self.notes.append(
@@ -189,7 +196,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         if self._far_on() and self.traced_events() > 1 and beam is not None:
             self._update_far_field(scene, beam)
             if self.far_table:
-                self._update_mean_table(scene, beam)
+                self._update_mean_table(scene, beam, probe())
 
     def _far_on(self):
         return self.far_field > 0 or self.far_table
@@ -204,22 +211,21 @@ class EloIntegrator(mi.SamplingIntegrator):
             return 0.0
         return near_share(scene, sensor)
 
-    def _update_mean_table(self, scene, sensor):
+    def _update_mean_table(self, scene, sensor, si):
         """Tabulate the far field's mean (option ``far_table``) for the BSDF the beam meets most
-        and the normals it meets (:func:`._far_field.build_mean`), unless held for this table."""
-        si = beam_probe(scene, sensor)
+        and the normals it meets at the beam probe's hits ``si`` (:func:`._far_field.build_mean`),
+        unless held for this table."""
         hit = np.array(si.is_valid() & ~si.shape.is_emitter())
-        keys = np.array(dr.reinterpret_array(mi.UInt32, si.bsdf()))[hit]
+        ids = np.array(dr.reinterpret_array(mi.UInt32, si.bsdf()))[hit]
         bsdfs = {int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(sh.bsdf()))[0]): sh.bsdf()
                  for sh in scene.shapes() if not sh.is_emitter() and is_elo_bse(sh.bsdf())}
-        keys = keys[np.isin(keys, list(bsdfs))]
+        keys = ids[np.isin(ids, list(bsdfs))]
         if keys.size == 0:
             self._far_mean_table = None
             return
         values, counts = np.unique(keys, return_counts=True)
         bsdf_key = int(values[np.argmax(counts)])
-        normals = np.stack([np.array(c) for c in si.sh_frame.n], axis=1)[hit][np.array(dr.reinterpret_array(
-            mi.UInt32, si.bsdf()))[hit] == bsdf_key]
+        normals = np.stack([np.array(c) for c in si.sh_frame.n], axis=1)[hit][ids == bsdf_key]
         key = (self._far.key, bsdf_key, np.round(normals, 6).tobytes())
         held = self._far_mean_table
         if held is not None and held.key == key:

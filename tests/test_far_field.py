@@ -36,6 +36,21 @@ def _renders(name, far_field, spp, seed, events, res=16, **extra):
     return scene.render(spp=spp, seed=seed, progress=False, quality="custom")
 
 
+def _assert_agree(far, brute, events):
+    """Per detector and event: image means within 4 combined standard errors, and the per-pixel
+    chi^2, sum (a - b)^2 / sum (err_a^2 + err_b^2), within [1/1.4, 1.4] (each pixel's error rests
+    on the render's two halves)."""
+    for d in DETS:
+        for e in events:
+            n = f"{d}.e{e}"
+            a, b = far.channels[n].astype(np.float64), brute.channels[n].astype(np.float64)
+            ea, eb = far.errors[n].astype(np.float64), brute.errors[n].astype(np.float64)
+            sigma = np.sqrt(np.sum(ea**2) + np.sum(eb**2)) / a.size
+            assert abs(a.mean() - b.mean()) < 4 * sigma, (n, a.mean(), b.mean(), sigma)
+            chi2 = np.sum((a - b) ** 2) / np.sum(ea**2 + eb**2)
+            assert 1 / 1.4 < chi2 < 1.4, (n, chi2)
+
+
 @pytest.mark.parametrize("name, far_field, picks", [("shield_chamber", 2, 1), ("melt_chamber", 2, 1),
                                                      ("corrugated_chamber", 2, 1), ("corrugated_chamber", 3, 4)])
 def test_far_field_is_unbiased_against_brute_force(mi, name, far_field, picks):
@@ -45,15 +60,7 @@ def test_far_field_is_unbiased_against_brute_force(mi, name, far_field, picks):
     # stratified sampler 1.41 for seeds 1, 2 and 0.80-1.26 for seeds 3-6 on corrugated_chamber)
     brute = _renders(name, 0, 256, 1, 3, res=32)  # independent sampling of the detectors, every path traced
     far = _renders(name, far_field, 64 // picks, 2, 3, res=32, bounce_samples=picks)
-    for d in DETS:
-        for e in (2, 3):
-            n = f"{d}.e{e}"
-            a, b = far.channels[n].astype(np.float64), brute.channels[n].astype(np.float64)
-            ea, eb = far.errors[n].astype(np.float64), brute.errors[n].astype(np.float64)
-            sigma = np.sqrt(np.sum(ea**2) + np.sum(eb**2)) / a.size
-            assert abs(a.mean() - b.mean()) < 4 * sigma, (n, a.mean(), b.mean(), sigma)
-            chi2 = np.sum((a - b) ** 2) / np.sum(ea**2 + eb**2)  # each pixel's error rests on 2 halves
-            assert 1 / 1.4 < chi2 < 1.4, (n, chi2)
+    _assert_agree(far, brute, (2, 3))
 
 
 def test_far_field_lowers_the_noise_of_the_second_event(mi):
@@ -95,15 +102,7 @@ def test_the_table_is_rebuilt_when_a_detector_moves_and_reused_otherwise(mi):
 def test_later_events_of_far_paths_are_unbiased(mi, q):
     brute = _renders("shield_chamber", 0, 256, 1, 4)
     far = _renders("shield_chamber", 2, 64, 2, 4, far_roulette=q)
-    for d in DETS:
-        for e in (2, 3, 4):
-            n = f"{d}.e{e}"
-            a, b = far.channels[n].astype(np.float64), brute.channels[n].astype(np.float64)
-            ea, eb = far.errors[n].astype(np.float64), brute.errors[n].astype(np.float64)
-            sigma = np.sqrt(np.sum(ea**2) + np.sum(eb**2)) / a.size
-            assert abs(a.mean() - b.mean()) < 4 * sigma, (n, a.mean(), b.mean(), sigma)
-            chi2 = np.sum((a - b) ** 2) / np.sum(ea**2 + eb**2)
-            assert 1 / 1.4 < chi2 < 1.4, (n, chi2)
+    _assert_agree(far, brute, (2, 3, 4))
 
 
 def test_the_roulette_skips_the_later_bounces(mi):
@@ -201,16 +200,7 @@ def test_the_tabulated_mean_agrees_with_the_sampled_one(mi, name):
 def test_far_table_is_unbiased_against_brute_force(mi, name):
     brute = _renders(name, 0, 256, 1, 3, res=32)
     far = _renders(name, 0, 64, 2, 3, res=32, far_table=True, detector_sampling="quadrature")
-    assert far is not None
-    for d in DETS:
-        for e in (2, 3):
-            n = f"{d}.e{e}"
-            a, b = far.channels[n].astype(np.float64), brute.channels[n].astype(np.float64)
-            ea, eb = far.errors[n].astype(np.float64), brute.errors[n].astype(np.float64)
-            sigma = np.sqrt(np.sum(ea**2) + np.sum(eb**2)) / a.size
-            assert abs(a.mean() - b.mean()) < 4 * sigma, (n, a.mean(), b.mean(), sigma)
-            chi2 = np.sum((a - b) ** 2) / np.sum(ea**2 + eb**2)
-            assert 1 / 1.4 < chi2 < 1.4, (n, chi2)
+    _assert_agree(far, brute, (2, 3))
 
 
 def test_the_tabulated_mean_is_rebuilt_when_a_detector_moves(mi):
