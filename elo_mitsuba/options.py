@@ -34,6 +34,9 @@ MAX_BOUNCE_MIN = 4096
 MAX_EVENTS = 10
 #: Most strata per side of the far-field control variate (its s x s samples run in a loop).
 MAX_FAR_FIELD = 32
+#: The bounce filter's angle (the option's default, and the presets'): windows stop where the 1st
+#: event's normals differ by more.
+FILTER_ANGLE_DEG = 1.0
 
 
 def _option(default, doc: str, kind: str, *, xml: bool = True, choices=None, bounds=None):
@@ -73,8 +76,10 @@ class EloOptions:
     bounce_fraction: float = _option(1.0, "fraction f of the samples that trace events >= 2 (blocks of 32 "
                                      "lanes, weight 1/f)", "float", bounds=(0.0, 1.0))
     bounce_filter: float = _option(0.0, "half-width (mm) of the normal-guided window average of events >= 2 "
-                                   "(0 = off)", "float", bounds=(0.0, None))
-    bounce_filter_angle: float = _option(1.0, "normals differing by more than this (deg) stop the window",
+                                   "(0 = off; with far_table the 2nd event's residual about the tabulated mean is "
+                                   "averaged, the mean stays per pixel)", "float", bounds=(0.0, None))
+    bounce_filter_angle: float = _option(FILTER_ANGLE_DEG, "normals differing by more than this (deg) stop the "
+                                         "window (with far_table: the window of the residual about its mean)",
                                          "float", bounds=(0.0, 90.0))
     bounce_min: float = _option(0.0, "paths per pixel below which a second pass tops events >= 2 up (0 = off)",
                                 "float", bounds=(0.0, MAX_BOUNCE_MIN))
@@ -308,26 +313,36 @@ def parameter_table() -> str:
 #: ``bounce_fraction`` / ``bounce_samples`` for the scene's resolution; pixels where the window
 #: must shrink (edges, flanks) are topped up to ``bounce_min`` paths. On a scene with relief that
 #: can scatter onto itself (a scattering surface that is not one plane: an object in a chamber)
-#: events >= 2 vary along a flank whose normals agree, where the window average is biased
-#: (+9 % in e2 on the corrugated sheet in the chamber): there the presets do not filter and give
-#: every pixel ``relief_paths`` continuation paths instead. ``scene`` keeps the scene file's own
-#: settings. Events >= 2 also get the far-field control variate with its mean tabulated
-#: (``far_table``, plugins/_far_field.py) wherever less than :data:`NEAR_SHARE_MAX` of the 2nd
-#: event's electrons meet the relief again (``near_share``): measured at 128^2, `default`,
-#: athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the sampled mean, ``far_field``),
-#: melt_chamber 2.5 -> 1.4 % in 0.14 -> 0.20 s (no variate before); corrugated_chamber (43 % of them
-#: meet the facing flank) 6.1 -> 6.2 % (benchmarks/RESULTS.md, Far field).
+#: events >= 2 vary along a flank whose normals agree, where the window average of the whole
+#: event is biased (+9 % in e2 on the corrugated sheet in the chamber): there the presets give
+#: every pixel ``relief_paths`` continuation paths instead, unless the far field's mean is
+#: tabulated and only events 1 + 2 are traced. Events >= 2 get the far-field control variate with
+#: its mean tabulated (``far_table``, plugins/_far_field.py) wherever less than
+#: :data:`NEAR_SHARE_MAX` of the 2nd event's electrons meet the relief again (``near_share``):
+#: measured at 128^2, `default`, athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the
+#: sampled mean, ``far_field``), melt_chamber 2.5 -> 1.4 % in 0.14 -> 0.20 s (no variate before);
+#: corrugated_chamber (43 % of them meet the facing flank) 6.1 -> 6.2 % (benchmarks/RESULTS.md, Far
+#: field). With the mean tabulated the filter averages only the 2nd event's residual about it (the
+#: mean keeps each pixel's position and normal), over windows of normals within
+#: :data:`RESIDUAL_FILTER_ANGLE_DEG`, also on relief: melt_chamber 1500^2 1.36 -> 0.25 % total in
+#: 5.7 -> 2.0 s, its bias 0.22-0.26 % of e2 RMS per pixel (the whole event filtered: 0.4-0.9 %),
+#: at most 2.8-3.6 % of e2 at a few pixels at the melt tracks (128^2, 64 renders against 160 of
+#: the per-pixel estimator). ``default``'s budget of 1600 paths per window (was 400) keeps e2 under
+#: 3 % per pixel on the flat chamber scenes (athene_flat 1500^2 e2 3.7 -> 1.8 %, shield_chamber 5.3
+#: -> 2.6 %, worst detector, for 1.25 -> 1.39 s and 1.61 -> 1.90 s). ``scene`` keeps the scene
+#: file's own settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},
-    "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 400,
+    "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 1600,
                 "bounce_min": 2.0, "relief_paths": 16},
     "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
                   "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128},
 }
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
-PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "bounce_min", "bounce_samples",
+PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "bounce_filter_angle", "bounce_min",
+                 "bounce_samples",
                  "bounce_fraction", "far_field", "far_table", "far_roulette", "far_field_later")
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
@@ -339,6 +354,9 @@ QUALITY_ACCURACY = {"draft": 0.17, "default": 0.07, "reference": 0.025}  # corru
 #: (plugins/_far_field.near_share): 0 on the flat scenes, 0.09 % on melt_chamber, 43 % on
 #: corrugated_chamber; the threshold lies between them and was not tuned on a scene in between.
 NEAR_SHARE_MAX = 0.1
+#: The presets' filter angle on relief where the filter averages only the residual about the far
+#: field's tabulated mean (``far_table``, events 1 + 2): the mean keeps each pixel's own normal.
+RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 
@@ -386,7 +404,14 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     preset = QUALITY_PRESETS[quality]
     spp = int(preset["spp_blur"] if fwhm_mm > 0 else preset["spp"])
     bounce_filter, bounce_min = float(preset["bounce_filter"]), float(preset["bounce_min"])
-    if relief and bounce_filter > 0:  # the window average is biased on relief: per-pixel paths
+    far_table = traced_events > 1 and near_share < NEAR_SHARE_MAX
+    angle = FILTER_ANGLE_DEG
+    if relief and bounce_filter > 0 and far_table and traced_events == 2:
+        # the filter averages only the residual about the tabulated mean, which keeps each pixel's
+        # normal: windows may span the relief's normals (plugins/integrator_elo.py)
+        angle = RESIDUAL_FILTER_ANGLE_DEG
+    if relief and bounce_filter > 0 and angle == FILTER_ANGLE_DEG:
+        # the window average of the whole later events is biased on relief: per-pixel paths
         bounce_filter, bounce_min = 0.0, 0.0
         per_pixel = float(preset["relief_paths"])
     else:
@@ -405,9 +430,8 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         # which the error estimate's two halves see only as a whole (its estimate then scattered
         # 0.76-1.6x in variance on athene_flat, against 0.9-1.0x with every sample tracing)
         per_sample = float(bounce_samples)
-    far_table = traced_events > 1 and near_share < NEAR_SHARE_MAX
     options = base.replace(detector_sampling="quadrature", quadrature_triangles=preset["quadrature_triangles"],
-                           bounce_filter=bounce_filter, bounce_min=bounce_min,
+                           bounce_filter=bounce_filter, bounce_filter_angle=angle, bounce_min=bounce_min,
                            bounce_samples=bounce_samples,
                            bounce_fraction=min(1.0, per_sample / bounce_samples), far_field=0,
                            far_table=far_table, far_roulette=1.0, far_field_later=False)

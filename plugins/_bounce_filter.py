@@ -2,9 +2,12 @@
 
 The event >= 2 channels are averaged over a window of about ``bounce_filter`` mm half-width,
 shrunk (halved, three scales at most) wherever the 1st-event surface normals in the window differ
-by more than ``bounce_filter_angle`` or the beam missed, so that flanks, edges and object borders
-are not mixed. Biased by the variation of the events >= 2 inside the window: use it where they
-vary slowly (walls far away), after checking the error against a reference (benchmarks/).
+by more than ``bounce_filter_angle`` or the guide is not a unit vector there (the beam missed, or
+the integrator marks the pixel apart), so that flanks, edges and object borders are not mixed.
+Biased by the variation of what is averaged inside the window: use it where that varies slowly
+(walls far away), after checking the error against a reference (benchmarks/). With the far
+field's tabulated mean the integrator hands it the 2nd event less that mean (the residual), which
+varies slowly also across relief (plugins/integrator_elo.py).
 """
 
 import math
@@ -88,6 +91,7 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
     ones = np.ones((h, w), np.float32)
     count_levels = [t.copy() for t in _pyramid(ones, hp, wp, top, scratch)[top - min(top, 3):]]
     del ones
+    valid_levels = [t.copy() for t in _pyramid(undecided.astype(np.float32), hp, wp, top, scratch)[top - min(top, 3):]]
     first = top - min(top, 3)  # lowest level used (three scales at most)
     cos2 = math.cos(math.radians(angle_deg)) ** 2
     steps = []  # (level, pixels taken, interpolation, window pixel count)
@@ -97,8 +101,10 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
         win_count = _window(count_levels[level - first])
         count = np.maximum(win_count, 1.0)
         n_mean = np.stack([_window(n[level - first]) for n in normal_levels], axis=-1) / count[..., None]
-        # homogeneous: every pixel of the window valid (|n| = 1) and the normals agree
-        homogeneous = np.einsum("ijk,ijk->ij", n_mean, n_mean) > cos2
+        # homogeneous: every pixel of the window valid (|n| = 1; counted, as a wide angle would
+        # let a few invalid ones through the length test) and the normals agree
+        homogeneous = (_window(valid_levels[level - first]) > win_count - 0.5) & \
+            (np.einsum("ijk,ijk->ij", n_mean, n_mean) > cos2)
         hh = np.pad(homogeneous, ((0, 1), (0, 1)), mode="edge")
         ok = hh[:-1, :-1] & hh[1:, :-1] & hh[:-1, 1:] & hh[1:, 1:]
         tile = 1 << level
@@ -112,7 +118,7 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
         if paths is not None:  # continuation paths behind each pixel's value now
             np.copyto(paths, paths * win_count[iy][:, ix], where=take)
         undecided &= ~take
-    del normal_levels, count_levels
+    del normal_levels, count_levels, valid_levels
     if not steps:
         return
     for c in bounce:

@@ -47,7 +47,10 @@ continuation paths per sample (splitting, stratified: L of them sample g_BSE's l
 diffuse part, L = ceil(q k - xi) so that E[L] = q k with q the lobe's probability, each group spread
 over its own sample space, each path weighted 1/k; where a scatterer has no ``elo_bse`` tables, one
 path per cell of g_BSE's sample space weighted by the cell's area; :mod:`._strata`). ``bounce_filter`` (mm) estimates them in
-space (:mod:`._bounce_filter`, biased where they vary inside the window); ``bounce_min`` (paths
+space (:mod:`._bounce_filter`, biased where they vary inside the window; with ``far_table`` only
+the 2nd event's residual about the tabulated mean M(p, n) is averaged, over the pixels the mean
+covers, and M is added back per pixel: the residual changes little with the normal, so the
+window may span relief); ``bounce_min`` (paths
 per pixel) then tops up, in a second pass of continuation paths only, the pixels left with fewer
 paths than that (e.g. at edges where the window had to shrink); both estimates are averaged by
 path count.
@@ -103,6 +106,9 @@ __doc__ += parameter_table() + "\n"
 
 #: Hidden film channels counting the rays cast per sample (``count_rays``).
 COUNT_CHANNELS = ("_elo_intersections", "_elo_shadow_rays")
+#: Prefix of the hidden film channels holding the far field's tabulated mean of a detector's 2nd
+#: event (``far_table`` with ``bounce_filter``: the filter averages the residual about it).
+MEAN_PREFIX = "_elo_mean."
 #: bounce_fraction < 1 selects blocks of 2**_BLOCK_SHIFT consecutive lanes (neighbouring pixels)
 _BLOCK_SHIFT = 5
 _GOLDEN = 0.6180339887498949
@@ -178,12 +184,6 @@ class EloIntegrator(mi.SamplingIntegrator):
             self.notes.append(
                 "events >= 2 are exactly zero: the only scattering surface is one plane (no chamber, "
                 "nothing to scatter an electron twice); no bounce was traced")
-        if self.events > 1 and self.relief and self.bounce_filter > 0:
-            self.notes.append(
-                f"bounce_filter={self.bounce_filter:g} mm on relief that scatters onto itself "
-                f"({', '.join(self.relief)}): the window average of events >= 2 is biased where they vary "
-                "along a flank (+9 % in e2 on the corrugated sheet in the chamber) and the error estimate "
-                "does not see it; the presets turn it off on such scenes")
         self._quadrature_geometry = []
         if self.detector_sampling == "quadrature":
             self._quadrature_geometry = quadrature_geometry(detectors, self.quadrature_triangles)
@@ -197,6 +197,14 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._update_far_field(scene, beam)
             if self.far_table:
                 self._update_mean_table(scene, beam, probe())
+        if self.events > 1 and self.relief and self._filters_bounces() and not (
+                self._filters_residual() and self.traced_events() == 2):
+            self.notes.append(
+                f"bounce_filter={self.bounce_filter:g} mm on relief that scatters onto itself "
+                f"({', '.join(self.relief)}): the window average of events >= 2 is biased where they vary "
+                "along a flank (+9 % in e2 on the corrugated sheet in the chamber) and the error estimate "
+                "does not see it; the presets turn it off on such scenes unless far_table holds the "
+                "2nd event's mean and only events 1 + 2 are traced")
 
     def _far_on(self):
         return self.far_field > 0 or self.far_table
@@ -357,8 +365,16 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _filters_bounces(self):
         return self.bounce_filter > 0 and self.traced_events() > 1
 
+    def _filters_residual(self):
+        """The bounce filter averages the 2nd event less the far field's tabulated mean (which
+        stays per pixel), over the pixels the mean covers: with ``far_table`` and a mean table."""
+        return self._filters_bounces() and self.far_table and self._far_mean_table is not None
+
+    def _mean_channels(self):
+        return [MEAN_PREFIX + name for name, _ in self.detectors] if self._filters_residual() else []
+
     def _hidden_channels(self):
-        return (list(GUIDE_CHANNELS) if self._filters_bounces() else []) + \
+        return (list(GUIDE_CHANNELS) if self._filters_bounces() else []) + self._mean_channels() + \
             (list(COUNT_CHANNELS) if self.count_rays else [])
 
     def aov_names(self):
@@ -430,8 +446,16 @@ class EloIntegrator(mi.SamplingIntegrator):
             rate = self.bounce_fraction * self.bounce_samples * n_spp  # paths per pixel, expected
             paths = np.full(planes.shape[1:], rate, np.float32)
             if self.bounce_filter > 0:
+                # with the far field's tabulated mean, only the residual about it is averaged: the
+                # mean keeps each pixel's own normal and position (relief), the residual is smooth
+                means = [(index[event_channel(name, 2)], index[MEAN_PREFIX + name])
+                         for name, _ in self.detectors] if self._filters_residual() else []
+                for c, m in means:
+                    planes[c] -= planes[m]
                 filter_bounces(planes, index, self._bounce_channels(), getattr(sensor_obj, "field", None),
                                self.bounce_filter, self.bounce_filter_angle, paths)
+                for c, m in means:
+                    planes[c] += planes[m]
             if self.bounce_min > 0:
                 self._top_up(planes, index, scene, sensor, sensor_obj, seed_value, paths)
             self._totals(planes, index)
@@ -632,11 +656,18 @@ class EloIntegrator(mi.SamplingIntegrator):
             if self.events > 1:
                 aovs += events
         if self._filters_bounces():
+            residual = self._filters_residual()
             if self._top_up_pass is not None:
-                aovs += [mi.Float(0.0)] * 3
+                aovs += [mi.Float(0.0)] * (3 + (n_det if residual else 0))
             else:
-                n = dr.select(alive_first, si_first.sh_frame.n, mi.Vector3f(0.0))
+                # the guide: the 1st event's normal; with the residual filtered, only where the
+                # tabulated mean covers the hit (elsewhere the whole 2nd event is in the channel)
+                valid = alive_first & far_mask if residual else alive_first
+                n = dr.select(valid, si_first.sh_frame.n, mi.Vector3f(0.0))
                 aovs += [n.x, n.y, n.z]
+                if residual:
+                    held = len(mean) // n_det
+                    aovs += [mean[d * held] * scale for d in range(n_det)]
         if counting:
             aovs += [n_isect, self._n_shadow]
             self._n_shadow = None
