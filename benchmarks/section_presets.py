@@ -89,7 +89,9 @@ def run(b):
         results.append(b.job({"kind": "presets", "scene": scene, "res": res}, timeout=7200))
     b.facts["presets"] = results
     out = [f"Each shipped scene at {res}x{res} (80 mm field, zeta25), its default events, the presets as "
-           "`render --quality` chooses them for that scene (relief under the beam: no bounce filter), seed 11, "
+           "`render --quality` chooses them for that scene (relief under the beam: no bounce filter, unless "
+           "the far field's mean is tabulated and events 1 + 2 are traced, where the filter averages the "
+           "residual about it), seed 11, "
            f"after a warm-up render. Reference: the reference preset with {REFERENCE_FACTOR}x its samples, "
            "96 triangles, no filter, the far field's mean sampled (far_field = 4) where the presets tabulate it. Error per pixel relative to the reference (floor 5 % of its mean), worst "
            "detector: RMS, 99th percentile, worst pixel. 'estimate/actual': the render's own error estimate "

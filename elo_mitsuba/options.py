@@ -324,13 +324,13 @@ def parameter_table() -> str:
 #: corrugated_chamber (43 % of them meet the facing flank) 6.1 -> 6.2 % (benchmarks/RESULTS.md, Far
 #: field). With the mean tabulated the filter averages only the 2nd event's residual about it (the
 #: mean keeps each pixel's position and normal), over windows of normals within
-#: :data:`RESIDUAL_FILTER_ANGLE_DEG`, also on relief: melt_chamber 1500^2 1.36 -> 0.25 % total in
-#: 5.7 -> 2.0 s, its bias 0.22-0.26 % of e2 RMS per pixel (the whole event filtered: 0.4-0.9 %),
-#: at most 2.8-3.6 % of e2 at a few pixels at the melt tracks (128^2, 64 renders against 160 of
-#: the per-pixel estimator). ``default``'s budget of 1600 paths per window (was 400) keeps e2 under
-#: 3 % per pixel on the flat chamber scenes (athene_flat 1500^2 e2 3.7 -> 1.8 %, shield_chamber 5.3
-#: -> 2.6 %, worst detector, for 1.25 -> 1.39 s and 1.61 -> 1.90 s). ``scene`` keeps the scene
-#: file's own settings.
+#: :data:`RESIDUAL_FILTER_ANGLE_DEG`, also on relief. ``default``'s budget is 1600 paths per window
+#: (was 400). At 1500^2, before -> now (benchmarks/RESULTS.md, Far field, "The residual filter";
+#: the render's own estimate, worst detector): melt_chamber 1.37 -> 0.12 % total in 6.6-7.0 ->
+#: 1.8-2.0 s; athene_flat 0.25 -> 0.13 % (e2 3.7 -> 1.8 %) and shield_chamber 0.26 -> 0.13 % (e2
+#: 5.3 -> 2.6 %) for about 0.1-0.3 s more. The filter's bias on melt_chamber (128^2, against the
+#: per-pixel estimator): 0.17-0.19 % of e2 RMS per pixel, at most 3.2 % of e2 at the melt tracks
+#: (the whole event filtered: 0.34-0.90 %, up to 8.5 %). ``scene`` keeps the scene file's own settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},

@@ -549,7 +549,9 @@ class EloScene:
         passes = [pass_sizes(sampler, n, per_pass) for n, _ in halves]
         n_passes = sum(pass_count(sizes) for sizes in passes)
         names = self.integrator.channel_names()
-        notes = check_render(self.sensor.resolution, len(names) + 1, spp, self.integrator.traced_events(),
+        # the mean channels are film channels too (the fit below them counted the named ones)
+        channels = len(names) + 1 + len(self.integrator.mean_channels())
+        notes = check_render(self.sensor.resolution, channels, spp, self.integrator.traced_events(),
                              max(n_passes, 2 if len(halves) > 1 else 1),
                              detector_points=detector_points(self.integrator), force=force)
         if progress is not False:

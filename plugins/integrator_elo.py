@@ -370,11 +370,13 @@ class EloIntegrator(mi.SamplingIntegrator):
         stays per pixel), over the pixels the mean covers: with ``far_table`` and a mean table."""
         return self._filters_bounces() and self.far_table and self._far_mean_table is not None
 
-    def _mean_channels(self):
+    def mean_channels(self):
+        """The hidden film channels of the far field's tabulated mean (per detector) that the bounce
+        filter adds back, or none (see :meth:`_filters_residual`)."""
         return [MEAN_PREFIX + name for name, _ in self.detectors] if self._filters_residual() else []
 
     def _hidden_channels(self):
-        return (list(GUIDE_CHANNELS) if self._filters_bounces() else []) + self._mean_channels() + \
+        return (list(GUIDE_CHANNELS) if self._filters_bounces() else []) + self.mean_channels() + \
             (list(COUNT_CHANNELS) if self.count_rays else [])
 
     def aov_names(self):

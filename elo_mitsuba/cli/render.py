@@ -38,20 +38,20 @@ reference set the spp and how the detectors are integrated: the 1st event by the
 quadrature of Appendix A (no noise with a single-ray beam), events >= 2 traced for a fraction of
 the pixels and averaged over a window that stops at changes of the surface normal. "scene" keeps
 the scene file's settings (independent sampling, 2.4%/sqrt(spp) noise per pixel on the 1st event).
-An explicit --spp or --detector-samples wins over the preset. The presets are chosen per scene:
-where relief under the beam can scatter onto itself (an object in a chamber) events >= 2 are not
-window-averaged (that average was biased by +9 % in e2 on flanks) but traced per pixel.
-Measured on every shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel
-RMS error of a detector's total against a converged reference), each preset's WORST scene:
-
-  preset      worst scene           total    time (128^2)   best scene (athene_flat)
-  draft       corrugated_chamber    16.4 %   0.12 s         0.56 %
-  default     corrugated_chamber     6.4 %   0.13 s         0.34 %
-  reference   corrugated_chamber     1.9 %   0.52 s         0.52 % (no window average)
-
+An explicit --spp or --detector-samples wins over the preset. The presets are chosen per scene.
 Where few of the 2nd event's electrons meet the relief again (every shipped chamber scene but
-corrugated_chamber) the presets add the far-field control variate of events >= 2 with its mean
-tabulated once per geometry (issue 26; benchmarks/RESULTS.md, section Far field).
+corrugated_chamber) they add the far-field control variate of events >= 2 with its mean
+tabulated once per geometry, and the window averages only the 2nd event's residual about that
+mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the melt plate 0.2 % of
+e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
+>= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks). Measured on every
+shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
+detector's total against a converged reference), each preset's WORST scene:
+
+  preset      worst scene           total    time (128^2)   athene_flat
+  draft       corrugated_chamber    16.4 %   0.13 s         0.56 %
+  default     corrugated_chamber     6.4 %   0.18 s         0.25 % (0.13 % net of the reference's noise)
+  reference   corrugated_chamber     1.9 %   0.62 s         0.52 % (no window average)
 
 Every render estimates its own error from two independent halves of the samples and prints it
 per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks
