@@ -28,8 +28,8 @@ import numpy as np
 from .harness import DETS, run_module
 
 SCENES = ("athene_flat", "shield_chamber", "melt_chamber")
-#: `default`'s budget per window and the relief angle before the residual filter.
-BEFORE = {"bounce_budget": 400, "angle": None}
+#: `default`'s budget per window before the residual filter.
+BEFORE_BUDGET = 400
 
 
 def _set(options_module, budget, angle):
@@ -48,7 +48,7 @@ def side_by_side(name, res):
 
     em.ensure_variant()
     now = (o.QUALITY_PRESETS["default"]["bounce_budget"], o.RESIDUAL_FILTER_ANGLE_DEG)
-    before = (BEFORE["bounce_budget"], o.FILTER_ANGLE_DEG)  # the filter angle on relief: per-pixel paths
+    before = (BEFORE_BUDGET, o.FILTER_ANGLE_DEG)  # the filter angle on relief: per-pixel paths
     scene = em.load_scene(name, res=res)
     rows = {}
     for rnd in range(2):

@@ -405,12 +405,11 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     spp = int(preset["spp_blur"] if fwhm_mm > 0 else preset["spp"])
     bounce_filter, bounce_min = float(preset["bounce_filter"]), float(preset["bounce_min"])
     far_table = traced_events > 1 and near_share < NEAR_SHARE_MAX
-    angle = FILTER_ANGLE_DEG
-    if relief and bounce_filter > 0 and far_table and traced_events == 2:
-        # the filter averages only the residual about the tabulated mean, which keeps each pixel's
-        # normal: windows may span the relief's normals (plugins/integrator_elo.py)
-        angle = RESIDUAL_FILTER_ANGLE_DEG
-    if relief and bounce_filter > 0 and angle == FILTER_ANGLE_DEG:
+    # on relief the filter averages only the residual about the tabulated mean, which keeps each
+    # pixel's normal, so windows may span the relief's normals (plugins/integrator_elo.py)
+    residual = relief and bounce_filter > 0 and far_table and traced_events == 2
+    angle = RESIDUAL_FILTER_ANGLE_DEG if residual else FILTER_ANGLE_DEG
+    if relief and bounce_filter > 0 and not residual:
         # the window average of the whole later events is biased on relief: per-pixel paths
         bounce_filter, bounce_min = 0.0, 0.0
         per_pixel = float(preset["relief_paths"])

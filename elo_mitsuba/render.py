@@ -464,7 +464,8 @@ class EloScene:
         pixel_mm = self.sensor.field / self.sensor.resolution[0]
         options, spp = quality_options(quality, self.integrator.options, pixel_mm=pixel_mm,
                                        fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events(),
-                                       relief=bool(self.integrator.relief), near_share=self.integrator.near_share(self.scene, self.sensor))
+                                       relief=bool(self.integrator.relief),
+                                       near_share=self.integrator.near_share(self.scene, self.sensor))
         self.integrator.configure(options)
         self.quality = quality
         return spp
