@@ -94,17 +94,30 @@ def bias(res, n_filtered, n_per_pixel, whole=False):
     return out
 
 
+def _positive(text):
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number >= 1")
+    return int(text)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m benchmarks.residual_filter", description=__doc__.split("\n\n")[0])
-    p.add_argument("--res", type=int, default=1500)
+    p.add_argument("--res", type=_positive, default=1500)
     p.add_argument("--scenes", default=",".join(SCENES))
     p.add_argument("--bias", help="N,M: N filtered against M per-pixel renders (melt_chamber)")
-    p.add_argument("--bias-res", type=int, default=128)
+    p.add_argument("--bias-res", type=_positive, default=128)
     p.add_argument("--whole", action="store_true", help="with --bias: filter the whole 2nd event")
     p.add_argument("--one", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    chamber = SCENES + ("corrugated_chamber",)
+    unknown = [n for n in a.scenes.split(",") if n not in chamber]
+    if unknown:
+        p.error(f"--scenes: {', '.join(unknown)}; choose among {', '.join(chamber)}")
     if a.bias:
-        n, m = (int(x) for x in a.bias.split(","))
+        parts = a.bias.split(",")
+        if len(parts) != 2 or not all(x.strip().isdigit() and int(x) >= 2 for x in parts):
+            p.error(f"--bias {a.bias!r}: give N,M, two whole numbers >= 2 (renders of each side)")
+        n, m = (int(x) for x in parts)
         what = "the whole 2nd event" if a.whole else "the residual about the tabulated mean"
         print(f"melt_chamber {a.bias_res}², {n} `default` renders ({what} filtered) against {m} per-pixel ones:\n")
         print("| detector | bias, RMS per pixel (of e2) | worst pixel (of e2) | pixels beyond 4 standard errors |")
