@@ -359,6 +359,11 @@ NEAR_SHARE_MAX = 0.1
 RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
+#: Most samples per pixel a preset takes for its continuation paths (so at most
+#: MAX_BOUNCE_SPP x MAX_BOUNCE_SAMPLES = 512 paths per pixel where the window is one pixel): at 256
+#: spp (athene_flat 12^2, `default`'s 1600 paths per pixel) a re-render's e2 differed from a fresh
+#: one's in the last bit in 1 of 3 runs (summation order; tests/test_rerender.py), at 64 spp never.
+MAX_BOUNCE_SPP = 64
 
 
 def filter_window_levels(half_width_mm: float, pixel_mm: float) -> int | None:
@@ -417,6 +422,9 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         level = filter_window_levels(bounce_filter, pixel_mm)
         window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y
         per_pixel = preset["bounce_budget"] / window**2  # continuation paths per pixel
+    # at most MAX_BOUNCE_SPP samples per pixel for the continuation paths (where the window is one
+    # pixel, 1600 paths would take 256 spp, whose re-renders differed in the last bit of e2)
+    per_pixel = min(per_pixel, max(spp, MAX_BOUNCE_SPP) * MAX_BOUNCE_SAMPLES)
     if traced_events > 1 and per_pixel > spp * MAX_BOUNCE_SAMPLES:
         # a power of two: a pixel's samples then never straddle two of Dr.Jit's thread blocks,
         # whose atomic adds into one pixel would come in varying order (last-bit differences)

@@ -8,7 +8,8 @@ from forward_scenes import flat_scene
 
 import elo_mitsuba as em
 from elo_mitsuba.constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
-from elo_mitsuba.options import QUALITY_PRESETS, EloOptions, filter_window_levels, quality_options
+from elo_mitsuba.options import (MAX_BOUNCE_SAMPLES, MAX_BOUNCE_SPP, QUALITY_PRESETS, EloOptions, filter_window_levels,
+                                 quality_options)
 
 BAD = [
     ("events", 0, r"events=0; must be in \[1, 10\]"), ("events", 2.5, "whole number"), ("events", True, "number"),
@@ -79,7 +80,8 @@ def test_quality_options_spread_the_bounce_budget():
             level = filter_window_levels(preset["bounce_filter"], pixel_mm)
             window = 1 if level is None else 3 * 2**level  # the filter's window (3 x 3 tiles of 2^k px)
             paths = o.bounce_fraction * o.bounce_samples * spp * window**2
-            budget = preset["bounce_budget"]
+            # capped where a pixel would need more than MAX_BOUNCE_SPP samples (one-pixel windows)
+            budget = min(preset["bounce_budget"], MAX_BOUNCE_SPP * MAX_BOUNCE_SAMPLES * window**2)
             if spp == 1:
                 assert paths == pytest.approx(budget, rel=1e-9)  # the budget, exactly spent
             else:  # every sample traces: rounded up to whole paths per sample
