@@ -94,6 +94,8 @@ from elo_mitsuba.sample_counts import count_at_least
 from elo_mitsuba.schema import event_channel, event_channels
 
 from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
+from ._geometry_classes import GeometryClasses
+from ._geometry_classes import geometry_key as classes_key
 from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, build_rays, geometry_key,
                          near_share, reduce_table)
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
@@ -137,6 +139,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
         self._far_mean_table = None  # its tabulated mean (_far_field.MeanTable, option far_table), or None
         self.far_field_builds = 0  # how many times the far-field table was built (tests, benchmarks)
+        self._classes = None  # the geometry classes of bounce_share (_geometry_classes), or None
+        self.class_builds = 0  # how many times they were built (tests, benchmarks)
 
     # ---- options --------------------------------------------------------------------------------
     def configure(self, options: EloOptions) -> None:
@@ -197,6 +201,8 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._update_far_field(scene, beam)
             if self.far_table:
                 self._update_mean_table(scene, beam, probe())
+        if self._shares_bounces() and beam is not None:
+            self._update_classes(scene, beam)
         if self.events > 1 and self.relief and self._filters_bounces() and not (
                 self._filters_residual() and self.traced_events() == 2):
             self.notes.append(
@@ -208,6 +214,19 @@ class EloIntegrator(mi.SamplingIntegrator):
 
     def _far_on(self):
         return self.far_field > 0 or self.far_table
+
+    def _shares_bounces(self):
+        return self.bounce_share > 0 and self.traced_events() > 1
+
+    def _update_classes(self, scene, sensor):
+        """Sort the pixels into geometry classes (``bounce_share``, :mod:`._geometry_classes`)
+        unless the classes held were made for this geometry, beam, film and block size."""
+        key = (classes_key(scene, sensor), float(self.bounce_share))
+        if self._classes is not None and self._classes.key == key:
+            return
+        self._classes = None  # the old classes' arrays go before the new ones are made
+        self._classes = GeometryClasses(scene, sensor, self.bounce_share)
+        self.class_builds += 1
 
     def near_share(self, scene, sensor):
         """The share of the 2nd event's electrons that meet a surface again within NEAR_MM of the
@@ -443,7 +462,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         if self.count_rays:
             self.ray_counts = {"intersections": float(np.mean(planes[index[COUNT_CHANNELS[0]]])),
                                "shadow_rays": float(np.mean(planes[index[COUNT_CHANNELS[1]]]))}
-        if self.traced_events() > 1 and (self.bounce_filter > 0 or self.bounce_min > 0):
+        if self.traced_events() > 1 and (self.bounce_filter > 0 or self.bounce_share > 0 or self.bounce_min > 0):
             n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
             rate = self.bounce_fraction * self.bounce_samples * n_spp  # paths per pixel, expected
             paths = np.full(planes.shape[1:], rate, np.float32)
@@ -458,6 +477,12 @@ class EloIntegrator(mi.SamplingIntegrator):
                                self.bounce_filter, self.bounce_filter_angle, paths)
                 for c, m in means:
                     planes[c] += planes[m]
+            if self._shares_bounces():
+                # pixels of one geometry class take its mean (both halves of the error estimate
+                # share the classes, so its noise is seen and any bias is not)
+                for name in self._bounce_channels():
+                    self._classes.share(planes[index[name]])
+                paths *= self._classes.pixels_per_class()
             if self.bounce_min > 0:
                 self._top_up(planes, index, scene, sensor, sensor_obj, seed_value, paths)
             self._totals(planes, index)

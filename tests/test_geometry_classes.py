@@ -1,0 +1,125 @@
+"""Events >= 2 shared by pixels of matching geometry (bounce_share, plugins/_geometry_classes.py)."""
+
+import numpy as np
+import pytest
+
+import elo_mitsuba as em
+from elo_mitsuba.errors import EloInputError
+from elo_mitsuba.options import EloOptions, SHARE_BLOCK_MM
+from elo_mitsuba.plugins._geometry_classes import classes, probe_directions
+
+DETS = ("right", "left", "back", "front")
+
+
+def test_classes_join_equal_features_within_a_block_only():
+    valid = np.ones((4, 6), bool)
+    valid[0, 0] = False
+    features = np.zeros((2, 4, 6), np.int64)
+    features[0, :, 1] = 5  # column 1 apart from the rest
+    index, counts = classes(valid, features, block_px=3)
+    assert counts.sum() == valid.size
+    # one block (rows 0-2, columns 0-2): column 1 is a class, columns 0 and 2 another (less the invalid pixel)
+    assert index[0, 1] == index[1, 1] == index[2, 1] != index[1, 0]
+    assert index[1, 0] == index[2, 0] == index[0, 2] == index[2, 2]
+    # the next block along x and the next along y are other classes
+    assert index[0, 4] != index[0, 2] and index[3, 0] != index[2, 0]
+    # an invalid pixel is alone
+    assert counts[index[0, 0]] == 1
+    # features equal in every component but one
+    features[1, 2, 2] = 1
+    index2, _ = classes(valid, features, block_px=3)
+    assert index2[2, 2] != index2[1, 2]
+
+
+def test_probe_directions_cover_the_hemisphere_cosine_weighted():
+    d = probe_directions(16)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0) and np.all(d[:, 2] > 0)
+    # cosine-weighted: E[cos theta] = 2/3; and every quadrant of azimuth holds a quarter of them
+    assert abs(d[:, 2].mean() - 2.0 / 3.0) < 0.02
+    quadrant = (np.arctan2(d[:, 1], d[:, 0]) // (np.pi / 2)).astype(int)
+    assert np.bincount(quadrant + 2, minlength=4).tolist() == [4, 4, 4, 4]
+
+
+def test_the_option_is_checked():
+    with pytest.raises(EloInputError, match=r"bounce_share=-1.*mm.*>= 0"):
+        EloOptions(bounce_share=-1.0)
+    with pytest.raises(EloInputError, match="bounce_share=4 mm and bounce_filter=1 mm"):
+        EloOptions(events=2, bounce_share=4.0, bounce_filter=1.0)
+
+
+def test_the_corrugated_sheets_flank_lines_are_classes(mi):
+    """The corrugated sheet (ridges along y) at 0.156 mm pixels: in a block, the pixels of one
+    column on one flank share a class, and no class holds both flanks' normals."""
+    scene = em.load_scene("corrugated_chamber", res=64, field=10)
+    scene.set_quality("default")
+    integ = scene.integrator
+    assert integ.options.bounce_share == SHARE_BLOCK_MM
+    integ.prepare_scene(scene.scene, scene.sensor)
+    c = integ._classes
+    assert c.block_px == round(SHARE_BLOCK_MM / (10 / 64))  # 26 px
+    index = c.index
+    block = index[:26, :26]
+    # along y (rows) a column's pixels are one class, but where a probe distance lies on a step
+    # of the quantisation (the beam's incidence changes a little along y): most pixels' classes
+    # span most of the block's rows
+    sizes = np.array([np.sum(block[:, j] == block[i, j]) for i in range(26) for j in range(26)])
+    assert np.median(sizes) == 26 and np.mean(sizes >= 13) > 0.8, (np.median(sizes), np.mean(sizes >= 13))
+    # across x the classes change with the flank and the place on it
+    assert len(np.unique(block[0])) >= 13
+    # no class holds pixels of two different normals (face normals: two exactly)
+    import drjit as dr
+    import mitsuba as mi_
+
+    idx = dr.arange(mi_.UInt32, 64 * 64)
+    film = mi_.Point2f((mi_.Float(idx % 64) + 0.5) / 64, (mi_.Float(idx // 64) + 0.5) / 64)
+    ray, _ = scene.sensor.sample_ray(0.0, 0.5, film, mi_.Point2f(0.5, 0.5))
+    nx = np.sign(np.array(scene.scene.ray_intersect(ray).sh_frame.n.x)).reshape(64, 64)
+    for k in np.unique(index):
+        assert len(np.unique(nx[index == k])) == 1
+
+
+def test_classes_are_built_once_per_geometry(mi):
+    scene = em.load_scene("corrugated_chamber", res=24, field=10)
+    for seed in (1, 2):
+        scene.render(quality="default", seed=seed, progress=False)
+    integ = scene.integrator
+    assert integ.class_builds == 1
+    centre = scene.detector_geometry()["right"]["center"]
+    scene.set_detector("right", center=[centre[0] + 5.0, centre[1], centre[2]])  # the probes could meet it
+    scene.render(quality="default", seed=3, progress=False)
+    assert integ.class_builds == 2
+
+
+def test_the_presets_share_on_relief_with_a_single_ray_beam_only(mi):
+    chosen = {}
+    for name, fwhm, quality in (("corrugated_chamber", 0.0, "default"), ("corrugated_chamber", 0.0, "draft"),
+                                ("corrugated_chamber", 0.0, "reference"), ("corrugated_chamber", 0.27, "default"),
+                                ("melt_chamber", 0.0, "default"), ("athene_flat", 0.0, "default")):
+        scene = em.load_scene(name, res=32, fwhm=fwhm)
+        scene.set_quality(quality)
+        chosen[(name, fwhm, quality)] = scene.integrator.options.bounce_share
+    assert chosen == {("corrugated_chamber", 0.0, "default"): SHARE_BLOCK_MM,
+                      ("corrugated_chamber", 0.0, "draft"): SHARE_BLOCK_MM,
+                      ("corrugated_chamber", 0.0, "reference"): 0.0,  # the unbiased ground truth
+                      ("corrugated_chamber", 0.27, "default"): 0.0,  # not measured under a profile
+                      ("melt_chamber", 0.0, "default"): 0.0,  # the residual filter instead
+                      ("athene_flat", 0.0, "default"): 0.0}, chosen
+
+
+def test_shared_events_are_the_class_means(mi):
+    """Each pixel's shared e2 is the mean of its class's per-pixel values (same seed, same paths)."""
+    scene = em.load_scene("corrugated_chamber", res=48, field=10)
+    spp = scene.set_quality("default")
+    integ = scene.integrator
+    shared, _ = integ.render_planes(scene.scene, 0, 9, spp)
+    shared = shared.copy()
+    c = integ._classes
+    scene.configure(bounce_share=0.0)
+    own, _ = integ.render_planes(scene.scene, 0, 9, spp)
+    names = integ.channel_names()
+    for d in DETS:
+        i = names.index(f"{d}.e2")
+        want = (np.bincount(c.flat, weights=own[i].ravel().astype(np.float64)) / c.counts)[c.index]
+        assert np.allclose(shared[i], want, rtol=1e-5, atol=1e-9)
+        j = names.index(f"{d}.e1")
+        assert np.array_equal(shared[j], own[j])  # the 1st event is never shared
