@@ -25,6 +25,8 @@ import time
 
 import numpy as np
 
+from elo_mitsuba.schema import event_channel
+
 from .harness import DETS, run_module
 
 SCENES = ("corrugated_chamber", "melt_chamber")
@@ -56,7 +58,7 @@ def side_by_side(name, res, events):
             t = time.perf_counter()
             r = scene.render(quality="custom", spp=spp, seed=11 + rnd, progress=False)
             dt = time.perf_counter() - t
-            worst = [max(_rel(r, f"{d}.e{k}" if k else d) for d in DETS) for k in [0] + list(range(2, events + 1))]
+            worst = [max(_rel(r, event_channel(d, k) if k else d) for d in DETS) for k in [0] + list(range(2, events + 1))]
             rows.setdefault(label, []).append((dt, worst, block))
     out = {label: {"seconds": min(x[0] for x in v), "errors": np.mean([x[1] for x in v], axis=0).tolist(),
                    "block": v[0][2]} for label, v in rows.items()}
@@ -70,7 +72,7 @@ def bias(name, res, events, n_shared, n_per_pixel):
     em.ensure_variant()
     scene = em.load_scene(name, res=res)
     scene.set_events(events)
-    channels = [f"{d}.e{k}" for k in range(2, events + 1) for d in DETS]
+    channels = [event_channel(d, k) for k in range(2, events + 1) for d in DETS]
 
     def stack(quality, n, seed0):
         spp = scene.set_quality(quality)
@@ -78,7 +80,7 @@ def bias(name, res, events, n_shared, n_per_pixel):
                                    .channels[c] for c in channels]).astype(np.float64) for k in range(n)])
 
     f = stack("default", n_shared, 1000)
-    block, classes = scene.integrator.options.bounce_share, scene.integrator._classes
+    block, classes = scene.integrator.options.bounce_share, scene.integrator.geometry_classes()
     g = stack("reference", n_per_pixel, 5000)
     out = {}
     for i, c in enumerate(channels):

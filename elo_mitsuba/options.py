@@ -324,7 +324,9 @@ def parameter_table() -> str:
 #: events >= 2 vary along a flank whose normals agree, where the window average of the whole
 #: event is biased (+9 % in e2 on the corrugated sheet in the chamber): there the presets give
 #: every pixel ``relief_paths`` continuation paths instead, unless the far field's mean is
-#: tabulated and only events 1 + 2 are traced. Events >= 2 get the far-field control variate with
+#: tabulated and only events 1 + 2 are traced; ``draft`` and ``default`` then share those events
+#: between the pixels of matching geometry in blocks of :data:`SHARE_BLOCK_MM` (``bounce_share``)
+#: where the beam is one ray. Events >= 2 get the far-field control variate with
 #: its mean tabulated (``far_table``, plugins/_far_field.py) wherever less than
 #: :data:`NEAR_SHARE_MAX` of the 2nd event's electrons meet the relief again (``near_share``):
 #: measured at 128^2, `default`, athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the

@@ -34,6 +34,7 @@ import mitsuba as mi
 import numpy as np
 
 from ._far_field import NEAR_MM
+from ._occlusion import shape_key
 
 #: Probe directions per pixel (a power of two: the Hammersley set). 16 matched 32 on
 #: corrugated_chamber at 512^2 (bias below the measurement's noise of ~0.5 % of e2 either way).
@@ -44,6 +45,8 @@ STEPS_PER_E = 8
 NORMAL_DEG = 1.0
 #: Shortest probe distance told apart (mm): closer hits count as this distance.
 MIN_DISTANCE_MM = 1e-3
+#: The probes' offset from the surface, relative to 1 + max |p| (Mitsuba's RayEpsilon in float32).
+RAY_EPSILON = 89.0 * 2.0 ** -24
 #: Odd 64-bit multipliers of the class key's hash (fixed: classes are reproducible).
 _MIX = np.random.default_rng(0x6E0C).integers(1, 1 << 62, size=PROBES + 4, dtype=np.int64) * 2 + 1
 
@@ -72,43 +75,101 @@ def geometry_key(scene, sensor):
             str(getattr(sensor, "projection", "")), tuple(sensor.aim_offset_mm), int(size[0]), int(size[1]))
 
 
+def _rays(o, d, maxt=None):
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.ascontiguousarray(o[:, c], np.float32)) for c in range(3)]),
+                   mi.Vector3f(*[mi.Float(np.ascontiguousarray(d[:, c], np.float32)) for c in range(3)]))
+    if maxt is not None:
+        ray.maxt = maxt
+    return ray
+
+
+def _frame(n):
+    """Tangents (s, t) of unit normals ``n`` (N, 3), as Mitsuba's coordinate_system (float64)."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    s = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    t = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return s, t
+
+
+def _surface_points(scene, hit, si, valid):
+    """The hits on the surface (N, 3), float64: on a mesh from the ray tracer's triangle and
+    barycentric coordinates (o + t d would miss the surface by the rounding of t, ~1e-5 mm at
+    400 mm, enough to start a probe below it); on other shapes Mitsuba's own point."""
+    p = np.stack([np.array(c, np.float64) for c in si.p], axis=1)
+    keys = np.array(dr.reinterpret_array(mi.UInt32, hit.shape))
+    prim = np.array(hit.prim_index, np.int64)
+    uv = np.stack([np.array(c, np.float64) for c in hit.prim_uv], axis=1)
+    for shape in scene.shapes():
+        if not shape.is_mesh():
+            continue
+        on = valid & (keys == shape_key(shape))
+        if not on.any():
+            continue
+        vertices = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+        faces = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)[prim[on]]
+        b1, b2 = uv[on, 0:1], uv[on, 1:2]
+        p[on] = vertices[faces[:, 0]] * (1.0 - b1 - b2) + vertices[faces[:, 1]] * b1 + vertices[faces[:, 2]] * b2
+    return p
+
+
 def scan_features(scene, sensor):
-    """Per pixel (H x W): whether the beam meets a scattering surface there, the quantised normal
-    (2 ints) and the quantised probe distances (:data:`PROBES` ints), as int64 arrays."""
+    """Per pixel (H x W): whether the beam meets a scattering surface there, and a 64-bit hash of
+    its quantised normal (2 ints) and probe distances (:data:`PROBES` ints), equal for equal
+    features.
+
+    The rays are built on the host in float64 from the beam's centre rays and the distances come
+    from the ray tracer as they are, so that the classes do not depend on the instruction set
+    Dr.Jit compiles for: a last-bit change of a beam direction moves its hit by 4e-5 mm at 400 mm
+    work distance, enough to move some probe distances across a quantisation step (10 of 2304
+    pixels of corrugated_sheet at 48² changed class between AVX-512 and AVX2 kernels when the rays
+    were built in the kernel). The normal alone comes from the kernel (it is quantised coarsely).
+    """
     size = sensor.film().crop_size()
     w, h = int(size[0]), int(size[1])
-    idx = dr.arange(mi.UInt32, w * h)
-    film = mi.Point2f((mi.Float(idx % w) + 0.5) / w, (mi.Float(idx // w) + 0.5) / h)
-    ray, _ = sensor.sample_ray(0.0, 0.5, film, mi.Point2f(0.5, 0.5))
-    si = scene.ray_intersect(ray)
-    valid = si.is_valid() & ~si.shape.is_emitter()
+    o, d = sensor.centre_rays()
+    ray = _rays(o, d)
+    hit = scene.ray_intersect_preliminary(ray)
+    si = hit.compute_surface_interaction(ray)
+    valid = np.array(si.is_valid() & ~si.shape.is_emitter(), dtype=bool)
+    n = np.stack([np.array(c, np.float64) for c in si.sh_frame.n], axis=1)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    n[~valid] = (0.0, 0.0, 1.0)
+    p = _surface_points(scene, hit, si, valid)
     step = math.sin(math.radians(NORMAL_DEG))
-    n = si.sh_frame.n
-    keys = [mi.Int32(dr.round(n.x / step)), mi.Int32(dr.round(n.y / step))]
-    for d in probe_directions():
-        probe = si.spawn_ray(si.to_world(mi.Vector3f(*[float(c) for c in d])))
-        probe.maxt = NEAR_MM
-        hit = scene.ray_intersect_preliminary(probe, valid)
-        t = dr.select(hit.is_valid(), dr.maximum(hit.t, MIN_DISTANCE_MM), NEAR_MM)
-        keys.append(mi.Int32(dr.floor(dr.log(t) * STEPS_PER_E)))
-    dr.eval(valid, keys)
-    valid_np = np.array(valid, dtype=bool).reshape(h, w)
-    return valid_np, np.stack([np.array(k, dtype=np.int64).reshape(h, w) for k in keys])
+    mix = _MIX.astype(np.uint64)
+    with np.errstate(over="ignore"):  # the hash wraps around (uint64), as intended
+        key = np.round(n[:, 0] / step).astype(np.int64).astype(np.uint64) * mix[2]
+        key += np.round(n[:, 1] / step).astype(np.int64).astype(np.uint64) * mix[3]
+        # leave the surface as Mitsuba's spawn_ray does: along the normal, scaled by |p|
+        origin = p + n * (RAY_EPSILON * (1.0 + np.max(np.abs(p), axis=1)))[:, None]
+        s, t = _frame(n)
+        active = mi.Bool(valid)
+        for c, (dx, dy, dz) in enumerate(probe_directions()):
+            direction = s * dx + t * dy + n * dz
+            probe = scene.ray_intersect_preliminary(_rays(origin, direction, NEAR_MM), active)
+            dist = np.where(np.array(probe.is_valid(), bool), np.array(probe.t, np.float64), NEAR_MM)
+            q = np.floor(np.log(np.maximum(dist, MIN_DISTANCE_MM)) * STEPS_PER_E).astype(np.int64)
+            key += q.astype(np.uint64) * mix[4 + c]
+    return valid.reshape(h, w), key.view(np.int64).reshape(h, w)
 
 
 def classes(valid, features, block_px):
     """Class index per pixel (H x W, int64, 0 .. n - 1) and the pixels in each class (n).
 
-    Pixels of one block of ``block_px`` x ``block_px`` with equal ``features`` share a class;
-    pixels where ``valid`` is False each have a class of their own.
+    Pixels of one block of ``block_px`` x ``block_px`` with equal ``features`` (an int64 hash per
+    pixel, H x W, or one int64 plane per feature, F x H x W) share a class; pixels where ``valid``
+    is False each have a class of their own.
     """
     h, w = valid.shape
     by = (np.arange(h) // block_px)[:, None]
     bx = (np.arange(w) // block_px)[None, :]
     with np.errstate(over="ignore"):  # the hash wraps around (int64), as intended
         key = by * _MIX[0] + bx * _MIX[1]
-        for c in range(features.shape[0]):
-            key = key + features[c] * _MIX[2 + c]
+        planes = features[None] if features.ndim == 2 else features
+        for c in range(planes.shape[0]):
+            key = key + planes[c] * _MIX[2 + c]
     key = key.ravel()
     own = ~valid.ravel()
     # each invalid pixel a class of its own: even keys, the hashes made odd

@@ -53,7 +53,10 @@ covers, and M is added back per pixel: the residual changes little with the norm
 window may span relief); ``bounce_min`` (paths
 per pixel) then tops up, in a second pass of continuation paths only, the pixels left with fewer
 paths than that (e.g. at edges where the window had to shrink); both estimates are averaged by
-path count.
+path count. ``bounce_share`` (mm), the alternative to ``bounce_filter``, shares them between pixels whose geometry matches
+(:mod:`._geometry_classes`: in blocks of that side, the pixels with the same normal and the same
+distances along 16 probe rays, classified once per geometry): for relief that scatters onto
+itself, where events >= 2 vary along a flank but repeat where the relief repeats.
 
 Model only what the scene requires. Scenes whose only scattering surface is one plane
 (``rectangle``, ``disk`` or a planar mesh) cannot scatter an electron twice: events >= 2 are
@@ -217,6 +220,11 @@ class EloIntegrator(mi.SamplingIntegrator):
 
     def _shares_bounces(self):
         return self.bounce_share > 0 and self.traced_events() > 1
+
+    def geometry_classes(self):
+        """The geometry classes in use (:class:`._geometry_classes.GeometryClasses`: ``index``,
+        ``counts``), or None without ``bounce_share``."""
+        return self._classes if self._shares_bounces() else None
 
     def _update_classes(self, scene, sensor):
         """Sort the pixels into geometry classes (``bounce_share``, :mod:`._geometry_classes`)

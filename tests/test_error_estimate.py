@@ -112,7 +112,7 @@ def test_presets_do_not_filter_on_relief_and_are_unbiased_on_flanks(mi):
     result = scene.render(quality="default", seed=5, progress=False)
     assert scene.options.bounce_filter == 0.0  # relief: no window average
     assert scene.options.bounce_share > 0
-    classes = scene.integrator._classes
+    classes = scene.integrator.geometry_classes()
     scene.configure(bounce_samples=8, bounce_fraction=1.0, bounce_filter=0.0, bounce_share=0.0, bounce_min=0.0)
     reference = scene.render(spp=16, seed=55, progress=False)
     px = 15.0 / 96

@@ -55,7 +55,7 @@ def test_the_corrugated_sheets_flank_lines_are_classes(mi):
     integ = scene.integrator
     assert integ.options.bounce_share == SHARE_BLOCK_MM
     integ.prepare_scene(scene.scene, scene.sensor)
-    c = integ._classes
+    c = integ.geometry_classes()
     assert c.block_px == round(SHARE_BLOCK_MM / (10 / 64))  # 26 px
     index = c.index
     block = index[:26, :26]
@@ -113,7 +113,7 @@ def test_shared_events_are_the_class_means(mi):
     integ = scene.integrator
     shared, _ = integ.render_planes(scene.scene, 0, 9, spp)
     shared = shared.copy()
-    c = integ._classes
+    c = integ.geometry_classes()
     scene.configure(bounce_share=0.0)
     own, _ = integ.render_planes(scene.scene, 0, 9, spp)
     names = integ.channel_names()
