@@ -45,6 +45,8 @@ STEPS_PER_E = 8
 NORMAL_DEG = 1.0
 #: Shortest probe distance told apart (mm): closer hits count as this distance.
 MIN_DISTANCE_MM = 1e-3
+#: Pixels classified at a time (bounds the float64 temporaries to about 60 MB).
+CHUNK = 1 << 18
 #: The probes' offset from the surface, relative to 1 + max |p| (Mitsuba's RayEpsilon in float32).
 RAY_EPSILON = 89.0 * 2.0 ** -24
 #: Odd 64-bit multipliers of the class key's hash (fixed: classes are reproducible).
@@ -63,10 +65,18 @@ def probe_directions(count=PROBES):
 
 
 def geometry_key(scene, sensor):
-    """What the classes depend on: every shape's bounds and mesh vertices, the beam and the film."""
+    """What the classes depend on: the bounds and mesh vertices of every shape a probe could meet,
+    the beam and the film. Detectors farther than :data:`NEAR_MM` from the field (with a margin of
+    half the field for where relief moves the beam's hits) are left out, so that a sweep moving
+    them reuses the classes."""
     digest = hashlib.sha1()
+    reach = (0.5 * float(sensor.field) + 0.5 * max(float(sensor.field), float(sensor.field_y)) + NEAR_MM,
+             0.5 * float(sensor.field_y) + 0.5 * max(float(sensor.field), float(sensor.field_y)) + NEAR_MM)
     for shape in scene.shapes():
         box = shape.bbox()
+        lo, hi = np.ravel(box.min), np.ravel(box.max)
+        if shape.is_emitter() and (lo[0] > reach[0] or hi[0] < -reach[0] or lo[1] > reach[1] or hi[1] < -reach[1]):
+            continue  # a detector out of the probes' reach
         digest.update(repr((shape.id(), list(box.min), list(box.max))).encode())
         if shape.is_mesh():
             digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
@@ -129,10 +139,22 @@ def scan_features(scene, sensor):
     size = sensor.film().crop_size()
     w, h = int(size[0]), int(size[1])
     o, d = sensor.centre_rays()
+    valid = np.empty(w * h, bool)
+    key = np.empty(w * h, np.uint64)
+    for a in range(0, w * h, CHUNK):  # float64 temporaries of CHUNK pixels at a time
+        valid[a:a + CHUNK], key[a:a + CHUNK] = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK])
+    return valid.reshape(h, w), key.view(np.int64).reshape(h, w)
+
+
+def _chunk_features(scene, o, d):
+    """:func:`scan_features` for the beam rays (o, d) (N, 3): (valid, hash) per ray."""
     ray = _rays(o, d)
     hit = scene.ray_intersect_preliminary(ray)
     si = hit.compute_surface_interaction(ray)
-    valid = np.array(si.is_valid() & ~si.shape.is_emitter(), dtype=bool)
+    hit_valid = si.is_valid() & ~si.shape.is_emitter()
+    # one kernel for everything read back (each read alone would trace the rays again)
+    dr.eval(hit_valid, si.sh_frame.n, si.p, hit.shape, hit.prim_index, hit.prim_uv)
+    valid = np.array(hit_valid, dtype=bool)
     n = np.stack([np.array(c, np.float64) for c in si.sh_frame.n], axis=1)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     n[~valid] = (0.0, 0.0, 1.0)
@@ -149,10 +171,11 @@ def scan_features(scene, sensor):
         for c, (dx, dy, dz) in enumerate(probe_directions()):
             direction = s * dx + t * dy + n * dz
             probe = scene.ray_intersect_preliminary(_rays(origin, direction, NEAR_MM), active)
-            dist = np.where(np.array(probe.is_valid(), bool), np.array(probe.t, np.float64), NEAR_MM)
+            t_probe = np.array(probe.t, np.float64)  # inf where it meets nothing
+            dist = np.where(np.isfinite(t_probe) & (t_probe <= NEAR_MM), t_probe, NEAR_MM)
             q = np.floor(np.log(np.maximum(dist, MIN_DISTANCE_MM)) * STEPS_PER_E).astype(np.int64)
             key += q.astype(np.uint64) * mix[4 + c]
-    return valid.reshape(h, w), key.view(np.int64).reshape(h, w)
+    return valid, key
 
 
 def classes(valid, features, block_px):

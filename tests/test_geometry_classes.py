@@ -79,15 +79,23 @@ def test_the_corrugated_sheets_flank_lines_are_classes(mi):
 
 
 def test_classes_are_built_once_per_geometry(mi):
+    """Re-renders and detector moves out of the probes' reach reuse the classes (a detector
+    sweep); a detector moved within reach of the field, or another film, rebuilds them."""
     scene = em.load_scene("corrugated_chamber", res=24, field=10)
     for seed in (1, 2):
         scene.render(quality="default", seed=seed, progress=False)
     integ = scene.integrator
     assert integ.class_builds == 1
     centre = scene.detector_geometry()["right"]["center"]
-    scene.set_detector("right", center=[centre[0] + 5.0, centre[1], centre[2]])  # the probes could meet it
+    scene.set_detector("right", center=[centre[0] + 5.0, centre[1], centre[2]])
+    scene.render(quality="default", seed=3, progress=False)
+    assert integ.class_builds == 1
+    scene.set_detector("right", center=[20.0, 0.0, 30.0])  # 30 mm above the field: within reach
     scene.render(quality="default", seed=3, progress=False)
     assert integ.class_builds == 2
+    scene.restore_detectors()
+    scene.render(quality="default", seed=3, progress=False)
+    assert integ.class_builds == 3
 
 
 def test_the_presets_share_on_relief_with_a_single_ray_beam_only(mi):
