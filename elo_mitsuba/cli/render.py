@@ -51,9 +51,9 @@ shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RM
 detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
-  draft       corrugated_chamber    16.4 %   0.13 s         0.56 %
-  default     corrugated_chamber     6.4 %   0.18 s         0.25 % (0.13 % net of the reference's noise)
-  reference   corrugated_chamber     1.9 %   0.62 s         0.52 % (no window average)
+  draft       corrugated_chamber     6.9 %   0.06 s         0.56 %
+  default     corrugated_chamber     2.7 %   0.14 s         0.25 % (0.13 % net of the reference's noise)
+  reference   corrugated_chamber     1.9 %   0.41 s         0.52 % (no window average)
 
 Every render estimates its own error from two independent halves of the samples and prints it
 per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks
