@@ -229,6 +229,9 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _update_classes(self, scene, sensor):
         """Sort the pixels into geometry classes (``bounce_share``, :mod:`._geometry_classes`)
         unless the classes held were made for this geometry, beam, film and block size."""
+        if not hasattr(sensor, "centre_rays"):
+            raise EloInputError(f"elo: bounce_share={self.bounce_share:g} mm classifies the scan points of the "
+                                f"elo_beam sensor; this scene's sensor is {type(sensor).__name__}; set bounce_share=0")
         key = (classes_key(scene, sensor), float(self.bounce_share))
         if self._classes is not None and self._classes.key == key:
             return

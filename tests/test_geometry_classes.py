@@ -47,6 +47,23 @@ def test_the_option_is_checked():
         EloOptions(events=2, bounce_share=4.0, bounce_filter=1.0)
 
 
+def test_sharing_needs_the_beam_sensor(mi):
+    """bounce_share classifies the beam's scan points: another sensor is refused in one line
+    before any work."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from forward_scenes import flat_scene
+
+    scene = flat_scene(mi, res=4, wall=True, events=2, integrator={"type": "elo", "events": 2, "bounce_share": 4.0})
+    scene["sensor"] = {"type": "perspective", "fov": 30,
+                       "film": {"type": "hdrfilm", "width": 4, "height": 4, "rfilter": {"type": "box"}}}
+    loaded = mi.load_dict(scene)
+    with pytest.raises(EloInputError, match=r"bounce_share=4 mm .* sensor is .*; set bounce_share=0"):
+        loaded.integrator().render_planes(loaded, 0, 0, 1)
+
+
 def test_the_corrugated_sheets_flank_lines_are_classes(mi):
     """The corrugated sheet (ridges along y) at 0.156 mm pixels: in a block, the pixels of one
     column on one flank share a class, and no class holds both flanks' normals."""
