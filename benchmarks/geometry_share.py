@@ -14,6 +14,7 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
     python -m benchmarks.geometry_share                          # corrugated_chamber 1500², events 2
     python -m benchmarks.geometry_share --bias 8,6               # corrugated_chamber 512² (about 2 min)
     python -m benchmarks.geometry_share --bias 8,6 --scene melt_chamber --events 3 --bias-res 256
+    python -m benchmarks.geometry_share --bias 8,6 --bias-res 256 --fwhm 0.27   # under a beam profile
 """
 
 from __future__ import annotations
@@ -66,11 +67,11 @@ def side_by_side(name, res, events):
     return out
 
 
-def bias(name, res, events, n_shared, n_per_pixel):
+def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
     import elo_mitsuba as em
 
     em.ensure_variant()
-    scene = em.load_scene(name, res=res)
+    scene = em.load_scene(name, res=res, fwhm=fwhm)
     scene.set_events(events)
     channels = [event_channel(d, k) for k in range(2, events + 1) for d in DETS]
 
@@ -111,6 +112,16 @@ def _events(text):
     return int(text)
 
 
+def _fwhm(text):
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value <= 5.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a FWHM in mm, 0 .. 5")
+    return value
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m benchmarks.geometry_share", description=__doc__.split("\n\n")[0])
     p.add_argument("--res", type=_positive, default=1500)
@@ -118,6 +129,7 @@ def main(argv=None):
     p.add_argument("--events", type=_events, default=2)
     p.add_argument("--bias", help="N,M: N shared against M per-pixel `reference` renders")
     p.add_argument("--bias-res", type=_positive, default=512)
+    p.add_argument("--fwhm", type=_fwhm, default=0.0, help="with --bias: the beam profile's FWHM (mm)")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.bias:
@@ -125,8 +137,8 @@ def main(argv=None):
         if len(parts) != 2 or not all(x.strip().isdigit() and int(x) >= 2 for x in parts):
             p.error(f"--bias {a.bias!r}: give N,M, two whole numbers >= 2 (renders of each side)")
         n, m = (int(x) for x in parts)
-        block, rows = bias(a.scene, a.bias_res, a.events, n, m)
-        print(f"{a.scene} {a.bias_res}², events {a.events}, {n} `default` renders (shared in {block:g} mm blocks) "
+        block, rows = bias(a.scene, a.bias_res, a.events, n, m, a.fwhm)
+        print(f"{a.scene} {a.bias_res}², events {a.events}, fwhm {a.fwhm:g} mm, {n} `default` renders (shared in {block:g} mm blocks) "
               f"against {m} per-pixel `reference` ones:\n")
         print("| channel | bias, RMS per pixel (of the event) | one render's noise | worst pixel | "
               "pixels beyond 4 standard errors |")

@@ -325,8 +325,7 @@ def parameter_table() -> str:
 #: event is biased (+9 % in e2 on the corrugated sheet in the chamber): there the presets give
 #: every pixel ``relief_paths`` continuation paths instead, unless the far field's mean is
 #: tabulated and only events 1 + 2 are traced; ``draft`` and ``default`` then share those events
-#: between the pixels of matching geometry in blocks of :data:`SHARE_BLOCK_MM` (``bounce_share``)
-#: where the beam is one ray. Events >= 2 get the far-field control variate with
+#: between the pixels of matching geometry in blocks of :data:`SHARE_BLOCK_MM` (``bounce_share``). Events >= 2 get the far-field control variate with
 #: its mean tabulated (``far_table``, plugins/_far_field.py) wherever less than
 #: :data:`NEAR_SHARE_MAX` of the 2nd event's electrons meet the relief again (``near_share``):
 #: measured at 128^2, `default`, athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the
@@ -369,12 +368,13 @@ NEAR_SHARE_MAX = 0.1
 #: field's tabulated mean (``far_table``, events 1 + 2): the mean keeps each pixel's own normal.
 RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: The presets' block (mm) of ``bounce_share`` on relief that keeps per-pixel paths (no residual
-#: filter) where the beam is one ray: pixels of matching geometry in a block share their events
+#: filter): pixels of matching geometry in a block share their events
 #: >= 2 (plugins/_geometry_classes.py). corrugated_chamber, `default`, 1500^2: 6.2 -> 0.53-0.62 %
 #: total, e2 22 -> 1.8-2.1 %, for the same paths (5.3 s warm); at 512^2 its bias was below the
 #: measurement's noise at 4 mm (~0.5 % of e2) and up to 1.0 % of e2 at 8 mm (back, front: the
-#: far field varies along y). Not with a beam profile (fwhm > 0): the classes see the beam's
-#: centre ray only, and their bias under a profile was not measured.
+#: far field varies along y). Under a beam profile the classes also probe its footprint (1.5
+#: sigma along +-x, +-y); 0.27 mm FWHM, 256^2: bias 0-0.6 % of e2 on corrugated_chamber, 0-0.08 %
+#: of e2 and 0-1.3 % of e3 on melt_chamber at events 3 (one render's noise 3.7-30 %).
 SHARE_BLOCK_MM = 4.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
@@ -436,8 +436,8 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     share = 0.0
     if relief and bounce_filter > 0 and not residual:
         # the window average of the whole later events is biased on relief: per-pixel paths,
-        # shared by the pixels of matching geometry in a block where the beam is one ray
-        share = SHARE_BLOCK_MM if not fwhm_mm > 0 else 0.0
+        # shared by the pixels of matching geometry (and beam footprint) in a block
+        share = SHARE_BLOCK_MM
         bounce_filter, bounce_min = 0.0, 0.0
         per_pixel = float(preset["relief_paths"])
     else:

@@ -15,6 +15,10 @@ events >= 2. This module sorts the pixels into classes of such points, once per 
 * the normal, quantised in steps of sin(:data:`NORMAL_DEG`);
 * the block of :math:`b \\times b` pixels (``block_mm``) holding the pixel.
 
+Under a beam profile (fwhm > 0) a pixel's events >= 2 average over the beam's footprint, so the
+normal and the probes are also taken at four points of it (:data:`FOOTPRINT_SIGMAS` standard
+deviations from the grid point along +-x and +-y) and all five enter the class.
+
 A class is the pixels of one block with equal quantised normal and probe distances; the integrator
 replaces each pixel's events >= 2 by the mean over its class (``bounce_share``). Where the relief
 repeats (the corrugated sheet: every point of a flank line along its ridge), a class holds the
@@ -45,12 +49,16 @@ STEPS_PER_E = 8
 NORMAL_DEG = 1.0
 #: Shortest probe distance told apart (mm): closer hits count as this distance.
 MIN_DISTANCE_MM = 1e-3
+#: With a beam profile, the classes also look this many standard deviations of it away from the
+#: grid point (along +-x and +-y): inside that radius lie 68 % of a 2-D Gaussian's electrons.
+FOOTPRINT_SIGMAS = 1.5
 #: Pixels classified at a time (bounds the float64 temporaries to about 60 MB).
 CHUNK = 1 << 18
 #: The probes' offset from the surface, relative to 1 + max |p| (Mitsuba's RayEpsilon in float32).
 RAY_EPSILON = 89.0 * 2.0 ** -24
 #: Odd 64-bit multipliers of the class key's hash (fixed: classes are reproducible).
 _MIX = np.random.default_rng(0x6E0C).integers(1, 1 << 62, size=PROBES + 4, dtype=np.int64) * 2 + 1
+_POINT_MIX = (np.random.default_rng(0x6E0D).integers(1, 1 << 62, size=5, dtype=np.int64) * 2 + 1).astype(np.uint64)
 
 
 def probe_directions(count=PROBES):
@@ -138,12 +146,27 @@ def scan_features(scene, sensor):
     """
     size = sensor.film().crop_size()
     w, h = int(size[0]), int(size[1])
-    o, d = sensor.centre_rays()
-    valid = np.empty(w * h, bool)
-    key = np.empty(w * h, np.uint64)
-    for a in range(0, w * h, CHUNK):  # float64 temporaries of CHUNK pixels at a time
-        valid[a:a + CHUNK], key[a:a + CHUNK] = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK])
+    valid = np.ones(w * h, bool)
+    key = np.zeros(w * h, np.uint64)
+    for k, offset in enumerate(footprint_offsets(sensor)):
+        o, d = sensor.centre_rays(offset)
+        for a in range(0, w * h, CHUNK):  # float64 temporaries of CHUNK pixels at a time
+            ok, part = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK])
+            valid[a:a + CHUNK] &= ok
+            with np.errstate(over="ignore"):  # the hash wraps around (uint64), as intended
+                key[a:a + CHUNK] += part * _POINT_MIX[k]
     return valid.reshape(h, w), key.view(np.int64).reshape(h, w)
+
+
+def footprint_offsets(sensor):
+    """Where on the build plane (mm, about the pixel's grid point) the classes look: the grid
+    point; with a beam profile (fwhm > 0) also :data:`FOOTPRINT_SIGMAS` standard deviations of it
+    along +-x and +-y, so that pixels share only where their footprints' surroundings match."""
+    sigma = float(np.ravel(getattr(sensor, "sigma", 0.0))[0]) if getattr(sensor, "fwhm", 0.0) > 0 else 0.0
+    if not sigma > 0:
+        return [(0.0, 0.0)]
+    r = FOOTPRINT_SIGMAS * sigma
+    return [(0.0, 0.0), (r, 0.0), (-r, 0.0), (0.0, r), (0.0, -r)]
 
 
 def _chunk_features(scene, o, d):

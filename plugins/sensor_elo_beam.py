@@ -87,17 +87,17 @@ class EloBeam(mi.Sensor):
         if not (np.isfinite(self.wd) and self.wd > 0):
             raise EloInputError(f"elo_beam: wd={self.wd!r} mm; must be > 0")
 
-    def centre_rays(self):
-        """The beam's rays at the pixel centres (no profile), pixel by pixel in film order (row
-        j, column i at j W + i): origins and unit directions as float64 arrays (N, 3), computed
-        on the host, so that they do not depend on the instruction set Dr.Jit compiles for
-        (plugins/_geometry_classes.py)."""
+    def centre_rays(self, offset_mm=(0.0, 0.0)):
+        """The beam's rays at the pixel centres (no profile), moved by ``offset_mm`` (dx, dy) on
+        the build plane, pixel by pixel in film order (row j, column i at j W + i): origins and
+        unit directions as float64 arrays (N, 3), computed on the host, so that they do not
+        depend on the instruction set Dr.Jit compiles for (plugins/_geometry_classes.py)."""
         w, h = self.resolution
         u = (np.arange(w) + 0.5) / w
         v = (np.arange(h) + 0.5) / h
         x, y = film_to_plane(u[None, :], v[:, None], self.field, self.field_y)
-        x = np.broadcast_to(x + self.aim_offset_mm[0], (h, w)).ravel()
-        y = np.broadcast_to(y + self.aim_offset_mm[1], (h, w)).ravel()
+        x = np.broadcast_to(x + self.aim_offset_mm[0] + offset_mm[0], (h, w)).ravel()
+        y = np.broadcast_to(y + self.aim_offset_mm[1] + offset_mm[1], (h, w)).ravel()
         if self.projection == "perspective":
             o = np.zeros((x.size, 3))
             o[:, 2] = self.wd

@@ -115,7 +115,7 @@ def test_classes_are_built_once_per_geometry(mi):
     assert integ.class_builds == 3
 
 
-def test_the_presets_share_on_relief_with_a_single_ray_beam_only(mi):
+def test_the_presets_share_on_relief_only(mi):
     chosen = {}
     for name, fwhm, quality in (("corrugated_chamber", 0.0, "default"), ("corrugated_chamber", 0.0, "draft"),
                                 ("corrugated_chamber", 0.0, "reference"), ("corrugated_chamber", 0.27, "default"),
@@ -126,9 +126,30 @@ def test_the_presets_share_on_relief_with_a_single_ray_beam_only(mi):
     assert chosen == {("corrugated_chamber", 0.0, "default"): SHARE_BLOCK_MM,
                       ("corrugated_chamber", 0.0, "draft"): SHARE_BLOCK_MM,
                       ("corrugated_chamber", 0.0, "reference"): 0.0,  # the unbiased ground truth
-                      ("corrugated_chamber", 0.27, "default"): 0.0,  # not measured under a profile
+                      ("corrugated_chamber", 0.27, "default"): SHARE_BLOCK_MM,  # classes of footprints
                       ("melt_chamber", 0.0, "default"): 0.0,  # the residual filter instead
                       ("athene_flat", 0.0, "default"): 0.0}, chosen
+
+
+def test_under_a_beam_profile_the_classes_see_the_footprint(mi):
+    """With fwhm > 0 the classes also probe 1.5 sigma from the grid point along +-x, +-y: they
+    refine the single-ray classes (no class joins pixels the centre rays tell apart) and split
+    where the footprints' surroundings differ (the corrugated sheet at 0.31 mm pixels: columns at
+    nearby places on a flank whose centres' probes agree)."""
+    from elo_mitsuba.plugins._geometry_classes import FOOTPRINT_SIGMAS, footprint_offsets, scan_features
+
+    found = {}
+    for fwhm in (0.0, 0.27):
+        scene = em.load_scene("corrugated_chamber", res=256, fwhm=fwhm)
+        offsets = footprint_offsets(scene.sensor)
+        valid, key = scan_features(scene.scene, scene.sensor)
+        found[fwhm] = classes(valid, key, 13)[0]
+    sigma = 0.27 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    assert offsets[1] == pytest.approx((FOOTPRINT_SIGMAS * sigma, 0.0)) and len(offsets) == 5
+    single, footprint = found[0.0], found[0.27]
+    pairs = np.unique(np.stack([footprint.ravel(), single.ravel()], axis=1), axis=0)
+    assert len(np.unique(pairs[:, 0])) == len(pairs)  # each footprint class inside one single-ray class
+    assert len(pairs) > len(np.unique(single))  # and some single-ray classes split
 
 
 def test_shared_events_are_the_class_means(mi):

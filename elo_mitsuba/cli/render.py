@@ -44,9 +44,9 @@ corrugated_chamber) they add the far-field control variate of events >= 2 with i
 tabulated once per geometry, and the window averages only the 2nd event's residual about that
 mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the melt plate 0.2 % of
 e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
->= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and, with a
-single-ray beam, draft and default share them between pixels of matching geometry (same normal,
-same distances along 16 probe rays) in 4 mm blocks. Measured on every
+>= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft and
+default share them between pixels of matching geometry (same normal, same distances along 16
+probe rays; under a beam profile also around its footprint) in 4 mm blocks. Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
 detector's total against a converged reference), each preset's WORST scene:
 
