@@ -74,7 +74,7 @@ def probe_directions(count=PROBES):
 
 def geometry_key(scene, sensor):
     """What the classes depend on: the bounds and mesh vertices of every shape a probe could meet,
-    the beam and the film. Detectors farther than :data:`NEAR_MM` from the field (with a margin of
+    the beam (with its profile: the footprint's points) and the film. Detectors farther than :data:`NEAR_MM` from the field (with a margin of
     half the field for where relief moves the beam's hits) are left out, so that a sweep moving
     them reuses the classes."""
     digest = hashlib.sha1()
@@ -90,7 +90,8 @@ def geometry_key(scene, sensor):
             digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
     size = sensor.film().crop_size()
     return (digest.hexdigest(), float(sensor.field), float(sensor.field_y), float(sensor.wd),
-            str(getattr(sensor, "projection", "")), tuple(sensor.aim_offset_mm), int(size[0]), int(size[1]))
+            float(getattr(sensor, "fwhm", 0.0)), str(getattr(sensor, "projection", "")), tuple(sensor.aim_offset_mm),
+            int(size[0]), int(size[1]))
 
 
 def _rays(o, d, maxt=None):
