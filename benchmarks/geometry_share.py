@@ -28,14 +28,9 @@ import numpy as np
 
 from elo_mitsuba.schema import event_channel
 
-from .harness import DETS, run_module
+from .harness import DETS, estimated_rel, mean_difference, run_module
 
 SCENES = ("corrugated_chamber", "melt_chamber")
-
-
-def _rel(r, name):
-    v, e = r.channels[name], r.errors[name]
-    return float(np.sqrt(np.mean((e / np.maximum(np.abs(v), 0.05 * np.mean(np.abs(v)))) ** 2)))
 
 
 def side_by_side(name, res, events):
@@ -59,7 +54,7 @@ def side_by_side(name, res, events):
             t = time.perf_counter()
             r = scene.render(quality="custom", spp=spp, seed=11 + rnd, progress=False)
             dt = time.perf_counter() - t
-            worst = [max(_rel(r, event_channel(d, k) if k else d) for d in DETS) for k in [0] + list(range(2, events + 1))]
+            worst = [max(estimated_rel(r, event_channel(d, k) if k else d) for d in DETS) for k in [0] + list(range(2, events + 1))]
             rows.setdefault(label, []).append((dt, worst, block))
     out = {label: {"seconds": min(x[0] for x in v), "errors": np.mean([x[1] for x in v], axis=0).tolist(),
                    "block": v[0][2]} for label, v in rows.items()}
@@ -83,20 +78,7 @@ def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
     f = stack("default", n_shared, 1000)
     block, classes = scene.integrator.options.bounce_share, scene.integrator.geometry_classes()
     g = stack("reference", n_per_pixel, 5000)
-    out = {}
-    for i, c in enumerate(channels):
-        diff = f[:, i].mean(0) - g[:, i].mean(0)
-        # the per-pixel renders' variance pooled over each class (pixels of one expected value),
-        # so that a pixel's z is not inflated by its own few-sample variance (Student's tails)
-        var_g = g[:, i].var(0, ddof=1)
-        if classes is not None:
-            var_g = (np.bincount(classes.flat, weights=var_g.ravel()) / classes.counts)[classes.index]
-        var = f[:, i].var(0, ddof=1) / len(f) + var_g / len(g)
-        m = g[:, i].mean()
-        z = diff / np.sqrt(np.maximum(var, 1e-300))
-        out[c] = {"bias": float(np.sqrt(max(0.0, np.mean(diff**2) - np.mean(var))) / m),
-                  "worst": float(np.abs(diff).max() / m), "beyond4": float(np.mean(np.abs(z) > 4)),
-                  "noise": float(np.sqrt(np.mean(f[:, i].var(0, ddof=1))) / m)}
+    out = {c: mean_difference(f[:, i], g[:, i], classes) for i, c in enumerate(channels)}
     return block, out
 
 

@@ -143,6 +143,32 @@ def rel_error(img, ref):
     return float(np.sqrt(np.mean(e * e))), float(np.percentile(e, 99))
 
 
+def estimated_rel(result, name):
+    """The render's own RMS relative error estimate of channel ``name`` (its halves; the same
+    floor as :func:`rel_error`)."""
+    return float(result.error_summary()[name]["rms_rel"])
+
+
+def mean_difference(f, g, groups=None):
+    """The bias of one estimator against another from repeated renders of one channel: ``f``, ``g``
+    (renders, H, W). Returns ``bias`` (RMS per pixel of the difference of the two means less the
+    noise of both, relative to g's mean), ``worst`` (largest difference, relative), ``beyond4``
+    (share of pixels whose difference exceeds 4 standard errors) and ``noise`` (one f render's RMS
+    noise, relative). ``groups`` (an object with ``flat``, ``counts``, ``index``: pixels of one
+    expected value) pools g's per-pixel variance over each group, so that a pixel's z does not carry
+    its own few-sample variance (Student's tails)."""
+    diff = f.mean(0) - g.mean(0)
+    var_g = g.var(0, ddof=1)
+    if groups is not None:
+        var_g = (np.bincount(groups.flat, weights=var_g.ravel()) / groups.counts)[groups.index]
+    var = f.var(0, ddof=1) / len(f) + var_g / len(g)
+    m = g.mean()
+    z = diff / np.sqrt(np.maximum(var, 1e-300))
+    return {"bias": float(np.sqrt(max(0.0, np.mean(diff**2) - np.mean(var))) / m),
+            "worst": float(np.abs(diff).max() / m), "beyond4": float(np.mean(np.abs(z) > 4)),
+            "noise": float(np.sqrt(np.mean(f.var(0, ddof=1))) / m)}
+
+
 def worst_error(channels, ref, key):
     """Worst over detectors of (rms, p99); key(d) names the channel."""
     errs = [rel_error(channels[key(d)], ref[key(d)]) for d in DETS if key(d) in channels and key(d) in ref]

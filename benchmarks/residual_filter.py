@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from .harness import DETS, run_module
+from .harness import DETS, estimated_rel, mean_difference, run_module
 
 SCENES = ("athene_flat", "shield_chamber", "melt_chamber")
 #: `default`'s budget per window before the residual filter.
@@ -35,11 +35,6 @@ BEFORE_BUDGET = 400
 def _set(options_module, budget, angle):
     options_module.QUALITY_PRESETS["default"]["bounce_budget"] = budget
     options_module.RESIDUAL_FILTER_ANGLE_DEG = angle
-
-
-def _rel(r, name):
-    v, e = r.channels[name], r.errors[name]
-    return float(np.sqrt(np.mean((e / np.maximum(np.abs(v), 0.05 * np.mean(np.abs(v)))) ** 2)))
 
 
 def side_by_side(name, res):
@@ -61,7 +56,7 @@ def side_by_side(name, res):
             r = scene.render(quality="custom", spp=spp, seed=11 + rnd, progress=False)
             dt = time.perf_counter() - t
             rows.setdefault(label, []).append(
-                (dt, max(_rel(r, d) for d in DETS), max(_rel(r, f"{d}.e2") for d in DETS)))
+                (dt, max(estimated_rel(r, d) for d in DETS), max(estimated_rel(r, f"{d}.e2") for d in DETS)))
     _set(o, *now)
     out = {label: {"seconds": min(x[0] for x in v), "total": float(np.mean([x[1] for x in v])),
                    "e2": float(np.mean([x[2] for x in v]))} for label, v in rows.items()}
@@ -83,15 +78,7 @@ def bias(res, n_filtered, n_per_pixel, whole=False):
                                    .channels[f"{d}.e2"] for d in DETS]).astype(np.float64) for k in range(n)])
 
     f, g = stack("default", n_filtered, 1000), stack("reference", n_per_pixel, 5000)
-    out = {}
-    for i, d in enumerate(DETS):
-        diff = f[:, i].mean(0) - g[:, i].mean(0)
-        var = f[:, i].var(0, ddof=1) / len(f) + g[:, i].var(0, ddof=1) / len(g)
-        m = g[:, i].mean()
-        z = diff / np.sqrt(var)
-        out[d] = {"bias": float(np.sqrt(max(0.0, np.mean(diff**2) - np.mean(var))) / m),
-                  "worst": float(np.abs(diff).max() / m), "beyond4": float(np.mean(np.abs(z) > 4))}
-    return out
+    return {d: mean_difference(f[:, i], g[:, i]) for i, d in enumerate(DETS)}
 
 
 def _positive(text):

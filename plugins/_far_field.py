@@ -50,6 +50,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ._occlusion import digest_geometry
+
 #: Nodes per side of the grid over the field (looked up bilinearly). The table is rebuilt whenever
 #: a detector moves, so its build is part of every point of a detector sweep. Measured on athene_flat
 #: and shield_chamber, 128^2, `default` (error = the render's own e2 estimate, worst detector, two
@@ -84,11 +86,8 @@ def geometry_key(scene, sensor, traced, two_sided):
     """
     digest = hashlib.sha1()
     for shape in scene.shapes():
-        box = shape.bbox()
-        digest.update(repr((shape.id(), shape.is_emitter(), list(box.min), list(box.max),
-                            float(np.ravel(shape.surface_area())[0]))).encode())
-        if shape.is_mesh():
-            digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
+        digest_geometry(digest, shape)
+        digest.update(repr((shape.is_emitter(), float(np.ravel(shape.surface_area())[0]))).encode())
         bsdf = shape.bsdf()
         for attr in ("material", "lobe_width", "lobe"):
             value = getattr(bsdf, attr, None)

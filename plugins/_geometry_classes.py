@@ -38,7 +38,7 @@ import mitsuba as mi
 import numpy as np
 
 from ._far_field import NEAR_MM
-from ._occlusion import shape_key
+from ._occlusion import digest_geometry, shape_key
 
 #: Probe directions per pixel (a power of two: the Hammersley set). 16 matched 32 on
 #: corrugated_chamber at 512^2 (bias below the measurement's noise of ~0.5 % of e2 either way).
@@ -54,7 +54,9 @@ MIN_DISTANCE_MM = 1e-3
 FOOTPRINT_SIGMAS = 1.5
 #: Pixels classified at a time (bounds the float64 temporaries to about 60 MB).
 CHUNK = 1 << 18
-#: The probes' offset from the surface, relative to 1 + max |p| (Mitsuba's RayEpsilon in float32).
+#: The probes' offset from the surface along its normal, relative to 1 + max |p| (89 float32
+#: roundoffs: 2e-4 mm at 40 mm, far above the origin's float32 rounding, 2e-6 mm; Mitsuba's own
+#: spawn_ray offsets by 17x more).
 RAY_EPSILON = 89.0 * 2.0 ** -24
 #: Odd 64-bit multipliers of the class key's hash (fixed: classes are reproducible).
 _MIX = np.random.default_rng(0x6E0C).integers(1, 1 << 62, size=PROBES + 4, dtype=np.int64) * 2 + 1
@@ -85,9 +87,7 @@ def geometry_key(scene, sensor):
         lo, hi = np.ravel(box.min), np.ravel(box.max)
         if shape.is_emitter() and (lo[0] > reach[0] or hi[0] < -reach[0] or lo[1] > reach[1] or hi[1] < -reach[1]):
             continue  # a detector out of the probes' reach
-        digest.update(repr((shape.id(), list(box.min), list(box.max))).encode())
-        if shape.is_mesh():
-            digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
+        digest_geometry(digest, shape)
     size = sensor.film().crop_size()
     return (digest.hexdigest(), float(sensor.field), float(sensor.field_y), float(sensor.wd),
             float(getattr(sensor, "fwhm", 0.0)), str(getattr(sensor, "projection", "")), tuple(sensor.aim_offset_mm),
@@ -188,7 +188,7 @@ def _chunk_features(scene, o, d):
     with np.errstate(over="ignore"):  # the hash wraps around (uint64), as intended
         key = np.round(n[:, 0] / step).astype(np.int64).astype(np.uint64) * mix[2]
         key += np.round(n[:, 1] / step).astype(np.int64).astype(np.uint64) * mix[3]
-        # leave the surface as Mitsuba's spawn_ray does: along the normal, scaled by |p|
+        # leave the surface along the normal, by an offset scaled by |p| (as Mitsuba's spawn_ray)
         origin = p + n * (RAY_EPSILON * (1.0 + np.max(np.abs(p), axis=1)))[:, None]
         s, t = _frame(n)
         active = mi.Bool(valid)
@@ -233,10 +233,12 @@ class GeometryClasses:
     scene, sensor : the scene and its ``elo_beam`` sensor
     block_mm : float
         Side of the blocks (mm) that bound a class.
+    key : hashable
+        What they were made for (:func:`geometry_key` and the block), kept to compare.
     """
 
-    def __init__(self, scene, sensor, block_mm):
-        self.key = (geometry_key(scene, sensor), float(block_mm))
+    def __init__(self, scene, sensor, block_mm, key):
+        self.key = key
         size = sensor.film().crop_size()
         self.block_px = max(1, int(round(block_mm * int(size[0]) / float(sensor.field))))
         valid, features = scan_features(scene, sensor)

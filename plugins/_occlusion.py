@@ -128,6 +128,15 @@ def _beam_region(shape, sensor):
     return (z0,) + box
 
 
+def digest_geometry(digest, shape):
+    """Feed ``shape``'s id, bounds and (for a mesh) vertex positions to ``digest`` (hashlib): the
+    geometry part of the caches' keys (far-field table, geometry classes)."""
+    box = shape.bbox()
+    digest.update(repr((shape.id(), list(box.min), list(box.max))).encode())
+    if shape.is_mesh():
+        digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
+
+
 def shape_key(shape):
     return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
 

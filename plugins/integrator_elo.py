@@ -236,7 +236,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         if self._classes is not None and self._classes.key == key:
             return
         self._classes = None  # the old classes' arrays go before the new ones are made
-        self._classes = GeometryClasses(scene, sensor, self.bounce_share)
+        self._classes = GeometryClasses(scene, sensor, self.bounce_share, key)
         self.class_builds += 1
 
     def near_share(self, scene, sensor):
