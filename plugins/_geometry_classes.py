@@ -27,7 +27,9 @@ the beam's incidence: measured below the noise at 4 mm on corrugated_chamber, be
 RESULTS.md, "Shared by geometry"); where no two points match, every pixel keeps its own value
 (no gain, no bias). Quantisation can still join points whose probes agree but whose events >= 2
 do not (e.g. a difference no probe direction sees): the bias that is left is measured, never
-seen by the render's own error estimate (both halves share the classes).
+seen by the render's own error estimate (both halves share the classes). Each pixel's rank in
+its class (:meth:`GeometryClasses.ranks`) places its paths in the point set the class's samples
+share (:func:`._strata.spread_point`).
 """
 
 import hashlib
@@ -244,11 +246,25 @@ class GeometryClasses:
         valid, features = scan_features(scene, sensor)
         self.index, self.counts = classes(valid, features, self.block_px)
         self.flat = self.index.ravel()
+        self._ranks = None
 
     def share(self, plane):
         """``plane`` (H x W, float32) replaced in place by the mean over each pixel's class."""
         sums = np.bincount(self.flat, weights=plane.ravel(), minlength=self.counts.size)
         plane[...] = (sums / self.counts)[self.index]
+
+    def ranks(self):
+        """Per pixel (flat, row-major) its class, its rank in the class (0 .. n - 1, row-major) and
+        its class's size n, as Dr.Jit UInt32 arrays (made once): where a pixel's paths lie in the
+        point set its class spreads over all its samples (:func:`._strata.spread_point`)."""
+        if self._ranks is not None:
+            return self._ranks
+        order = np.argsort(self.flat, kind="stable")
+        starts = np.cumsum(self.counts) - self.counts
+        rank = np.empty(self.flat.size, np.int64)
+        rank[order] = np.arange(self.flat.size) - starts[self.flat[order]]
+        self._ranks = tuple(mi.UInt32(a.astype(np.uint32)) for a in (self.flat, rank, self.counts[self.flat]))
+        return self._ranks
 
     def pixels_per_class(self):
         """Per pixel the number of pixels its value now averages (H x W, float32)."""

@@ -2,9 +2,10 @@
 allows, one sample per cell, jittered, each weighted by its cell's area: unbiased for any n, the
 cells partition the square), used for the detector points of ``detector_sampling = stratified``
 and, where g_BSE's tables are not available, for the continuation paths a sample splits into
-(``bounce_samples``); the s x s grid of the far field's cheap samples (:func:`stratum`); and the
+(``bounce_samples``); the s x s grid of the far field's cheap samples (:func:`stratum`); the
 split of the continuation paths between g_BSE's two components (:func:`allocated`,
-:func:`group_point`)."""
+:func:`group_point`); and one point set spread over all the samples of a geometry class
+(:func:`spread_point`)."""
 
 import math
 
@@ -12,6 +13,9 @@ import drjit as dr
 import mitsuba as mi
 
 _GOLDEN = 0.6180339887498949
+#: The golden ratio's fractional part in 32-bit fixed point: (i * _GOLDEN_U32) mod 2^32 / 2^32 is
+#: frac(i * golden) without the float32 rounding of a large i * golden.
+_GOLDEN_U32 = 2654435769
 #: The largest float32 below 1: a point of a stratum must stay inside the unit square.
 _BELOW_ONE = 0.99999994
 
@@ -77,3 +81,20 @@ def group_point(j: int, k: int, n_first, rot_first, rot_second, u):
     x = dr.minimum((m + u) / n, _BELOW_ONE)
     y = dr.select(is_first, rot_first, rot_second) + m * _GOLDEN
     return is_first, mi.Point2f(x, y - dr.floor(y))
+
+
+def spread_point(j: int, k: int, n_first, sample, n_samples, shift_x, rot_first, rot_second, u):
+    """As :func:`group_point`, but one point set for all ``n_samples`` samples that share their
+    estimate (the pixels of a geometry class, ``bounce_share``): path j of sample ``sample`` (0 ..
+    n_samples - 1, UInt32) takes index i = sample k + m of its group (m its rank in the group), x
+    = (i + u) / (n_samples k) + shift_x and y = i golden + rot, both mod 1. The class's paths
+    then stratify the sample space together (not k at a time), and with ``shift_x`` and ``rot_*``
+    uniform (a random shift per class and render) every point is uniform on the square: each
+    pixel's estimate stays unbiased."""
+    is_first = mi.Float(j) < n_first
+    m = dr.select(is_first, mi.UInt32(j), mi.UInt32(j) - mi.UInt32(n_first))
+    i = sample * k + m
+    n = mi.Float(n_samples * k)
+    x = mi.Float(i) / n + u / n + shift_x
+    y = mi.Float(i * _GOLDEN_U32) * (1.0 / 4294967296.0) + dr.select(is_first, rot_first, rot_second)
+    return is_first, mi.Point2f(dr.minimum(x - dr.floor(x), _BELOW_ONE), y - dr.floor(y))

@@ -56,7 +56,12 @@ paths than that (e.g. at edges where the window had to shrink); both estimates a
 path count. ``bounce_share`` (mm), the alternative to ``bounce_filter``, shares them between pixels whose geometry matches
 (:mod:`._geometry_classes`: in blocks of that side, the pixels with the same normal and the same
 distances along 16 probe rays, classified once per geometry): for relief that scatters onto
-itself, where events >= 2 vary along a flank but repeat where the relief repeats.
+itself, where events >= 2 vary along a flank but repeat where the relief repeats. The continuation
+paths of a class's pixels then form one point set in g_BSE's sample space (:func:`._strata.spread_point`,
+one random shift per class and render, so each pixel stays unbiased; the sampling frame made from
+the normal alone, so one point means one direction in every pixel): they stratify the class's
+integral together instead of k paths at a time (corrugated_chamber 1500^2, `default`: e2 1.8-2.1
+-> 0.9-1.1 % per pixel for the same paths).
 
 Model only what the scene requires. Scenes whose only scattering surface is one plane
 (``rectangle``, ``disk`` or a planar mesh) cannot scatter an electron twice: events >= 2 are
@@ -103,7 +108,8 @@ from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, bu
                          near_share, reduce_table)
 from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
 from ._occlusion import shape_key, unblockable, unblockable_regions
-from ._strata import allocated, cell_area, cell_point, group_point, shifted_lattice, strata_cells, stratum
+from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_point, strata_cells,
+                      stratum)
 from ._relief import beam_probe, relief_under_beam
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
@@ -144,6 +150,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self.far_field_builds = 0  # how many times the far-field table was built (tests, benchmarks)
         self._classes = None  # the geometry classes of bounce_share (_geometry_classes), or None
         self.class_builds = 0  # how many times they were built (tests, benchmarks)
+        self._spread = None  # (class, rank, size per pixel, spp, key) while a pass spreads a class's paths
 
     # ---- options --------------------------------------------------------------------------------
     def configure(self, options: EloOptions) -> None:
@@ -468,7 +475,15 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._block_offset = dr.opaque(mi.Float, float(np.random.default_rng([seed_value, 7]).random()))
         self._roulette_key = dr.opaque(mi.UInt32, int(np.random.default_rng([seed_value, 26]).integers(1 << 32)))
         aovs = self.aov_names()
-        planes, buffer = self._pass_planes(scene, sensor, sensor_obj, seed, spp, aovs)
+        if self._shares_bounces() and self._g_tables is not None:
+            # the continuation paths of a class's pixels form one point set (_strata.spread_point)
+            n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
+            key = int(np.random.default_rng([seed_value, 28]).integers(1 << 32))
+            self._spread = self._classes.ranks() + (dr.opaque(mi.UInt32, n_spp), dr.opaque(mi.UInt32, key))
+        try:
+            planes, buffer = self._pass_planes(scene, sensor, sensor_obj, seed, spp, aovs)
+        finally:
+            self._spread = None
         index = {name: i for i, name in enumerate(aovs)}
         if self.count_rays:
             self.ray_counts = {"intersections": float(np.mean(planes[index[COUNT_CHANNELS[0]]])),
@@ -623,8 +638,10 @@ class EloIntegrator(mi.SamplingIntegrator):
                 # weighted 1/k; else one per cell of the sample space, weighted by its area
                 later, n_hit = None, mi.Float(0.0)
                 groups = shift = None
-                if k_paths > 1 and self._g_tables is not None:
+                if (k_paths > 1 or self._spread is not None) and self._g_tables is not None:
                     groups = self._component_groups(si, ray, alive, k_paths, sampler)
+                    if groups[-1] is not None:
+                        si = self._normal_frame(si, ray)
                 elif k_paths > 1:
                     shift = sampler.next_1d(alive)
                 for j, cell in enumerate(strata_cells(k_paths)):
@@ -795,19 +812,50 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _component_groups(self, si, ray, alive, k, sampler):
         """Per sample, for k continuation paths: how many go to g_BSE's lobe, L = ceil(q k - xi)
         with xi uniform (so E[L] = q k; q = the lobe's share of eta, as ``elo_bse.sample`` picks
-        it), and a random rotation per group (:func:`._strata.group_point`)."""
+        it), and a random rotation per group (:func:`._strata.group_point`). While a pass spreads
+        a class's paths (``bounce_share``), also the sample's place in its class's point set, and
+        the rotations and shift are the class's (:func:`._strata.spread_point`)."""
         diffuse, weight, exponent, _, _, ok = world_setup(self._g_tables, si, -ray.d, alive)
         q = dr.select(ok, lobe_probability(diffuse * dr.pi, weight, exponent), 0.0)
         n_lobe = allocated(q, k, sampler.next_1d(alive))
-        return n_lobe, sampler.next_1d(alive), sampler.next_1d(alive)
+        rot_lobe, rot_diffuse = sampler.next_1d(alive), sampler.next_1d(alive)
+        if self._spread is None:
+            return n_lobe, rot_lobe, rot_diffuse, None
+        cls, rank, size, spp, key = self._spread
+        lane = dr.arange(mi.UInt32, dr.width(alive))
+        pixel = lane // spp  # Mitsuba orders the lanes pixel by pixel, spp each
+        c = dr.gather(mi.UInt32, cls, pixel, alive)
+        sample = dr.gather(mi.UInt32, rank, pixel, alive) * spp + (lane - pixel * spp)
+        n_samples = dr.gather(mi.UInt32, size, pixel, alive) * spp
+        # the class's random shift for this render: a hash of the class and the render's key
+        a, b = mi.sample_tea_32(c, key, 4)
+        to_unit = 1.0 / 4294967296.0
+        shift_x = mi.Float(mi.sample_tea_32(c, key ^ 0x5BD1E995, 4)[0]) * to_unit
+        return n_lobe, mi.Float(a) * to_unit, mi.Float(b) * to_unit, (sample, n_samples, shift_x)
+
+    @staticmethod
+    def _normal_frame(si, ray):
+        """``si`` with a shading frame made from its normal alone. Where a class's pixels share
+        one point set, one sample point must mean one direction in all of them: a mesh's tangents
+        turn from triangle to triangle, and g_BSE is isotropic, so the frame changes which point
+        gives which direction, not the law."""
+        si = mi.SurfaceInteraction3f(si)
+        si.sh_frame = mi.Frame3f(si.sh_frame.n)
+        si.wi = si.to_local(-ray.d)
+        return si
 
     @staticmethod
     def _direction_grouped(j, k, groups, si, ray, ctx, sampler, alive):
         """Path j of k (world direction, weight S): the lobe's if j < L, else the diffuse part's;
         g_BSE sampled at its group's point (the component forced: u1 = 0 picks the lobe, 1 the
         diffuse part). Weight 1/k per path: with E[L] = q k this is the mixture's estimate."""
-        n_lobe, rot_lobe, rot_diffuse = groups
-        is_lobe, u2 = group_point(j, k, n_lobe, rot_lobe, rot_diffuse, sampler.next_1d(alive))
+        n_lobe, rot_lobe, rot_diffuse, spread = groups
+        if spread is None:
+            is_lobe, u2 = group_point(j, k, n_lobe, rot_lobe, rot_diffuse, sampler.next_1d(alive))
+        else:
+            sample, n_samples, shift_x = spread
+            is_lobe, u2 = spread_point(j, k, n_lobe, sample, n_samples, shift_x, rot_lobe, rot_diffuse,
+                                       sampler.next_1d(alive))
         return _sample_direction(si, ray, ctx, dr.select(is_lobe, 0.0, 1.0), u2, alive)
 
     @staticmethod

@@ -61,3 +61,69 @@ def test_group_points_stratify_each_group(k, n_first):
     for group, n in ((True, n_first), (False, k - n_first)):
         cells = sorted(int(x * n) for x, f in zip(xs, first) if f == group)
         assert cells == list(range(n))  # one point in each of the group's n strata
+
+
+def _toy(x, y):
+    """A disc (an edge, as a shadow or a flank's rim makes) on a smooth slope; its integral over
+    the unit square is pi 0.1 + (1 - cos 3) / 6 (the disc lies inside the square)."""
+    return ((x - 0.4) ** 2 + (y - 0.55) ** 2 < 0.1).astype(float) + np.sin(3.0 * x) * y
+
+
+def _class_estimates(points, reps, n_samples=100, k=8, q=0.37, seed=3):
+    """``reps`` estimates of the mixture integral q f(x, y) + (1 - q) f(y, x) by ``n_samples``
+    samples of k paths each (the lobe's L = allocated(q, k, xi) of them, weight 1/k), their mean
+    taken as the class's estimate; ``points(rng)`` makes one estimate's point set: a function of
+    (j, n_lobe) giving path j's group and point."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(reps):
+        n_lobe = strata.allocated(mi.Float(q), k, mi.Float(rng.random(n_samples)))
+        point = points(rng)
+        total = np.zeros(n_samples)
+        for j in range(k):
+            is_first, p = point(j, n_lobe)
+            x, y = np.array(p.x, dtype=float), np.array(p.y, dtype=float)
+            assert np.all((x >= 0) & (x < 1) & (y >= 0) & (y < 1))
+            total += np.where(np.array(is_first), _toy(x, y), _toy(y, x)) / k
+        out.append(total.mean())
+    return np.array(out)
+
+
+def test_spread_points_are_unbiased_and_stratify_a_class_together():
+    """A class's samples taking one point set (spread_point) against each sample its own k points
+    (group_point): both unbiased, the spread one with less than half the noise on an integrand with
+    an edge (measured: 0.0042 against 0.0110 at 100 samples of 8 paths)."""
+    n, k, reps = 100, 8, 200
+    exact = np.pi * 0.1 + (1.0 - np.cos(3.0)) / 6.0
+
+    def spread(rng):
+        sx, r1, r2 = (mi.Float(float(v)) for v in rng.random(3))  # the class's shifts
+        return lambda j, n_lobe: strata.spread_point(j, k, n_lobe, dr.arange(mi.UInt32, n), mi.UInt32(n),
+                                                     sx, r1, r2, mi.Float(rng.random(n)))
+
+    def own(rng):
+        r1, r2 = mi.Float(rng.random(n)), mi.Float(rng.random(n))  # each sample's rotations
+        return lambda j, n_lobe: strata.group_point(j, k, n_lobe, r1, r2, mi.Float(rng.random(n)))
+
+    a = _class_estimates(spread, reps, n, k)
+    b = _class_estimates(own, reps, n, k)
+    for est in (a, b):
+        assert abs(est.mean() - exact) < 4.0 * est.std(ddof=1) / np.sqrt(reps)
+    assert a.std(ddof=1) < 0.5 * b.std(ddof=1)
+
+
+def test_a_spread_point_is_uniform_over_the_class_shifts():
+    """Each path's point, over the class's random shifts, is uniform on the square (so each pixel's
+    estimate is unbiased on its own): chi-square of a 4 x 4 histogram, for paths of both groups."""
+    rng = np.random.default_rng(5)
+    m, k, n = 20000, 8, 50
+    n_lobe = mi.Float(3.0)
+    for j in (1, 6):  # a lobe path and a diffuse one
+        for sample in (0, 37):
+            shifts = [mi.Float(rng.random(m)) for _ in range(3)]
+            is_first, p = strata.spread_point(j, k, n_lobe, mi.UInt32(sample), mi.UInt32(n), *shifts,
+                                              mi.Float(rng.random(m)))
+            assert bool(is_first[0]) == (j < 3)
+            h, _, _ = np.histogram2d(np.array(p.x), np.array(p.y), bins=4, range=[[0, 1], [0, 1]])
+            chi2 = ((h - m / 16) ** 2 / (m / 16)).sum()
+            assert chi2 < 37.7  # 15 degrees of freedom, p = 0.001
