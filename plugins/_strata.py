@@ -16,6 +16,9 @@ _GOLDEN = 0.6180339887498949
 #: The golden ratio's fractional part in 32-bit fixed point: (i * _GOLDEN_U32) mod 2^32 / 2^32 is
 #: frac(i * golden) without the float32 rounding of a large i * golden.
 _GOLDEN_U32 = 2654435769
+#: 1/g, 1/g^2, 1/g^3 (g = 1.22074408..., the real root of x^4 = x + 1) in 32-bit fixed point: the
+#: steps of a 3D Kronecker (R3) sequence, frac(i alpha), low-discrepancy in every projection.
+_R3_U32 = (3518319155, 2882110345, 2360945575)
 #: The largest float32 below 1: a point of a stratum must stay inside the unit square.
 _BELOW_ONE = 0.99999994
 
@@ -98,3 +101,15 @@ def spread_point(j: int, k: int, n_first, sample, n_samples, shift_x, rot_first,
     x = mi.Float(i) / n + u / n + shift_x
     y = mi.Float(i * _GOLDEN_U32) * (1.0 / 4294967296.0) + dr.select(is_first, rot_first, rot_second)
     return is_first, mi.Point2f(dr.minimum(x - dr.floor(x), _BELOW_ONE), y - dr.floor(y))
+
+
+def spread_later(i, shifts):
+    """The sample point (u1, u2) of a later continuation (events >= 3) of path ``i`` (UInt32, its
+    index among the class's paths): the i-th point of a 3D Kronecker sequence, shifted by the
+    class's ``shifts`` (three uniform numbers per class and render) mod 1. Each point is uniform
+    (the shifts), and the class's paths spread over g_BSE's component choice and direction
+    together; its steps differ from :func:`spread_point`'s, so the two continuations of a path do
+    not repeat each other."""
+    u = [mi.Float(i * a) * (1.0 / 4294967296.0) + s for a, s in zip(_R3_U32, shifts)]
+    u = [dr.minimum(v - dr.floor(v), _BELOW_ONE) for v in u]
+    return u[0], mi.Point2f(u[1], u[2])

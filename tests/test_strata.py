@@ -127,3 +127,25 @@ def test_a_spread_point_is_uniform_over_the_class_shifts():
             h, _, _ = np.histogram2d(np.array(p.x), np.array(p.y), bins=4, range=[[0, 1], [0, 1]])
             chi2 = ((h - m / 16) ** 2 / (m / 16)).sum()
             assert chi2 < 37.7  # 15 degrees of freedom, p = 0.001
+
+
+def test_a_later_spread_point_is_uniform_over_the_class_shifts():
+    """spread_later: each path's (u1, u2) uniform in the cube over the class's shifts (chi-square of
+    a 3 x 3 x 3 histogram)."""
+    rng = np.random.default_rng(6)
+    m = 27000
+    for i in (0, 5, 123456):
+        u1, u2 = strata.spread_later(mi.UInt32(i), [mi.Float(rng.random(m)) for _ in range(3)])
+        h, _ = np.histogramdd(np.stack([np.array(u1), np.array(u2.x), np.array(u2.y)], axis=1), bins=3,
+                              range=[[0, 1]] * 3)
+        assert ((h - m / 27) ** 2 / (m / 27)).sum() < 54.1  # 26 degrees of freedom, p = 0.001
+
+
+def test_later_spread_points_fill_the_cube_evenly():
+    """A class's 1000 paths with fixed shifts fill 10 x 10 x 10 cells far more evenly than
+    independent points (the sum below is about 1000 +- 45 for those, 956 with numpy's generator
+    seeded 1; measured 454 for the sequence)."""
+    u1, u2 = strata.spread_later(dr.arange(mi.UInt32, 1000), [mi.Float(0.3), mi.Float(0.6), mi.Float(0.1)])
+    pts = np.stack([np.array(u1), np.array(u2.x), np.array(u2.y)], axis=1)
+    h, _ = np.histogramdd(pts, bins=10, range=[[0, 1]] * 3)
+    assert ((h - 1.0) ** 2).sum() < 700.0
