@@ -357,7 +357,7 @@ PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
-QUALITY_ACCURACY = {"draft": 0.07, "default": 0.03, "reference": 0.025}  # corrugated_chamber: 6.9, 2.7, 1.9 %
+QUALITY_ACCURACY = {"draft": 0.06, "default": 0.027, "reference": 0.025}  # corrugated_chamber: 5.7, 2.4, 1.9 %
 #: The presets use the far field's variate (``far_table``) on scenes where less than this share of
 #: the 2nd event's electrons (g_BSE-weighted) meet a surface again within the far field's near
 #: distance: those directions carry the variate too, where it only adds noise. Measured shares
@@ -369,8 +369,9 @@ NEAR_SHARE_MAX = 0.1
 RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: The presets' block (mm) of ``bounce_share`` on relief that keeps per-pixel paths (no residual
 #: filter): pixels of matching geometry in a block share their events
-#: >= 2 (plugins/_geometry_classes.py). corrugated_chamber, `default`, 1500^2: 6.2 -> 0.53-0.62 %
-#: total, e2 22 -> 1.8-2.1 %, for the same paths (5.3 s warm); at 512^2 its bias was below the
+#: >= 2 (plugins/_geometry_classes.py), their paths one point set per class (plugins/_strata.py,
+#: spread_point). corrugated_chamber, `default`, 1500^2: 6.2 -> 0.32 % total, e2 21 -> 1.1 %, for
+#: the same paths (shared with each sample's own points: 0.53-0.62 %, e2 1.8-2.1 %); at 512^2 its bias was below the
 #: measurement's noise at 4 mm (~0.5 % of e2) and up to 1.0 % of e2 at 8 mm (back, front: the
 #: far field varies along y). Under a beam profile the classes also probe its footprint (1.5
 #: sigma along +-x, +-y); 0.27 mm FWHM, 256^2: bias 0-0.6 % of e2 on corrugated_chamber, 0-0.08 %

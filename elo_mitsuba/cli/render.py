@@ -46,14 +46,15 @@ mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the mel
 e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
 >= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft and
 default share them between pixels of matching geometry (same normal, same distances along 16
-probe rays; under a beam profile also around its footprint) in 4 mm blocks. Measured on every
+probe rays; under a beam profile also around its footprint) in 4 mm blocks, their paths one
+point set per class (at 1500^2, default: 0.32 % total where 16 own paths per pixel gave 6.2 %). Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
 detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
-  draft       corrugated_chamber     6.9 %   0.06 s         0.56 %
-  default     corrugated_chamber     2.7 %   0.14 s         0.25 % (0.13 % net of the reference's noise)
-  reference   corrugated_chamber     1.9 %   0.41 s         0.52 % (no window average)
+  draft       corrugated_chamber     5.7 %   0.11 s         0.56 %
+  default     corrugated_chamber     2.4 %   0.13 s         0.25 % (0.13 % net of the reference's noise)
+  reference   corrugated_chamber     1.9 %   0.51 s         0.52 % (no window average)
 
 Every render estimates its own error from two independent halves of the samples and prints it
 per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks
