@@ -478,8 +478,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._roulette_key = dr.opaque(mi.UInt32, int(np.random.default_rng([seed_value, 26]).integers(1 << 32)))
         aovs = self.aov_names()
         if self._shares_bounces() and self._g_tables is not None:
-            # the continuation paths of a class's pixels form one point set (_strata.spread_point)
-            n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
+            # the continuation paths of a class's pixels form one point set (_strata.spread_point);
+            # the lanes per pixel are the count the sampler takes (as Mitsuba's render sets it)
+            if int(spp) > 0:
+                sensor_obj.sampler().set_sample_count(int(spp))
+            n_spp = int(sensor_obj.sampler().sample_count())
             key = int(np.random.default_rng([seed_value, 28]).integers(1 << 32))
             self._spread = self._classes.ranks() + (dr.opaque(mi.UInt32, n_spp), dr.opaque(mi.UInt32, key))
         try:
