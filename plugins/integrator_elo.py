@@ -773,7 +773,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                 wo, w = si.to_world(bs.wo), weight[0]
             else:
                 si = self._normal_frame(si, ray)
-                u1, u2 = spread_later(spread[0], self._later_shifts(spread[1], event))
+                u1, u2 = spread_later(spread[0], self._class_shifts(spread[1], event))
                 bs, weight = bsdf.sample(ctx, si, u1, u2, alive)
                 wo, w = si.to_world(bs.wo), weight[0]
             throughput = throughput * w
@@ -839,21 +839,19 @@ class EloIntegrator(mi.SamplingIntegrator):
         rot_lobe, rot_diffuse = sampler.next_1d(alive), sampler.next_1d(alive)
         if self._spread is None:
             return n_lobe, rot_lobe, rot_diffuse, None
-        cls, rank, size, spp, key = self._spread
+        cls, rank, size, spp, _ = self._spread
         lane = dr.arange(mi.UInt32, dr.width(alive))
         pixel = lane // spp  # Mitsuba orders the lanes pixel by pixel, spp each
         c = dr.gather(mi.UInt32, cls, pixel, alive)
         sample = dr.gather(mi.UInt32, rank, pixel, alive) * spp + (lane - pixel * spp)
         n_samples = dr.gather(mi.UInt32, size, pixel, alive) * spp
-        # the class's random shift for this render: a hash of the class and the render's key
-        a, b = mi.sample_tea_32(c, key, 4)
-        to_unit = 1.0 / 4294967296.0
-        shift_x = mi.Float(mi.sample_tea_32(c, key ^ 0x5BD1E995, 4)[0]) * to_unit
-        return n_lobe, mi.Float(a) * to_unit, mi.Float(b) * to_unit, (sample, n_samples, shift_x, c)
+        rot_lobe, rot_diffuse, shift_x = self._class_shifts(c, 1)
+        return n_lobe, rot_lobe, rot_diffuse, (sample, n_samples, shift_x, c)
 
-    def _later_shifts(self, c, event):
-        """The three shifts of class ``c``'s point set for its paths' continuation ``event`` (>= 2)
-        in this render: hashes of the class and the render's key, one key per event."""
+    def _class_shifts(self, c, event):
+        """Three uniform numbers of class ``c`` for its paths' continuation ``event`` (1 = the
+        first) in this render, the random shifts of its point set: hashes of the class and the
+        render's key, one key per continuation."""
         key = self._spread[4] ^ mi.UInt32(0x9E3779B9 * event % (1 << 32))
         a, b = mi.sample_tea_32(c, key, 4)
         d = mi.sample_tea_32(c, key ^ 0x5BD1E995, 4)[0]
