@@ -83,8 +83,9 @@ class EloOptions:
                                          "float", bounds=(0.0, 90.0))
     bounce_share: float = _option(0.0, "side (mm) of the blocks in which pixels of matching geometry share their "
                                   "events >= 2 (same normal within 1 deg, 16 probe rays meeting surfaces at the same "
-                                  "distance within 12.5 %; 0 = off; plugins/_geometry_classes.py); for relief that "
-                                  "scatters onto itself, instead of bounce_filter", "float", bounds=(0.0, None))
+                                  "distance within 12.5 %; 0 = off; plugins/_geometry_classes.py), their paths one point set "
+                                  "per class; for relief that scatters onto itself, instead of bounce_filter", "float",
+                                  bounds=(0.0, None))
     bounce_min: float = _option(0.0, "paths per pixel below which a second pass tops events >= 2 up (0 = off)",
                                 "float", bounds=(0.0, MAX_BOUNCE_MIN))
     far_field: int = _option(0, "far-field control variate of events >= 2: s x s cheap g_BSE samples per sample "
