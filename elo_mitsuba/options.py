@@ -189,7 +189,9 @@ def _coerce(f: dataclasses.Field, value):
         number = int(number)
     lo, hi = f.metadata["bounds"]
     if not _in_range(name, number, lo, hi):
-        raise EloInputError(f"elo: {name}={value!r}{_UNIT.get(name, '')}; must be {_range_text(name, kind, lo, hi)}")
+        finite = "" if math.isfinite(number) else "a finite number "  # inf is >= 0 but still refused
+        raise EloInputError(f"elo: {name}={value!r}{_UNIT.get(name, '')}; must be {finite}"
+                            f"{_range_text(name, kind, lo, hi)}")
     return number
 
 

@@ -19,6 +19,7 @@ BAD = [
     ("quadrature_visibility", "all", "sampled, triangle"), ("bounce_samples", 0, ">= 1"),
     ("bounce_fraction", 0.0, r"\(0, 1\]"), ("bounce_fraction", 1.5, r"\(0, 1\]"),
     ("bounce_filter", -1.0, "mm; must be >= 0"), ("bounce_filter", float("nan"), ">= 0"),
+    ("bounce_share", float("inf"), "must be a finite number >= 0"),
     ("bounce_filter_angle", 90.0, r"\(0, 90\)"), ("bounce_min", 5000.0, r"\[0, 4096\]"),
     ("units", "volts", "allowed: fraction, voltage"), ("beam_current", 0.0, "> 0"),
     ("transimpedance", float("inf"), "> 0"), ("count_rays", 1, "true or false"), ("events", "two", "number"),
