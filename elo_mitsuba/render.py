@@ -55,6 +55,14 @@ MAX_SEED = (1 << 32) - 1
 
 
 # ---- the scene ----------------------------------------------------------------------------------------
+def _not_finite(value) -> bool:
+    """True for a value that reads as a number but is not finite (``inf``, ``-inf``, ``nan``)."""
+    try:
+        return not math.isfinite(float(str(value)))
+    except ValueError:
+        return False  # text (a material's name, a file): not a number at all
+
+
 class EloScene:
     """A loaded ELO scene, rendered again and again without reloading or recompiling.
 
@@ -99,6 +107,10 @@ class EloScene:
             raise EloInputError(
                 f"{self.path}: parameter {unknown[0]!r} is not declared by this scene (it declares: {allowed})"
             )
+        for k, v in values.items():  # Mitsuba would take inf and nan, and fail far from the cause
+            if _not_finite(v):
+                raise EloInputError(f"{self.path}: parameter {k}={str(v)!r} is not a finite number (-D {k}=...): "
+                                    "the scene's parameters are lengths (mm), angles and counts")
         self.mi = ensure_variant(variant)
         self.params = {**declared, **{k: str(v) for k, v in values.items()}}
         try:

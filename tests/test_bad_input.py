@@ -137,6 +137,8 @@ CLI_CASES = [
     ("render -D =5", [*R, *OUT, "-D", "=5"], "is not NAME=VALUE"),
     ("render -D unknown", [*R, *OUT, "-D", "colour=red"], "parameter 'colour' is not declared"),
     ("render -D dh=abc", [*R, *OUT, "-D", "dh=abc"], "parameter dh='abc' is not a valid"),
+    ("render -D dh=inf", [*R, *OUT, "-D", "dh=inf"], "parameter dh='inf' is not a finite number"),
+    ("render -D fwhm=nan", [*R, *OUT, "-D", "fwhm=nan"], "parameter fwhm='nan' is not a finite number"),
     ("render -D wd=abc", [*R, *OUT, "-D", "wd=abc"], "parameter wd='abc' is not a valid"),
     ("render -D res=x", ["render", "flat_plate", *OUT, "-D", "res=x"], "parameter res='x' is not a valid"),
     ("render -D dh=1 cuts the plate", [*R, *OUT, "-D", "dh=1"], "reaches down to z=-24 mm, through the build plane"),
