@@ -5,7 +5,7 @@ and, where g_BSE's tables are not available, for the continuation paths a sample
 (``bounce_samples``); the s x s grid of the far field's cheap samples (:func:`stratum`); the
 split of the continuation paths between g_BSE's two components (:func:`allocated`,
 :func:`group_point`); and one point set spread over all the samples of a geometry class
-(:func:`spread_point`)."""
+(:func:`spread_point`, and :func:`spread_later` for the later continuations)."""
 
 import math
 
