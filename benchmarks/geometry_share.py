@@ -15,6 +15,18 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
     python -m benchmarks.geometry_share --bias 8,6               # corrugated_chamber 512² (about 2 min)
     python -m benchmarks.geometry_share --bias 8,6 --scene melt_chamber --events 3 --bias-res 256
     python -m benchmarks.geometry_share --bias 8,6 --bias-res 256 --fwhm 0.27   # under a beam profile
+
+* ``--classes N``: how far the classes themselves are from "same expected value", apart from the
+  estimator's noise: N per-pixel renders (`default`'s paths, no sharing), each replaced by its
+  class means as the shared render would be, for each probe count of ``--probes``: the RMS per pixel
+  of (class mean - own value)'s expectation (from two independent halves of the renders, so the
+  noise drops out), and in 5 mm block means (classes straddle them) the RMS bias (the noise of
+  the mean taken out) against one render's noise there, with mean z² over the blocks.
+  ``--scene sawtooth`` is the sawtooth test plate (:mod:`elo_mitsuba.objects.sawtooth_plate`, no
+  chamber): valleys ending at cliffs.
+
+    python -m benchmarks.geometry_share --classes 144 --scene sawtooth --bias-res 256 --probes 16,32,64,128
+    python -m benchmarks.geometry_share --classes 64 --scene sawtooth --bias-res 256 --fwhm 0.27 --probes 16/16,64/16,64/64
 """
 
 from __future__ import annotations
@@ -30,7 +42,29 @@ from elo_mitsuba.schema import event_channel
 
 from .harness import DETS, estimated_rel, mean_difference, run_module
 
-SCENES = ("corrugated_chamber", "melt_chamber")
+SCENES = ("corrugated_chamber", "melt_chamber", "sawtooth")
+#: Side of the blocks whose means --classes compares (mm): not a multiple of the classes' 4 mm.
+BLOCK_MEAN_MM = 5.0
+
+
+def _load(name, res, fwhm=0.0):
+    """A shipped scene, or the sawtooth test plate written into a temporary folder."""
+    import elo_mitsuba as em
+
+    em.ensure_variant()
+    if name != "sawtooth":
+        return em.load_scene(name, res=res, fwhm=fwhm)
+    import tempfile
+    from pathlib import Path
+
+    from elo_mitsuba.mesh import write_mesh
+    from elo_mitsuba.objects import sawtooth_plate
+    from elo_mitsuba.scene_files import write_scene
+
+    folder = Path(tempfile.mkdtemp(prefix="elo_saw_"))
+    write_mesh(sawtooth_plate.sawtooth_mesh(), folder / "sawtooth.ply")
+    write_scene(folder / "sawtooth.xml", folder / "sawtooth.ply")
+    return em.load_scene(str(folder / "sawtooth.xml"), res=res, fwhm=fwhm)
 
 
 def side_by_side(name, res, events):
@@ -63,10 +97,7 @@ def side_by_side(name, res, events):
 
 
 def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
-    import elo_mitsuba as em
-
-    em.ensure_variant()
-    scene = em.load_scene(name, res=res, fwhm=fwhm)
+    scene = _load(name, res, fwhm)
     scene.set_events(events)
     channels = [event_channel(d, k) for k in range(2, events + 1) for d in DETS]
 
@@ -80,6 +111,50 @@ def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
     g = stack("reference", n_per_pixel, 5000)
     out = {c: mean_difference(f[:, i], g[:, i], classes) for i, c in enumerate(channels)}
     return block, out
+
+
+def class_bias(name, res, n, probes, fwhm=0.0):
+    """--classes: per probe count, the bias of replacing each pixel's e2 by its class mean."""
+    import elo_mitsuba.plugins._geometry_classes as gc
+
+    scene = _load(name, res, fwhm)
+    scene.set_events(2)
+    spp = scene.set_quality("default")
+    block = scene.integrator.options.bounce_share
+    scene.configure(bounce_share=0.0)
+    channels = [event_channel(d, 2) for d in DETS]
+    own = np.array([np.stack([scene.render(quality="custom", spp=spp, seed=9000 + k, progress=False).channels[c]
+                              for c in channels]).astype(np.float64) for k in range(n)])
+    b = max(1, int(round(BLOCK_MEAN_MM * own.shape[-1] / float(scene.sensor.field))))
+    nb = own.shape[-1] // b
+
+    def block_means(x):
+        return x[..., :nb * b, :nb * b].reshape(x.shape[:-2] + (nb, b, nb, b)).mean(axis=(-1, -3))
+
+    rows, kept = [], (gc.PROBES, gc.FOOTPRINT_PROBES)
+    try:
+        for count, footprint in probes:
+            gc.PROBES, gc.FOOTPRINT_PROBES = count, footprint or kept[1]
+            classes = gc.GeometryClasses(scene.scene, scene.sensor, block, None)
+            sums = np.stack([np.bincount(classes.flat, weights=x.ravel(), minlength=classes.counts.size)
+                             for x in own.reshape(-1, own.shape[-2] * own.shape[-1])])
+            shared = (sums / classes.counts)[:, classes.flat].reshape(own.shape)
+            dev = shared - own
+            half = n // 2
+            pixel = np.mean(dev[:half].mean(0) * dev[half:2 * half].mean(0), axis=(-1, -2))  # E[bias^2] per channel
+            scale = own.mean(axis=(0, 2, 3))
+            d = block_means(dev)
+            mean, se = d.mean(0), d.std(0, ddof=1) / np.sqrt(n)
+            one = block_means(own).std(0, ddof=1)
+            squared = np.maximum(0.0, np.mean(mean**2 - se**2, axis=(-1, -2)))  # the noise of the mean taken out
+            rows.append({"probes": f"{count}/{gc.FOOTPRINT_PROBES}" if fwhm > 0 else str(count), "classes": int(classes.counts.size),
+                         "pixel": float(np.max(np.sign(pixel) * np.sqrt(np.abs(pixel)) / scale)),
+                         "block": float(np.max(np.sqrt(squared) / scale)),
+                         "ratio": float(np.max(np.sqrt(squared / np.mean(one**2, axis=(-1, -2))))),
+                         "z2": float(np.max(np.mean((mean / np.maximum(se, 1e-300))**2, axis=(-1, -2))))})
+    finally:
+        gc.PROBES, gc.FOOTPRINT_PROBES = kept
+    return block, b, rows
 
 
 def _positive(text):
@@ -112,8 +187,31 @@ def main(argv=None):
     p.add_argument("--bias", help="N,M: N shared against M per-pixel `reference` renders")
     p.add_argument("--bias-res", type=_positive, default=512)
     p.add_argument("--fwhm", type=_fwhm, default=0.0, help="with --bias: the beam profile's FWHM (mm)")
+    p.add_argument("--classes", type=_positive, help="N: the classes' own bias from N per-pixel renders")
+    p.add_argument("--probes", default="16,64", help="with --classes: probe counts to compare (powers of two; "
+                   "C/F under a beam profile: C at the grid point, F at each footprint point)")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.classes:
+        try:
+            probes = [tuple(int(y) for y in (x.split("/") + ["0"])[:2]) for x in a.probes.split(",")]
+        except ValueError:
+            probes = []
+        if not probes or any(x < 1 or x & (x - 1) or y < 0 or y & (y - 1) or max(x, y) > 1024 for x, y in probes):
+            p.error(f"--probes {a.probes!r}: give powers of two up to 1024, e.g. 16,64 (under a beam profile C/F: "
+                    "C at the grid point, F at each footprint point)")
+        if a.classes < 4:
+            p.error(f"--classes {a.classes}: give N >= 4 renders (two halves estimate the bias)")
+        block, b, rows = class_bias(a.scene, a.bias_res, a.classes, probes, a.fwhm)
+        print(f"{a.scene} {a.bias_res}², e2, fwhm {a.fwhm:g} mm, {a.classes} per-pixel `default` renders each replaced "
+              f"by its class means ({block:g} mm blocks); worst detector:\n")
+        print(f"| probes | classes | bias per pixel (of mean e2) | bias in {BLOCK_MEAN_MM:g} mm means (of mean e2) | "
+              "the same, of one render's noise there | mean z² over the blocks |")
+        print("|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['probes']} | {r['classes']} | {100 * r['pixel']:.2f} % | {100 * r['block']:.2f} % | "
+                  f"{r['ratio']:.2f} | {r['z2']:.1f} |")
+        return 0
     if a.bias:
         parts = a.bias.split(",")
         if len(parts) != 2 or not all(x.strip().isdigit() and int(x) >= 2 for x in parts):

@@ -82,8 +82,8 @@ class EloOptions:
                                          "window (with far_table: the window of the residual about its mean)",
                                          "float", bounds=(0.0, 90.0))
     bounce_share: float = _option(0.0, "side (mm) of the blocks in which pixels of matching geometry share their "
-                                  "events >= 2 (same normal within 1 deg, 16 probe rays meeting surfaces at the same "
-                                  "distance within 12.5 %; 0 = off; plugins/_geometry_classes.py), their paths one point set "
+                                  "events >= 2 (same normal within 1 deg, 64 probe rays meeting surfaces at the same "
+                                  "distance within a factor 1.65; 0 = off; plugins/_geometry_classes.py), their paths one point set "
                                   "per class; for relief that scatters onto itself, instead of bounce_filter", "float",
                                   bounds=(0.0, None))
     bounce_min: float = _option(0.0, "paths per pixel below which a second pass tops events >= 2 up (0 = off)",

@@ -10,14 +10,15 @@ events >= 2. This module sorts the pixels into classes of such points, once per 
 * the beam's ray at each pixel centre (the scan point, as the ``elo_beam`` sensor aims it);
 * :data:`PROBES` fixed directions in the local frame of the normal (a cosine-weighted
   Hammersley set, the same for every pixel), each traced up to :data:`NEAR_MM` (the far field's
-  near distance): the distance to the first surface, quantised in steps of 1/:data:`STEPS_PER_E`
-  of a natural-log unit (12.5 %);
+  near distance): the distance to the first surface, binned in steps of 1/:data:`STEPS_PER_E`
+  of a natural-log unit (a factor 1.65);
 * the normal, quantised in steps of sin(:data:`NORMAL_DEG`);
 * the block of :math:`b \\times b` pixels (``block_mm``) holding the pixel.
 
 Under a beam profile (fwhm > 0) a pixel's events >= 2 average over the beam's footprint, so the
-normal and the probes are also taken at four points of it (:data:`FOOTPRINT_SIGMAS` standard
-deviations from the grid point along +-x and +-y) and all five enter the class.
+normal and :data:`FOOTPRINT_PROBES` probes are also taken at four points of it
+(:data:`FOOTPRINT_SIGMAS` standard deviations from the grid point along +-x and +-y) and all five
+enter the class.
 
 A class is the pixels of one block with equal quantised normal and probe distances; the integrator
 replaces each pixel's events >= 2 by the mean over its class (``bounce_share``). Where the relief
@@ -25,9 +26,12 @@ repeats (the corrugated sheet: every point of a flank line along its ridge), a c
 points of a line and the average is unbiased but for what varies within the block (the far field,
 the beam's incidence: measured below the noise at 4 mm on corrugated_chamber, benchmarks/
 RESULTS.md, "Shared by geometry"); where no two points match, every pixel keeps its own value
-(no gain, no bias). Quantisation can still join points whose probes agree but whose events >= 2
-do not (e.g. a difference no probe direction sees): the bias that is left is measured, never
-seen by the render's own error estimate (both halves share the classes). Each pixel's rank in
+(no gain, no bias). A class can still join points whose probes agree but whose events >= 2 do
+not: a difference between the probe directions, such as how much of the facing flank a point on
+the sawtooth plate sees by its distance to the valley's end (16 probes left 6.8 % of e2 per
+pixel there, 64 leave 2.5 %: :data:`PROBES`). The bias that is left is measured (``python -m
+benchmarks.geometry_share --classes``), never seen by the render's own error estimate (both
+halves share the classes). Each pixel's rank in
 its class (:meth:`GeometryClasses.ranks`) places its paths in the point set the class's samples
 share (:func:`._strata.spread_point`).
 """
@@ -42,11 +46,19 @@ import numpy as np
 from ._far_field import NEAR_MM
 from ._occlusion import digest_geometry, shape_key
 
-#: Probe directions per pixel (a power of two: the Hammersley set). 16 matched 32 on
-#: corrugated_chamber at 512^2 (bias below the measurement's noise of ~0.5 % of e2 either way).
-PROBES = 16
-#: Probe distances are quantised in steps of 1/STEPS_PER_E in log(distance) (12.5 %).
-STEPS_PER_E = 8
+#: Probe directions per pixel (a power of two: the Hammersley set). Two points whose surroundings
+#: differ only between the probes share a class: on the sawtooth plate (valleys ending at the
+#: patches' cliffs) the pixels' e2 differs from its class mean by 6.8 % (RMS, of the plate's mean
+#: e2) with 16 probes, 4.1 % with 32, 2.5 % with 64, 1.4 % with 128 (144 unshared renders at 256²).
+#: 64 leave a bias of 0.08 of one render's noise in 5 mm means and do not add noise on
+#: corrugated_chamber; 128 add 10 % there (benchmarks/RESULTS.md, "Shared by geometry").
+PROBES = 64
+#: Probe directions at each of the four footprint points under a beam profile.
+FOOTPRINT_PROBES = 16
+#: Probe distances are binned in steps of 1/STEPS_PER_E in log(distance) (a factor 1.65): with 64
+#: probes which of them meet relief tells points apart, finer bins only split the classes of a
+#: flank (corrugated_chamber at 1500²: 12.5 % bins halve its median class and add 10 % noise).
+STEPS_PER_E = 2
 #: Normals are quantised in steps of sin(NORMAL_DEG) along x and y.
 NORMAL_DEG = 1.0
 #: Shortest probe distance told apart (mm): closer hits count as this distance.
@@ -60,8 +72,10 @@ CHUNK = 1 << 18
 #: roundoffs: 2e-4 mm at 40 mm, far above the origin's float32 rounding, 2e-6 mm; Mitsuba's own
 #: spawn_ray offsets by 17x more).
 RAY_EPSILON = 89.0 * 2.0 ** -24
+#: Most probe directions a point may take (the multipliers below cover them).
+MAX_PROBES = 1024
 #: Odd 64-bit multipliers of the class key's hash (fixed: classes are reproducible).
-_MIX = np.random.default_rng(0x6E0C).integers(1, 1 << 62, size=PROBES + 4, dtype=np.int64) * 2 + 1
+_MIX = np.random.default_rng(0x6E0C).integers(1, 1 << 62, size=MAX_PROBES + 4, dtype=np.int64) * 2 + 1
 _POINT_MIX = (np.random.default_rng(0x6E0D).integers(1, 1 << 62, size=5, dtype=np.int64) * 2 + 1).astype(np.uint64)
 
 
@@ -96,12 +110,17 @@ def geometry_key(scene, sensor):
             int(size[0]), int(size[1]))
 
 
-def _rays(o, d, maxt=None):
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.ascontiguousarray(o[:, c], np.float32)) for c in range(3)]),
-                   mi.Vector3f(*[mi.Float(np.ascontiguousarray(d[:, c], np.float32)) for c in range(3)]))
-    if maxt is not None:
-        ray.maxt = maxt
-    return ray
+def distance_edges():
+    """The edges of the probe distances' bins (mm, float64, increasing): e^(k / STEPS_PER_E) from
+    :data:`MIN_DISTANCE_MM` to :data:`NEAR_MM`. Distances below the first edge share a bin, and so
+    do those beyond the last one and the probes that meet nothing."""
+    k = np.arange(math.ceil(math.log(MIN_DISTANCE_MM) * STEPS_PER_E), math.floor(math.log(NEAR_MM) * STEPS_PER_E) + 1)
+    return np.exp(k / STEPS_PER_E)
+
+
+def _rays(o, d):
+    return mi.Ray3f(mi.Point3f(*[mi.Float(np.ascontiguousarray(o[:, c], np.float32)) for c in range(3)]),
+                    mi.Vector3f(*[mi.Float(np.ascontiguousarray(d[:, c], np.float32)) for c in range(3)]))
 
 
 def _frame(n):
@@ -154,7 +173,7 @@ def scan_features(scene, sensor):
     for k, offset in enumerate(footprint_offsets(sensor)):
         o, d = sensor.centre_rays(offset)
         for a in range(0, w * h, CHUNK):  # float64 temporaries of CHUNK pixels at a time
-            ok, part = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK])
+            ok, part = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK], PROBES if k == 0 else FOOTPRINT_PROBES)
             valid[a:a + CHUNK] &= ok
             with np.errstate(over="ignore"):  # the hash wraps around (uint64), as intended
                 key[a:a + CHUNK] += part * _POINT_MIX[k]
@@ -172,8 +191,8 @@ def footprint_offsets(sensor):
     return [(0.0, 0.0), (r, 0.0), (-r, 0.0), (0.0, r), (0.0, -r)]
 
 
-def _chunk_features(scene, o, d):
-    """:func:`scan_features` for the beam rays (o, d) (N, 3): (valid, hash) per ray."""
+def _chunk_features(scene, o, d, probes):
+    """:func:`scan_features` for the beam rays (o, d) (N, 3) and ``probes`` directions: (valid, hash) per ray."""
     ray = _rays(o, d)
     hit = scene.ray_intersect_preliminary(ray)
     si = hit.compute_surface_interaction(ray)
@@ -192,15 +211,21 @@ def _chunk_features(scene, o, d):
         key += np.round(n[:, 1] / step).astype(np.int64).astype(np.uint64) * mix[3]
         # leave the surface along the normal, by an offset scaled by |p| (as Mitsuba's spawn_ray)
         origin = p + n * (RAY_EPSILON * (1.0 + np.max(np.abs(p), axis=1)))[:, None]
+        o = mi.Point3f(*[mi.Float(np.ascontiguousarray(origin[:, c], np.float32)) for c in range(3)])
+        # the frame in float32 columns: numpy's float32 products and sums round alike on every CPU
         s, t = _frame(n)
+        columns = [[np.ascontiguousarray(v[:, c], np.float32) for c in range(3)] for v in (s, t, n)]
         active = mi.Bool(valid)
-        for c, (dx, dy, dz) in enumerate(probe_directions()):
-            direction = s * dx + t * dy + n * dz
-            probe = scene.ray_intersect_preliminary(_rays(origin, direction, NEAR_MM), active)
-            t_probe = np.array(probe.t, np.float64)  # inf where it meets nothing
-            dist = np.where(np.isfinite(t_probe) & (t_probe <= NEAR_MM), t_probe, NEAR_MM)
-            q = np.floor(np.log(np.maximum(dist, MIN_DISTANCE_MM)) * STEPS_PER_E).astype(np.int64)
-            key += q.astype(np.uint64) * mix[4 + c]
+        edges = distance_edges()
+        for c, (dx, dy, dz) in enumerate(probe_directions(probes).astype(np.float32)):
+            direction = mi.Vector3f(*[mi.Float(columns[0][a] * dx + columns[1][a] * dy + columns[2][a] * dz)
+                                      for a in range(3)])
+            ray = mi.Ray3f(o, direction)
+            ray.maxt = NEAR_MM
+            t_probe = np.array(scene.ray_intersect_preliminary(ray, active).t, np.float64)  # inf: nothing met
+            # the bin by exact comparison with float64 edges (numpy's log may round differently per CPU)
+            q = np.searchsorted(edges, t_probe, side="right").astype(np.uint64)
+            key += q * mix[4 + c]
     return valid, key
 
 

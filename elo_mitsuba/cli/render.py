@@ -45,7 +45,7 @@ tabulated once per geometry, and the window averages only the 2nd event's residu
 mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the melt plate 0.2 % of
 e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
 >= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft and
-default share them between pixels of matching geometry (same normal, same distances along 16
+default share them between pixels of matching geometry (same normal, same distances along 64
 probe rays; under a beam profile also around its footprint) in 4 mm blocks, their paths one
 point set per class (at 1500^2, default: 0.32 % total where 16 own paths per pixel gave 6.2 %). Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
