@@ -28,8 +28,8 @@ the beam's incidence: measured below the noise at 4 mm on corrugated_chamber, be
 RESULTS.md, "Shared by geometry"); where no two points match, every pixel keeps its own value
 (no gain, no bias). A class can still join points whose probes agree but whose events >= 2 do
 not: a difference between the probe directions, such as how much of the facing flank a point on
-the sawtooth plate sees by its distance to the valley's end (16 probes left 6.8 % of e2 per
-pixel there, 64 leave 2.5 %: :data:`PROBES`). The bias that is left is measured (``python -m
+the sawtooth plate sees by its distance to the valley's end (16 probes left 7.2 % of e2 per
+pixel there, 64 leave 2.8 %: :data:`PROBES`). The bias that is left is measured (``python -m
 benchmarks.geometry_share --classes``), never seen by the render's own error estimate (both
 halves share the classes). Each pixel's rank in
 its class (:meth:`GeometryClasses.ranks`) places its paths in the point set the class's samples
@@ -48,16 +48,18 @@ from ._occlusion import digest_geometry, shape_key
 
 #: Probe directions per pixel (a power of two: the Hammersley set). Two points whose surroundings
 #: differ only between the probes share a class: on the sawtooth plate (valleys ending at the
-#: patches' cliffs) the pixels' e2 differs from its class mean by 6.8 % (RMS, of the plate's mean
-#: e2) with 16 probes, 4.1 % with 32, 2.5 % with 64, 1.4 % with 128 (144 unshared renders at 256²).
-#: 64 leave a bias of 0.08 of one render's noise in 5 mm means and do not add noise on
-#: corrugated_chamber; 128 add 10 % there (benchmarks/RESULTS.md, "Shared by geometry").
+#: patches' cliffs) the pixels' e2 differs from its class mean by 9.0 % (RMS, of the plate's mean
+#: e2, worst detector) with 16 probes, 5.2 % with 32, 2.8 % with 64, 1.7 % with 128 (144 unshared
+#: renders at 256²; 16 probes in the finer bins used with them before: 7.2 %). 64 leave a bias of
+#: 0.08 of one render's noise in 5 mm means and do not add noise on corrugated_chamber; 128 add
+#: 10 % there (benchmarks/RESULTS.md, "64 probes").
 PROBES = 64
 #: Probe directions at each of the four footprint points under a beam profile.
 FOOTPRINT_PROBES = 16
 #: Probe distances are binned in steps of 1/STEPS_PER_E in log(distance) (a factor 1.65): with 64
 #: probes which of them meet relief tells points apart, finer bins only split the classes of a
-#: flank (corrugated_chamber at 1500²: 12.5 % bins halve its median class and add 10 % noise).
+#: flank (corrugated_chamber at 1500²: bins of 12.5 or 25 % halve its median class, 150 -> 75
+#: pixels, and 25 % adds 8 % to the total's noise).
 STEPS_PER_E = 2
 #: Normals are quantised in steps of sin(NORMAL_DEG) along x and y.
 NORMAL_DEG = 1.0

@@ -190,7 +190,7 @@ def test_a_class_holds_points_of_equal_surroundings_on_the_sawtooth(mi, tmp_path
     relief within the near distance: the first order of the 2nd event) must agree: RMS over the
     relief's pixels of (own - class mean) <= 4 % of its mean (1024 fixed directions, an
     independent quadrature). Measured at 128²: 8.7 % with 16 probes, 5.1 % with 32, 2.9 % with
-    64 (the e2 of 144 unshared renders at 256² gives 6.8 / 4.1 / 2.5 %: benchmarks.geometry_share
+    64 (the e2 of 144 unshared renders at 256² gives 9.0 / 5.2 / 2.8 %: benchmarks.geometry_share
     --classes)."""
     from elo_mitsuba.mesh import write_mesh
     from elo_mitsuba.objects import sawtooth_plate

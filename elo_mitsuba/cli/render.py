@@ -53,7 +53,7 @@ detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
   draft       corrugated_chamber     5.7 %   0.11 s         0.56 %
-  default     corrugated_chamber     2.4 %   0.13 s         0.25 % (0.13 % net of the reference's noise)
+  default     corrugated_chamber     2.45 %  0.13 s         0.25 % (0.13 % net of the reference's noise)
   reference   corrugated_chamber     1.9 %   0.51 s         0.52 % (no window average)
 
 Every render estimates its own error from two independent halves of the samples and prints it
