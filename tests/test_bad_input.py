@@ -151,6 +151,8 @@ CLI_CASES = [
     ("render -D field=0", [*R, *OUT, "-D", "field=0"], "field"),
     ("render -D field=-5", [*R, *OUT, "-D", "field=-5"], "field"),
     ("render -D fwhm=-1", [*R, *OUT, "-D", "fwhm=-1"], "fwhm"),
+    # a beam as wide as the field lights all of it at every scan point (fwhm=1e30 rendered zeros)
+    ("render -D fwhm=1e30", [*R, *OUT, "-D", "fwhm=1e30"], "fwhm=1e+30 mm; must be below the scan field's 80 mm"),
     ("render -D projection", [*R, *OUT, "-D", "projection=fisheye"], "fisheye"),
     # -- gradient
     ("gradient no object", ["gradient", *G_FLAT, "-o", "{d}/g.exr"], "no object images"),
