@@ -69,10 +69,10 @@ class EloBeam(mi.Sensor):
                 "lands in its own pixel"
             )
         self.field_y = self.field * self.resolution[1] / self.resolution[0]
-        if self.fwhm >= min(self.field, self.field_y):
+        if self.fwhm >= max(self.field, self.field_y):  # the larger side: a line scan has one row
             # such a beam lights the whole field at every scan point: no image (fwhm=1e30 rendered zeros)
             raise EloInputError(f"elo_beam: fwhm={self.fwhm:g} mm; must be below the scan field's "
-                                f"{min(self.field, self.field_y):g} mm (a beam profile is a fraction of a millimetre)")
+                                f"{max(self.field, self.field_y):g} mm (a beam profile is a fraction of a millimetre)")
         pitch = (self.field / self.resolution[0], self.field_y / self.resolution[1])
         #: (dx, dy) mm: the beam aims at every pixel centre plus this (recorded in output headers)
         self.aim_offset_mm = tuple(min(f * p, cap) for f, p, cap in zip(_AIM_NUDGE, pitch, _AIM_NUDGE_MAX_MM))
