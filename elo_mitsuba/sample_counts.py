@@ -11,11 +11,12 @@ into passes of counts the sampler takes as they are (1 always is), and a top-up 
 to one.
 
 Every pass count is also a power of two. Mitsuba lays a pass out pixel by pixel, n lanes each,
-and Dr.Jit runs the lanes in blocks of a power-of-two size on several threads; the film adds a
-pixel's samples atomically. With n = 35 (``multijitter``'s 32) a pixel's lanes straddle two
-blocks, two threads add to it, and the order of the two sums, hence the last bits, changed from
-run to run (athene_flat 64², 64 spp, 1st event: 10 of 10 re-renders differed, by up to 3 float32
-roundoffs; with power-of-two passes none did).
+Dr.Jit runs the lanes in blocks on several threads, and the film adds a pixel's samples
+atomically. With n = 35 (``multijitter``'s 32) or 30 a pixel's lanes can straddle two blocks,
+two threads add to it, and the order of the two sums, hence the last bits, changed from run to
+run (athene_flat 64², 64 spp, 1st event: 10 of 10 re-renders differed, by up to 3 float32
+roundoffs). Passes of 16 or 64 lanes never did, nor any render since the passes are powers of
+two (the blocks' sizes evidently are too; tests/test_sample_counts.py).
 """
 
 from __future__ import annotations
