@@ -154,6 +154,9 @@ CLI_CASES = [
     # a beam as wide as the field lights all of it at every scan point (fwhm=1e30 rendered zeros)
     ("render -D fwhm=1e30", [*R, *OUT, "-D", "fwhm=1e30"], "fwhm=1e+30 mm; must be below the scan field's 80 mm"),
     ("render -D projection", [*R, *OUT, "-D", "projection=fisheye"], "fisheye"),
+    # -- calibrate
+    ("calibrate --event 0", ["calibrate", "{d}/flat.exr", "--event", "0", "-o", "{d}/c.json"],
+     "argument --event: 0 must be >= 1"),  # was "missing channel(s) right.e0"
     # -- gradient
     ("gradient no object", ["gradient", *G_FLAT, "-o", "{d}/g.exr"], "no object images"),
     ("gradient object missing", ["gradient", *G_FLAT, "{d}/nothere.exr", "-o", "{d}/g.exr"], "no such file"),

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
-from ._args import field_arg, positive_float
+from ._args import field_arg, positive_float, positive_int
 
 DESCRIPTION = """\
 Fit where each detector really is, from the four images of a plane plate (any unit: volts,
@@ -61,7 +61,7 @@ def add_parser(subparsers):
     fit = p.add_argument_group("fit")
     fit.add_argument("--fit-offset", action="store_true", help="also fit a constant offset per detector")
     fit.add_argument("--no-tilt", action="store_true", help="hold each normal at its nominal direction")
-    fit.add_argument("--event", type=int, metavar="K", help="use the per-event channels right.eK ... of the EXR")
+    fit.add_argument("--event", type=positive_int, metavar="K", help="use the per-event channels right.eK ... of the EXR")
     p.add_argument("--overwrite", action="store_true", help="replace an existing CALIB.json")
     p.set_defaults(run=run)
     return p
