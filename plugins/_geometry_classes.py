@@ -120,9 +120,13 @@ def distance_edges():
     return np.exp(k / STEPS_PER_E)
 
 
+def _float3(kind, a):
+    """``kind`` (mi.Point3f, mi.Vector3f) from the float64 rows ``a`` (N, 3), rounded to float32."""
+    return kind(*[mi.Float(np.ascontiguousarray(a[:, c], np.float32)) for c in range(3)])
+
+
 def _rays(o, d):
-    return mi.Ray3f(mi.Point3f(*[mi.Float(np.ascontiguousarray(o[:, c], np.float32)) for c in range(3)]),
-                    mi.Vector3f(*[mi.Float(np.ascontiguousarray(d[:, c], np.float32)) for c in range(3)]))
+    return mi.Ray3f(_float3(mi.Point3f, o), _float3(mi.Vector3f, d))
 
 
 def _frame(n):
@@ -213,7 +217,7 @@ def _chunk_features(scene, o, d, probes):
         key += np.round(n[:, 1] / step).astype(np.int64).astype(np.uint64) * mix[3]
         # leave the surface along the normal, by an offset scaled by |p| (as Mitsuba's spawn_ray)
         origin = p + n * (RAY_EPSILON * (1.0 + np.max(np.abs(p), axis=1)))[:, None]
-        o = mi.Point3f(*[mi.Float(np.ascontiguousarray(origin[:, c], np.float32)) for c in range(3)])
+        o = _float3(mi.Point3f, origin)
         # the frame in float32 columns: numpy's float32 products and sums round alike on every CPU
         s, t = _frame(n)
         columns = [[np.ascontiguousarray(v[:, c], np.float32) for c in range(3)] for v in (s, t, n)]

@@ -557,16 +557,17 @@ def _surface(source, s, base: Path):
 
 def check_parameters(spec: SweepSpec) -> None:
     """Every fixed and swept scene parameter is declared by the scene file (read from the XML,
-    before anything is loaded). Raises EloInputError."""
+    before anything is loaded). Raises EloInputError, without the spec's name (the caller adds it)."""
     from ..scene_files import declared_parameters, resolve_scene_path
 
     path = resolve_scene_path(spec.scene)
     declared = set(declared_parameters(path, {k: str(v) for k, v in spec.point(0).load.items()}))
     for name in list(spec.fixed) + [m.key for a in spec.axes for m in a.members if m.target == "scene"]:
         if name not in declared:
-            _fail(spec.source, f"unknown parameter {name!r}: {path.name} declares {', '.join(sorted(declared))}; "
-                  f"render settings: {', '.join(RENDER_TIME)}; detector moves: "
-                  f"<detector>.{{{','.join(DETECTOR_ATTRIBUTES)}}}")
+            # the caller (sweeps.validate) names the spec, as for the scene's own errors
+            raise EloInputError(f"unknown parameter {name!r}: {path.name} declares {', '.join(sorted(declared))}; "
+                                f"render settings: {', '.join(RENDER_TIME)}; detector moves: "
+                                f"<detector>.{{{','.join(DETECTOR_ATTRIBUTES)}}}")
 
 
 def check_against_scene(spec: SweepSpec, scene) -> None:

@@ -84,8 +84,7 @@ def check_first_point(spec: SweepSpec):
         check_parameters(spec)
         probe = load_scene(spec.scene, **first.load)
     except EloInputError as exc:
-        named = str(exc).startswith(f"{spec.source}: ")  # check_parameters names the spec itself
-        raise EloInputError(str(exc) if named else f"{spec.source}: {exc}") from None
+        raise EloInputError(f"{spec.source}: {exc}") from None
     check_against_scene(spec, probe)
     _check_integrator(spec, probe)
     if spec.surface is not None:
