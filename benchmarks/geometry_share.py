@@ -57,14 +57,11 @@ def _load(name, res, fwhm=0.0):
     import tempfile
     from pathlib import Path
 
-    from elo_mitsuba.mesh import write_mesh
     from elo_mitsuba.objects import sawtooth_plate
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     folder = Path(tempfile.mkdtemp(prefix="elo_saw_"))
-    write_mesh(sawtooth_plate.sawtooth_mesh(), folder / "sawtooth.ply")
-    write_scene(folder / "sawtooth.xml", folder / "sawtooth.ply")
-    return em.load_scene(str(folder / "sawtooth.xml"), res=res, fwhm=fwhm)
+    return em.load_scene(str(write_object_scene(folder, "sawtooth", sawtooth_plate.sawtooth_mesh())), res=res, fwhm=fwhm)
 
 
 def side_by_side(name, res, events):

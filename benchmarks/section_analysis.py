@@ -48,11 +48,9 @@ def _inputs(b, res):
     code = (
         "import elo_mitsuba as em\n"
         "from elo_mitsuba.objects import sawtooth_plate as saw\n"
-        "from elo_mitsuba.mesh import write_mesh\n"
-        "from elo_mitsuba.scene_files import write_scene\n"
+        "from elo_mitsuba.scene_files import write_object_scene\n"
         f"d = {str(d)!r}\n"
-        "write_mesh(saw.sawtooth_mesh(), d + '/saw.ply', overwrite=True)\n"
-        "write_scene(d + '/saw.xml', d + '/saw.ply', overwrite=True)\n"
+        "write_object_scene(d, 'saw', saw.sawtooth_mesh(), overwrite=True)\n"
         f"em.load_scene('flat_plate', res={res}).render(quality='default', progress=False).write_exr(d + '/flat.exr', overwrite=True)\n"
         f"em.load_scene(d + '/saw.xml', res={res}).render(quality='default', progress=False).write_exr(d + '/sawtooth.exr', overwrite=True)\n"
     )

@@ -24,11 +24,9 @@ surface, res = sys.argv[1], int(sys.argv[2])
 names = ("right", "left", "back", "front")
 if surface == "hills":
     from elo_mitsuba.objects.hills import hills_height as truth_fn, hills_mesh
-    from elo_mitsuba.mesh import write_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
     d = tempfile.mkdtemp()
-    write_mesh(hills_mesh(80.0, res, oversample=1 if res > 1024 else 3), d + "/h.ply")
-    scene, layout = write_scene(d + "/h.xml", d + "/h.ply"), "zeta50"
+    scene, layout = write_object_scene(d, "h", hills_mesh(80.0, res, oversample=1 if res > 1024 else 3)), "zeta50"
 else:
     from elo_mitsuba.mesh import mesh_surface_height
     from elo_mitsuba.objects import melt_plate as mp

@@ -301,3 +301,22 @@ def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: 
         "-->\n"
     )
     return atomic_write(scene_path, lambda tmp: tmp.write_text(header + text))
+
+
+def write_object_scene(folder, name: str, mesh, *, material: str | None = None, chamber: bool = False,
+                       overwrite: bool = False) -> Path:
+    """Write ``mesh`` (e.g. a surface of :mod:`elo_mitsuba.objects`) as ``folder/name.ply`` and a
+    scene that renders it as ``folder/name.xml`` (:func:`write_scene`); returns the scene's path.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from elo_mitsuba.objects.hills import hills_mesh
+    >>> write_object_scene(tempfile.mkdtemp(), "hills", hills_mesh(80.0, 16)).name
+    'hills.xml'
+    """
+    from .mesh import write_mesh
+
+    folder = Path(folder)
+    mesh_path = write_mesh(mesh, folder / f"{name}.ply", overwrite=overwrite)
+    return write_scene(folder / f"{name}.xml", mesh_path, material=material, chamber=chamber, overwrite=overwrite)

@@ -36,16 +36,14 @@ def machine(mi, tmp_path_factory):
     """A 'machine' whose right detector is 5.4 mm and 3 deg off the drawing: its flat plate at
     1024^2 (gains, 0.5 % noise), and flat + sawtooth plate at 160^2 for the topography."""
     import elo_mitsuba as em
-    from elo_mitsuba.mesh import write_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     d = tmp_path_factory.mktemp("machine")
     rng = np.random.default_rng(5)
     flat_hi = _move(em.load_scene("flat_plate", res=FLAT_RES)).render(quality="default")
     noisy = {n: flat_hi.channels[n] * GAINS[n] * (1 + 0.005 * rng.standard_normal(flat_hi.channels[n].shape))
              for n in DETECTOR_NAMES}
-    write_mesh(saw.sawtooth_mesh(), d / "saw.ply")
-    write_scene(d / "saw.xml", d / "saw.ply")
+    write_object_scene(d, "saw", saw.sawtooth_mesh())
     flat = _move(em.load_scene("flat_plate", res=OBJ_RES)).render(quality="default")
     obj = _move(em.load_scene(d / "saw.xml", res=OBJ_RES)).render(quality="default")
     cal = calibrate(noisy, ScanGeometry.nominal((FLAT_RES, FLAT_RES), 80, 272, 127))  # fitted once, used twice

@@ -192,14 +192,11 @@ def test_a_class_holds_points_of_equal_surroundings_on_the_sawtooth(mi, tmp_path
     independent quadrature). Measured at 128²: 8.7 % with 16 probes, 5.1 % with 32, 2.9 % with
     64 (the e2 of 144 unshared renders at 256² gives 9.0 / 5.2 / 2.8 %: benchmarks.geometry_share
     --classes)."""
-    from elo_mitsuba.mesh import write_mesh
     from elo_mitsuba.objects import sawtooth_plate
     from elo_mitsuba.plugins._geometry_classes import GeometryClasses
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
-    write_mesh(sawtooth_plate.sawtooth_mesh(), tmp_path / "saw.ply")
-    write_scene(tmp_path / "saw.xml", tmp_path / "saw.ply")
-    scene = em.load_scene(str(tmp_path / "saw.xml"), res=128)
+    scene = em.load_scene(str(write_object_scene(tmp_path, "saw", sawtooth_plate.sawtooth_mesh())), res=128)
     m = 1024
     k = np.arange(m)
     directions = np.stack([(k + 0.5) / m, (k * 0.6180339887498949 + 0.3) % 1.0], axis=1)  # not the probes' set

@@ -26,12 +26,10 @@ FIELD = 80.0
 @pytest.fixture(scope="module")
 def hills_scene(tmp_path_factory):
     """The hills (objects.hills) meshed at a third of the image pixel."""
-    from elo_mitsuba.mesh import write_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     d = tmp_path_factory.mktemp("hills")
-    write_mesh(hills_mesh(FIELD, RES), d / "hills.ply")
-    return write_scene(d / "hills.xml", d / "hills.ply")
+    return write_object_scene(d, "hills", hills_mesh(FIELD, RES))
 
 
 def _render(scene, layout, quality="default"):

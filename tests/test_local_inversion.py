@@ -188,13 +188,11 @@ def test_model_gain_term_covers_the_hills_scale_error(tmp_path):
     import elo_mitsuba as em
     from elo_mitsuba.analysis.inversion import MODEL_SLOPE_GAIN
     from elo_mitsuba.analysis.model_gradient import model_gradient
-    from elo_mitsuba.mesh import write_mesh
     from elo_mitsuba.objects.hills import hills_height, hills_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     res = 128
-    write_mesh(hills_mesh(80.0, res), tmp_path / "hills.ply")
-    xml = write_scene(tmp_path / "hills.xml", tmp_path / "hills.ply")
+    xml = write_object_scene(tmp_path, "hills", hills_mesh(80.0, res))
     obj, flat = (em.load_scene(str(s), res=res, fwhm=0.27, layout="zeta50").render(quality="default", events=1,
                                                                                       seed=3, progress=False)
                  for s in (xml, "flat_plate"))

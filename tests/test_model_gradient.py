@@ -155,12 +155,10 @@ def test_second_event_of_the_flat_is_taken_out(mi):
 def sawtooth_renders(mi, tmp_path_factory):
     """Flat plate and sawtooth plate rendered at --quality default (1st event, quadrature)."""
     import elo_mitsuba as em
-    from elo_mitsuba.mesh import write_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     d = tmp_path_factory.mktemp("saw")
-    write_mesh(saw.sawtooth_mesh(), d / "saw.ply")
-    write_scene(d / "saw.xml", d / "saw.ply")
+    write_object_scene(d, "saw", saw.sawtooth_mesh())
     flat = em.load_scene("flat_plate", res=SAW_RES).render(quality="default")
     obj = em.load_scene(d / "saw.xml", res=SAW_RES).render(quality="default")
     return flat, obj

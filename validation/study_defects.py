@@ -62,12 +62,12 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     from elo_mitsuba.analysis.inversion import invert_heights, start_heights
     from elo_mitsuba.analysis.model_gradient import model_gradient
     from elo_mitsuba.analysis.scan_geometry import ScanGeometry
-    from elo_mitsuba.mesh import mesh_surface_height, write_mesh
+    from elo_mitsuba.mesh import mesh_surface_height
     from elo_mitsuba.objects import melt_plate as mp
     from elo_mitsuba.objects import rough_layer as rl
     from elo_mitsuba.objects import stepped_layer as sl
     from elo_mitsuba.objects.hills import hills_height, hills_mesh
-    from elo_mitsuba.scene_files import scenes_dir, write_scene
+    from elo_mitsuba.scene_files import scenes_dir, write_object_scene
 
     if kind == "melt":
         heights = np.load(scenes_dir() / "meshes" / "melt_plate_height.npy").astype(float)
@@ -78,8 +78,7 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     else:
         mesh, truth_fn = {"rough": (rl.rough_mesh, rl.rough_height), "steps": (sl.stepped_mesh, sl.stepped_height),
                           "hills": (hills_mesh, hills_height)}[kind]
-        write_mesh(mesh(80.0, res), tmp / f"{kind}.ply", overwrite=True)
-        xml = write_scene(tmp / f"{kind}.xml", tmp / f"{kind}.ply", overwrite=True)
+        xml = write_object_scene(tmp, kind, mesh(80.0, res), overwrite=True)
     obj, flat = _render_pair(xml, res, layout)
     shape = obj.channels["right"].shape
     geo = ScanGeometry.from_metadata(obj.metadata, shape)

@@ -141,10 +141,10 @@ def run(ctx):
     import elo_mitsuba as em
     from elo_mitsuba.analysis.height_model import HeightModel
     from elo_mitsuba.analysis.scan_geometry import ScanGeometry
-    from elo_mitsuba.mesh import mesh_surface_height, write_mesh
+    from elo_mitsuba.mesh import mesh_surface_height
     from elo_mitsuba.objects import melt_plate as mp
     from elo_mitsuba.objects.hills import hills_height, hills_mesh
-    from elo_mitsuba.scene_files import scenes_dir, write_scene
+    from elo_mitsuba.scene_files import scenes_dir, write_object_scene
 
     from .tools import check_melt_resolution
 
@@ -153,8 +153,7 @@ def run(ctx):
     res_melt, res_hills = cfg["melt_res"], cfg["hills_res"]
     check_melt_resolution(80.0, res_melt)
     hills_xml = ctx.tmp_dir / "hills.xml"
-    write_mesh(hills_mesh(80.0, res_hills), ctx.tmp_dir / "hills.ply", overwrite=True)
-    write_scene(hills_xml, ctx.tmp_dir / "hills.ply", overwrite=True)
+    write_object_scene(ctx.tmp_dir, "hills", hills_mesh(80.0, res_hills), overwrite=True)
     heights = np.load(scenes_dir() / "meshes" / "melt_plate_height.npy").astype(float)
 
     def melt_truth(x, y):

@@ -15,13 +15,12 @@ MAP_FIELD = 100.0  # the shipped height map: 500 x 500 pixels of 0.2 mm
 def _steep_scene(ctx, scale):
     """Scene of the melt plate with its relief scaled by ``scale`` (a steeper stand-in), in tmp."""
     from elo_mitsuba.objects.melt_plate import PIXEL_SIZE_MM, MESH_TOLERANCE_MM
-    from elo_mitsuba.mesh import heightmap_to_mesh, write_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.mesh import heightmap_to_mesh
+    from elo_mitsuba.scene_files import write_object_scene
 
     h = np.load(_height_path()).astype(float) * scale
     mesh = heightmap_to_mesh(h, PIXEL_SIZE_MM, tolerance_mm=MESH_TOLERANCE_MM)
-    mesh_path = write_mesh(mesh, ctx.tmp_dir / "melt_plate_steep.ply", overwrite=True)
-    return write_scene(ctx.tmp_dir / "melt_plate_steep.xml", mesh_path, overwrite=True), h
+    return write_object_scene(ctx.tmp_dir, "melt_plate_steep", mesh, overwrite=True), h
 
 
 def _height_path():

@@ -53,16 +53,14 @@ def _render(scene, res, layout):
 @functools.lru_cache(maxsize=None)
 def _mesh_scene(kind, res):
     """A scene file of a generated surface (written once per process into a temporary folder)."""
-    from elo_mitsuba.mesh import write_mesh
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     if kind == "stepped":
         from elo_mitsuba.objects.stepped_layer import stepped_mesh as make
     else:
         from elo_mitsuba.objects.hills import hills_mesh as make
     folder = Path(tempfile.mkdtemp(prefix=f"elo-steps-{kind}-"))
-    write_mesh(make(80.0, res), folder / f"{kind}.ply", overwrite=True)
-    return str(write_scene(folder / f"{kind}.xml", folder / f"{kind}.ply", overwrite=True))
+    return str(write_object_scene(folder, kind, make(80.0, res), overwrite=True))
 
 
 def model_gradient_case(scene, truth_fn, res, *, layout="zeta50", noise=0.01, seed=7):

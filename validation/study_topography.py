@@ -45,17 +45,13 @@ def run(ctx):
     from elo_mitsuba.analysis.calibration import calibrate
     from elo_mitsuba.analysis.model_gradient import model_gradient
     from elo_mitsuba.analysis.scan_geometry import ScanGeometry
-    from elo_mitsuba.mesh import write_mesh
     from elo_mitsuba.objects import sawtooth_plate as saw
-    from elo_mitsuba.scene_files import write_scene
+    from elo_mitsuba.scene_files import write_object_scene
 
     cfg = ctx.settings["topography"]
     res, cal_res = cfg["res"], cfg["cal_res"]
     st = StudyResult("topography", TITLE)
-    mesh = ctx.tmp_dir / "sawtooth.ply"
-    scene = ctx.tmp_dir / "sawtooth.xml"
-    write_mesh(saw.sawtooth_mesh(), mesh, overwrite=True)
-    write_scene(scene, mesh, overwrite=True)
+    scene = write_object_scene(ctx.tmp_dir, "sawtooth", saw.sawtooth_mesh(), overwrite=True)
 
     def render(name, **kw):
         s = em.load_scene(name, res=res, **{k: v for k, v in kw.items() if k in ("fwhm", "layout")})
