@@ -27,6 +27,15 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
 
     python -m benchmarks.geometry_share --classes 144 --scene sawtooth --bias-res 256 --probes 16,32,64,128
     python -m benchmarks.geometry_share --classes 64 --scene sawtooth --bias-res 256 --fwhm 0.27 --probes 16/16,64/16,64/64
+
+* ``--paths KxS[/D],...``: what `default`'s path count buys (shared, one process): for each K
+  continuation paths per sample, S samples per pixel and D detector points per later event
+  (``bounce_detector_samples``, default 1) the faster of two warm renders and the render's own
+  error estimate, after the classes' sizes and the gain an allocation of paths by class size
+  could give at most, (mean of sqrt(size))^2 / mean size (Cauchy-Schwarz: 1 means none).
+
+    python -m benchmarks.geometry_share --paths 8x2,6x2,5x2,8x1             # corrugated_chamber 1500²
+    python -m benchmarks.geometry_share --paths 8x1,8x1/2,8x1/4 --res 512
 """
 
 from __future__ import annotations
@@ -154,6 +163,42 @@ def class_bias(name, res, n, probes, fwhm=0.0):
     return block, b, rows
 
 
+def path_trade(name, res, events, configs):
+    """--paths: per (K, S, D) the faster of two warm renders, worst detector's total and later events."""
+    scene = _load(name, res)
+    scene.set_events(events)
+    spp = scene.set_quality("default")
+    scene.render(quality="custom", spp=spp, seed=3, progress=False)  # the classes and kernels
+    counts = scene.integrator.geometry_classes().counts
+    sizes = {"classes": int(counts.size), "pixels_per_class": float(counts.sum() / counts.size),
+             "small": float(counts[counts <= 50].sum() / counts.sum()),
+             "gain": float(np.sqrt(counts).sum() ** 2 / (counts.size * counts.sum()))}
+    rows = []
+    for k, s, d in configs:
+        scene.configure(bounce_samples=k, bounce_detector_samples=d)
+        best = np.inf
+        for rnd in range(2):
+            t = time.perf_counter()
+            r = scene.render(quality="custom", spp=s, seed=11 + rnd, progress=False)
+            best = min(best, time.perf_counter() - t)
+        worst = [max(estimated_rel(r, event_channel(x, e) if e else x) for x in DETS) for e in [0] + list(range(2, events + 1))]
+        rows.append({"k": k, "spp": s, "d": d, "seconds": best, "errors": worst})
+    return sizes, rows
+
+
+def _paths(text):
+    out = []
+    for item in text.split(","):
+        head, _, d = item.partition("/")
+        k, _, s = head.partition("x")
+        if not (k.isdigit() and s.isdigit() and (d.isdigit() or not d)) or min(int(k), int(s), int(d or 1)) < 1 \
+                or int(k) > 16 or int(s) & (int(s) - 1) or int(d or 1) > 16:
+            raise argparse.ArgumentTypeError(f"{item!r}: give KxS or KxS/D, K paths per sample (1 .. 16), S samples per "
+                                             "pixel (a power of two), D detector points per later event (1 .. 16)")
+        out.append((int(k), int(s), int(d or 1)))
+    return out
+
+
 def _positive(text):
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"{text!r}: a whole number >= 1")
@@ -187,8 +232,23 @@ def main(argv=None):
     p.add_argument("--classes", type=_positive, help="N: the classes' own bias from N per-pixel renders")
     p.add_argument("--probes", default="16,64", help="with --classes: probe counts to compare (powers of two; "
                    "C/F under a beam profile: C at the grid point, F at each footprint point)")
+    p.add_argument("--paths", type=_paths, help="KxS[/D],...: `default` with K paths per sample, S spp (D detector "
+                   "points per later event) side by side")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.paths:
+        sizes, rows = path_trade(a.scene, a.res, a.events, a.paths)
+        print(f"{a.scene} {a.res}², events {a.events}, `default` shared ({sizes['classes']} classes, "
+              f"{sizes['pixels_per_class']:.1f} pixels each on average, {100 * sizes['small']:.2f} % of the pixels in "
+              f"classes of <= 50; allocating paths by class size could gain at most a factor {sizes['gain']:.3f} in "
+              "variance); the faster of two warm renders, the render's own estimate (worst detector):\n")
+        names = ["total"] + [f"e{k}" for k in range(2, a.events + 1)]
+        print("| paths per pixel (K x S) | detector points per later event | warm time | " + " | ".join(names) + " |")
+        print("|---|---|---|" + "---|" * len(names))
+        for r in rows:
+            cells = " | ".join(f"{100 * e:.3f} %" for e in r["errors"])
+            print(f"| {r['k'] * r['spp']} ({r['k']} x {r['spp']}) | {r['d']} | {r['seconds']:.2f} s | {cells} |")
+        return 0
     if a.classes:
         try:
             probes = [tuple(int(y) for y in (x.split("/") + ["0"])[:2]) for x in a.probes.split(",")]
