@@ -148,3 +148,17 @@ def test_wiener_floor_is_what_wiener_filtering_leaves():
     assert noise_part == pytest.approx(sigma, rel=0.01)
     assert bound == pytest.approx(filtered, rel=0.05)  # seeds 2-5: 0.967-1.003
     assert bound < 0.5 * noise_part  # the red surface's fine bands are mostly noise: the filter gains
+
+
+def test_convergence_settings_come_from_the_measured_errors():
+    """C1's table: the spp for a given error is read off the measured errors (log-log between
+    the measured spp, beyond them with the fitted exponent), not from the 1-spp error scaled as
+    spp^-0.5, which misstates it where stratified samples converge faster (a power law of exponent
+    -0.75 reaches 1 % at 21.5 spp, not 100)."""
+    from validation.study_convergence import spp_for
+
+    spps = np.array([1.0, 4.0, 16.0, 64.0])
+    err = 0.1 * spps ** -0.75
+    assert spp_for(spps, err, 0.01, -0.75) == (math.ceil(10.0 ** (1 / 0.75)), False)  # 22, inside the range
+    assert spp_for(spps, err, 0.001, -0.75) == (math.ceil(100.0 ** (1 / 0.75)), True)  # 465, extrapolated
+    assert spp_for(spps, err, 0.5, -0.75) == (1, False)

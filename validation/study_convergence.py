@@ -22,6 +22,30 @@ def _err(img, ref, norm):
     return float(np.sqrt(np.mean((np.asarray(img, float) - ref) ** 2)) / norm)
 
 
+def spp_for(spps, err, level, slope):
+    """The spp at which the measured error ``err`` (at ``spps``, increasing) falls to ``level``:
+    interpolated in log-log between the measured points around its first crossing, or beyond the
+    last point extrapolated with the fitted exponent ``slope`` (the error does not fall as
+    spp^-0.5 with the scenes' stratified samples, so a 1-spp constant scaled by sqrt(spp) would
+    misstate it). Returns (spp, extrapolated).
+
+    >>> spp_for([1, 4, 16], [0.04, 0.02, 0.01], 0.01, -0.5)
+    (16, False)
+    >>> spp_for([1, 4], [0.04, 0.02], 0.01, -0.5)
+    (16, True)
+    """
+    spps, err = np.asarray(spps, float), np.asarray(err, float)
+    if err[0] <= level:
+        return int(spps[0]), False
+    below = np.nonzero(err <= level)[0]
+    if below.size:
+        i = int(below[0])
+        t = (math.log(level) - math.log(err[i - 1])) / (math.log(err[i]) - math.log(err[i - 1]))
+        return math.ceil(round(math.exp(math.log(spps[i - 1]) + t * (math.log(spps[i]) - math.log(spps[i - 1]))), 6)), False
+    slope = slope if np.isfinite(slope) and slope < 0 else -0.5
+    return math.ceil(round(float(spps[-1] * (level / err[-1]) ** (1.0 / slope)), 6)), True
+
+
 def run(ctx):
     from elo_mitsuba.analysis import pixel_coordinates
     from elo_mitsuba.analysis.first_event import flat_plate_signal
@@ -57,11 +81,21 @@ def run(ctx):
     for c in chans:
         e = np.asarray(errs[c])
         a = float(np.median(e / np.sqrt(1 / spps + 1 / ref_spp)))        # e^2 = a^2 (1/spp + 1/spp_ref)
-        corr = np.sqrt(np.maximum(e ** 2 - a ** 2 / ref_spp, 1e-30))
-        use = corr > 0.3 * e                                                # where the reference noise is small
-        slope = float(np.polyfit(np.log(spps[use]), np.log(corr[use]), 1)[0]) if use.sum() >= 2 else float("nan")
-        fits[c] = dict(a=a, slope=slope, spp1=math.ceil((a / 0.01) ** 2), spp01=math.ceil((a / 0.001) ** 2),
-                       a_tot=a * ref[c].mean() / mean_tot)
+        ref_noise = a / math.sqrt(ref_spp)  # at first as if the error fell as spp^-0.5 (too high when faster)
+        for _ in range(3):  # then from the power law fitted to the errors less it, evaluated at ref_spp
+            corr = np.sqrt(np.maximum(e ** 2 - ref_noise ** 2, 1e-30))
+            use = corr > 0.3 * e                                            # where the reference noise is small
+            line = np.polyfit(np.log(spps[use]), np.log(corr[use]), 1) if use.sum() >= 2 else (np.nan, np.nan)
+            if not np.all(np.isfinite(line)):
+                break
+            ref_noise = float(np.exp(line[1]) * ref_spp ** line[0])
+        slope = float(line[0])
+        # the spp for 1 % and 0.1 % from the measured errors (the reference's noise taken out), of
+        # the channel's own mean and of the total's
+        scale = ref[c].mean() / mean_tot
+        fits[c] = dict(a=a, ref_noise=ref_noise, slope=slope, log_intercept=float(line[1]), e1=float(e[0]), e1_tot=float(e[0]) * scale,
+                       **{f"spp_{key}": spp_for(spps, corr * (scale if key.endswith("tot") else 1.0), level, slope)
+                          for key, level in (("1", 0.01), ("01", 0.001), ("1_tot", 0.01), ("01_tot", 0.001))})
     settings = (f"athene_flat (chamber), right detector, {res}² px over {FIELD:g} mm, events {events}, "
                 f"reference {ref_spp} spp; spp = {', '.join(str(s) for s in cfg['spp_list'])}")
     slopes = [fits[c]["slope"] for c in chans if np.isfinite(fits[c]["slope"])]
@@ -74,8 +108,8 @@ def run(ctx):
         "C1", "Sec. 2.1.1, App. A: the number of rays l (2nd event) and the detector discretisation must be "
         "determined with a convergence study", "to be done by the user",
         "per-pixel error ∝ spp^(" + ", ".join(f"{fits[c]['slope']:.2f}" for c in chans) + ") for "
-        + ", ".join(labels[c] for c in chans) + f"; 1 %: {f1['spp1']} spp (event 1), "
-        f"{fits['right']['spp1']} spp (total); table below", settings,
+        + ", ".join(labels[c] for c in chans) + f"; 1 %: {_spp_text(f1['spp_1'])} spp (event 1), "
+        f"{_spp_text(fits['right']['spp_1'])} spp (total); table below", settings,
         verdict_from(ok), "criterion: exponents between −1 and −0.5 (± 0.12): an unbiased estimate falls as spp^−0.5 "
         "with independent samples, up to spp^−1 with the stratified ones of the shipped scenes (multijitter) "
         "where the integrand is smooth, as the 1st event's; a bias flattens it. The 2nd and 3rd events are "
@@ -130,20 +164,25 @@ def run(ctx):
     strat = _strategies(ctx, cfg, kw, quad, st, settings)
 
     # the user-facing table
-    lines = ["**Settings for a per-pixel relative error of 1 % and 0.1 %** (independent sampler, 1 detector sample; "
-             "error = rms over pixels of (image − reference), relative to the mean of that channel, and in "
-             "brackets relative to the mean of the total image; `a` is the error at 1 spp):", "",
-             "| channel | a (1 spp) | spp for 1 % | spp for 0.1 % | a relative to the total | spp for 1 % of the total | spp for 0.1 % of the total |",
+    lines = ["**Settings for a per-pixel relative error of 1 % and 0.1 %** (the scene's own sampler, "
+             "`multijitter`, whose samples are stratified over a pixel's spp; one point sampled independently on "
+             "each detector per event; error = rms over pixels of (image − reference), the reference's own noise "
+             "taken out, relative to the mean of that channel, and relative to the mean of the total image; the "
+             "spp are interpolated between the measured ones, ≈ marks those beyond the largest measured spp, "
+             f"extrapolated with the channel's exponent):", "",
+             "| channel | error at 1 spp | spp for 1 % | spp for 0.1 % | error at 1 spp, of the total | spp for 1 % of the total | spp for 0.1 % of the total |",
              "|---|---|---|---|---|---|---|"]
     for c in chans:
         f = fits[c]
-        lines.append(f"| {labels[c]} | {f['a']:.3g} | {f['spp1']} | {f['spp01']} | {f['a_tot']:.3g} | "
-                     f"{math.ceil((f['a_tot'] / 0.01) ** 2)} | {math.ceil((f['a_tot'] / 0.001) ** 2)} |")
-    t1500 = 1500 ** 2 * fits["right"]["spp1"] / sps
+        lines.append(f"| {labels[c]} | {f['e1']:.3g} | {_spp_text(f['spp_1'])} | {_spp_text(f['spp_01'])} | "
+                     f"{f['e1_tot']:.3g} | {_spp_text(f['spp_1_tot'])} | {_spp_text(f['spp_01_tot'])} |")
+    t1500 = 1500 ** 2 * fits["right"]["spp_1"][0] / sps
     lines += ["", f"Measured throughput here: {sps / 1e6:.2f} M samples/s at {events} events (athene_flat, "
               f"shared 2-core machine), i.e. a 1500 × 1500 image (the paper's 53 µm pixels) at the 1 % setting of the "
               f"total takes ≈ {t1500:.0f} s. The error does not depend on the resolution (each pixel is "
-              "independent); it scales with 1/sqrt(spp × detector samples). Detector samples: "
+              "independent); it falls as spp to the exponents of row C1 (−0.5 for independent samples; faster "
+              "where the stratified samples meet a smooth integrand) and, for the 1st event, as "
+              "1/sqrt(detector samples). Detector samples: "
               + ", ".join(f"{int(d)} → error {ds_err['right.e1'][i]:.3g} (event 1), {ds_err['right'][i]:.3g} (total), "
                           f"{ds_time[i]:.2f} s" for i, d in enumerate(dsl)) + "."]
     st.text = (
@@ -157,6 +196,12 @@ def run(ctx):
     return st
 
 
+def _spp_text(found):
+    """An spp of :func:`spp_for` as the table shows it: ≈ before an extrapolated one."""
+    spp, extrapolated = found
+    return f"≈ {spp}" if extrapolated else str(spp)
+
+
 def _figure(ctx, st, spps, errs, fits, labels, chans, ref_spp, dsl, ds_err, ds_time, cfg, settings, strat=None):
     import matplotlib.pyplot as plt
 
@@ -167,14 +212,16 @@ def _figure(ctx, st, spps, errs, fits, labels, chans, ref_spp, dsl, ds_err, ds_t
     ax = axs[0]
     ss = np.logspace(0, np.log10(max(spps.max(), 1e4)), 50)
     for i, c in enumerate(chans):
-        ax.loglog(spps, errs[c], "o", color=f"C{i}", label=f"{labels[c]}: a = {fits[c]['a']:.3g}, slope {fits[c]['slope']:.2f}")
-        ax.loglog(ss, fits[c]["a"] * np.sqrt(1 / ss + 1 / ref_spp), "-", color=f"C{i}", lw=0.8)
+        ax.loglog(spps, errs[c], "o", color=f"C{i}", label=f"{labels[c]}: exponent {fits[c]['slope']:.2f}")
+        if np.isfinite(fits[c]["slope"]):  # the fitted power law with the reference's noise added
+            fitted = np.exp(fits[c]["log_intercept"]) * ss ** fits[c]["slope"]
+            ax.loglog(ss, np.sqrt(fitted ** 2 + fits[c]["ref_noise"] ** 2), "-", color=f"C{i}", lw=0.8)
     for lvl in (0.01, 0.001):
         ax.axhline(lvl, color="0.5", ls=":", lw=0.8)
         ax.text(ss[-1], lvl, f" {lvl * 100:g} %", va="center", fontsize=7)
     ax.set_xlabel("samples per pixel (spp)")
     ax.set_ylabel("rms pixel error / channel mean")
-    ax.set_title("error against the converged reference (lines: a·spp^−½ ⊕ reference noise)")
+    ax.set_title("error against the converged reference (lines: fitted power law ⊕ reference noise)")
     ax.legend(fontsize=7)
     ax = axs[1]
     for i, c in enumerate(chans):
