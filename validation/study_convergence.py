@@ -169,7 +169,7 @@ def run(ctx):
              "each detector per event; error = rms over pixels of (image − reference), the reference's own noise "
              "taken out, relative to the mean of that channel, and relative to the mean of the total image; the "
              "spp are interpolated between the measured ones, ≈ marks those beyond the largest measured spp, "
-             f"extrapolated with the channel's exponent):", "",
+             "extrapolated with the channel's exponent):", "",
              "| channel | error at 1 spp | spp for 1 % | spp for 0.1 % | error at 1 spp, of the total | spp for 1 % of the total | spp for 0.1 % of the total |",
              "|---|---|---|---|---|---|---|"]
     for c in chans:
