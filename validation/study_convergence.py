@@ -16,6 +16,9 @@ from .report import Row, StudyResult, fmt, verdict_from
 TITLE = "Convergence: error vs spp per event order and vs detector samples; settings for 1 % and 0.1 %"
 FIELD = 80.0
 DH, DW = 272.0, 127.0
+#: Row C2's accepted relative difference between the converged 1st event (the renderer, float32) and
+#: the float64 quadrature of Eq. 5 over the disc, beyond the reference's noise.
+C2_AGREEMENT = 2e-4
 
 
 def _err(img, ref, norm):
@@ -127,13 +130,20 @@ def run(ctx):
                              get_material("Ti-6Al-4V")).reshape(res, res)
     rel = sub / quad - 1
     bias = float(rel.mean())
-    se = float(f1["a"] / math.sqrt(ref_spp) / math.sqrt(rel.size))
+    noise = f1["ref_noise"]  # the reference's per-pixel noise, from the 1st event's fitted power law
+    se = float(noise / math.sqrt(rel.size))
+    systematic = f" ({abs(bias) / se:.0f}σ: systematic)" if abs(bias) > 3 * se else ""
     st.add(Row(
         "C2", "Eq. 5 / App. A (A2): the detector integral of g_BSE over Ω_d — our Monte Carlo estimate is unbiased",
         "Eq. 5 (exact integral)", f"converged 1st event / quadrature of Eq. 5 over the disc − 1 = {fmt(bias, 2)} "
-        f"± {fmt(se, 2)} (pixel rms {fmt(float(np.sqrt(np.mean(rel ** 2))), 2)}, expected noise "
-        f"{fmt(f1['a'] / math.sqrt(ref_spp), 2)})", settings.split(";")[0] + "; quadrature 32×96 nodes per pixel",
-        verdict_from(abs(bias) < max(3 * se, 2e-4)), "criterion |bias| < 3σ", {"bias": bias, "bias_se": se}, "convergence"))
+        f"± {fmt(se, 2)}{systematic} (pixel rms {fmt(float(np.sqrt(np.mean(rel ** 2))), 2)}, expected noise "
+        f"{fmt(noise, 2)})", settings.split(";")[0] + "; quadrature 32×96 nodes per pixel",
+        verdict_from(abs(bias) < max(3 * se, C2_AGREEMENT), approx=bool(systematic)),
+        f"criterion |bias| < max(3σ, {C2_AGREEMENT:g}): {C2_AGREEMENT:g} is the agreement accepted between the "
+        "float32 renderer and this float64 quadrature, whose own error is below 1e-15 (4x the nodes in r and φ "
+        "change it by less); a difference beyond 3σ but within it is systematic (agrees approx.), its source not "
+        "identified",
+        {"bias": bias, "bias_se": se}, "convergence"))
 
     # detector samples at fixed spp
     ds_err, ds_time = {c: [] for c in chans}, []
