@@ -73,6 +73,11 @@ def _load(name, res, fwhm=0.0):
     return em.load_scene(str(write_object_scene(folder, "sawtooth", sawtooth_plate.sawtooth_mesh())), res=res, fwhm=fwhm)
 
 
+def _worst_errors(result, events):
+    """The render's own error estimate of the total and of each event >= 2, worst detector."""
+    return [max(estimated_rel(result, event_channel(d, k) if k else d) for d in DETS) for k in [0] + list(range(2, events + 1))]
+
+
 def side_by_side(name, res, events):
     import elo_mitsuba as em
 
@@ -94,7 +99,7 @@ def side_by_side(name, res, events):
             t = time.perf_counter()
             r = scene.render(quality="custom", spp=spp, seed=11 + rnd, progress=False)
             dt = time.perf_counter() - t
-            worst = [max(estimated_rel(r, event_channel(d, k) if k else d) for d in DETS) for k in [0] + list(range(2, events + 1))]
+            worst = _worst_errors(r, events)
             rows.setdefault(label, []).append((dt, worst, block))
     out = {label: {"seconds": min(x[0] for x in v), "errors": np.mean([x[1] for x in v], axis=0).tolist(),
                    "block": v[0][2]} for label, v in rows.items()}
@@ -181,7 +186,7 @@ def path_trade(name, res, events, configs):
             t = time.perf_counter()
             r = scene.render(quality="custom", spp=s, seed=11 + rnd, progress=False)
             best = min(best, time.perf_counter() - t)
-        worst = [max(estimated_rel(r, event_channel(x, e) if e else x) for x in DETS) for e in [0] + list(range(2, events + 1))]
+        worst = _worst_errors(r, events)
         rows.append({"k": k, "spp": s, "d": d, "seconds": best, "errors": worst})
     return sizes, rows
 
@@ -236,6 +241,9 @@ def main(argv=None):
                    "points per later event) side by side")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    chosen = [f"--{n}" for n in ("paths", "classes", "bias") if getattr(a, n)]
+    if len(chosen) > 1:
+        p.error(f"{' and '.join(chosen)}: give one of --paths, --classes, --bias (each is its own measurement)")
     if a.paths:
         sizes, rows = path_trade(a.scene, a.res, a.events, a.paths)
         print(f"{a.scene} {a.res}², events {a.events}, `default` shared ({sizes['classes']} classes, "

@@ -19,7 +19,7 @@ from typing import Mapping
 from .constants import DEFAULT_MATERIAL, TABLE1_LAYOUTS
 from .errors import EloInputError
 from .files import atomic_write, check_output
-from .mesh import check_ply_indices
+from .mesh import check_ply_indices, write_mesh
 
 
 def scenes_dir() -> Path:
@@ -315,8 +315,7 @@ def write_object_scene(folder, name: str, mesh, *, material: str | None = None, 
     >>> write_object_scene(tempfile.mkdtemp(), "hills", hills_mesh(80.0, 16)).name
     'hills.xml'
     """
-    from .mesh import write_mesh
-
     folder = Path(folder)
+    check_output(folder / f"{name}.xml", (".xml",), overwrite=overwrite, what="scene")  # before the mesh is written
     mesh_path = write_mesh(mesh, folder / f"{name}.ply", overwrite=overwrite)
     return write_scene(folder / f"{name}.xml", mesh_path, material=material, chamber=chamber, overwrite=overwrite)
