@@ -4,7 +4,8 @@ Model images (the inversion's own forward model on a surface four times as fine 
 that the cliff is a wall one sub-pixel (0.05 mm) wide, as the search's refinement models it) of a raised square of 0.6 mm beside
 flat powder; the start has the square integrated short (a third of its height) and smeared, as
 the model gradient leaves a cliff. Gradient steps cannot use the shadow that the square casts (it
-has no derivative); the search must.
+has no derivative); the search must. A cliff whose wall is one sub-pixel wide with its top edge on
+the part's boundary (``cliff_corners``) must be searched with that wall.
 """
 
 import numpy as np
@@ -47,6 +48,7 @@ def test_the_shadow_gives_the_step_that_the_slopes_miss(square_case):
     step, img, flat, geo, kw, inside, powder = square_case
     res = invert_heights(img, flat, geo, **kw)
     assert [p.status for p in res.steps] == ["lifted"], res.stopped
+    assert res.steps[0].wall == "interpolated"  # the images' own wall: the sharp one fits no better
     found = _step(res.height, inside, powder)
     assert abs(found - step) < 0.1 * step, found
     assert res.steps[0].objective_after < res.steps[0].objective_before
@@ -55,6 +57,32 @@ def test_the_shadow_gives_the_step_that_the_slopes_miss(square_case):
     plain = invert_heights(img, flat, geo, local=False, **kw)
     assert _step(plain.height, inside, powder) < 0.7 * step
     assert plain.steps == []
+
+
+def test_a_sharp_cliff_is_searched_with_a_sharp_wall():
+    # the images of a cliff whose top edge lies on the part's boundary and whose wall is one facet
+    # wide (cliff_corners): the search must choose that wall, and find the step with it
+    from scipy.ndimage import binary_dilation, binary_erosion, gaussian_filter
+
+    from elo_mitsuba.analysis.step_offsets import cliff_corners
+
+    step = 0.6
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    yy, xx = np.mgrid[0:4 * N, 0:4 * N].astype(float)
+    mask = ((np.abs(yy - 127.5) < 40) & (np.abs(xx - 127.5) < 40)).astype(float)
+    rng = np.random.default_rng(5)
+    lin = SuperResolvedModel(geo, 4, fwhm_mm=FWHM).evaluate(step * cliff_corners(mask, raised=True))
+    img = {k: lin.images[i] * (1 + 0.003 * rng.standard_normal((N, N))) for i, k in enumerate(geo.detectors)}
+    flat = {k: v * (1 + 0.003 * rng.standard_normal(v.shape))
+            for k, v in HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N))).items()}
+    part = mask[::4, ::4] > 0
+    start = gaussian_filter(step / 3.0 * part.astype(float), 1.5)
+    res = invert_heights(img, flat, geo, start=start, fwhm_mm=FWHM, noise=0.003 * np.sqrt(2), uncertainty_probes=0,
+                         scales=1, iterations=3)
+    assert [(p.status, p.wall) for p in res.steps] == [("lifted", "sharp")], res.stopped
+    found = _step(res.height, binary_erosion(part, iterations=4), ~binary_dilation(part, iterations=12))
+    assert abs(found - step) < 0.05 * step, found
+    assert abs(res.steps[0].step_after - step) <= res.steps[0].error
 
 
 def test_a_part_whose_images_hold_its_step_is_kept(square_case):

@@ -12,12 +12,14 @@ whose actual error lies within 1x and 2x the stated one (a calibrated Gaussian e
 
 Rows D1-D4 of validation/REPORT.md (``python -m validation --only defects``; about 4 min on 2 cores,
 a figure per surface). ``python -m validation.study_defects [--res 400] [--out out/defects.md]`` writes
-the same measurements as a table with the steps and every region's outcome.
+the same measurements as a table with the steps and every region's outcome; ``--seeds 1,2,3`` repeats
+each surface under other noise seeds (one render) and tabulates the steps per seed.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 from pathlib import Path
 
@@ -40,7 +42,11 @@ def _rmse(h, truth, sel=None):
     return float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
 
 
+@functools.lru_cache(maxsize=1)
 def _render_pair(xml, res, layout):
+    """The object's and the flat plate's renders (the noise is added by the caller): the last pair is
+    kept (keyed on the scene's path, resolution and layout; the objects' meshes are deterministic), so
+    that measuring one surface under several noise seeds renders it once."""
     import elo_mitsuba as em
 
     out = []
@@ -54,6 +60,41 @@ def _render_pair(xml, res, layout):
 def _coverage(err, stated, sel):
     err, stated = np.abs(err[sel]), stated[sel]
     return float(np.mean(err <= stated)), float(np.mean(err <= 2 * stated))
+
+
+def step_ok(step: dict) -> bool:
+    """A step recovered within 10 % of the truth's step (issue 25), both measured by the same medians
+    (:func:`elo_mitsuba.objects.stepped_layer.step_height`; the truth's differs from the nominal
+    cliff by the dome and the roughness, up to +3 %).
+
+    Examples
+    --------
+    >>> step_ok({"truth": 0.516, "invert": 0.56}), step_ok({"truth": 0.516, "invert": 0.577})
+    (True, False)
+    """
+    return bool(abs(step["invert"] - step["truth"]) <= 0.1 * abs(step["truth"]))
+
+
+def seed_table(results) -> list[str]:
+    """Markdown lines: each step as ``invert`` recovers it under each noise seed, with the mean, the
+    spread (sample standard deviation) over the seeds, and the mean's error in proportion to the
+    truth's step (negative: recovered too small): what the noise moves and what it does not.
+
+    Examples
+    --------
+    >>> r = [{"seed": k, "steps": [{"nominal": 0.5, "truth": 0.516, "invert": v}]} for k, v in ((1, 0.57), (2, 0.58))]
+    >>> seed_table(r)[-1]
+    '| +0.5 | +0.516 | +0.570 | +0.580 | +0.575 | 0.007 | +11.4 % |'
+    """
+    seeds = [r["seed"] for r in results]
+    lines = ["| step (mm) | truth | " + " | ".join(f"seed {k}" for k in seeds) + " | mean | spread | mean vs truth |",
+             "|---" * (len(seeds) + 5) + "|"]
+    for j, p in enumerate(results[0]["steps"]):
+        v = np.array([r["steps"][j]["invert"] for r in results])
+        spread = float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")
+        lines.append(f"| {p['nominal']:+.1f} | {p['truth']:+.3f} | " + " | ".join(f"{x:+.3f}" for x in v)
+                     + f" | {v.mean():+.3f} | {spread:.3f} | {100 * (v.mean() - p['truth']) / p['truth']:+.1f} % |")
+    return lines
 
 
 def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0.01, seed: int = 7) -> dict:
@@ -102,7 +143,7 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     t0 = time.perf_counter()
     inv = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
     seconds = time.perf_counter() - t0
-    out = {"kind": kind, "res": res, "layout": layout, "seconds": seconds, "stopped": inv.stopped,
+    out = {"kind": kind, "res": res, "layout": layout, "seed": seed, "seconds": seconds, "stopped": inv.stopped,
            "near_share": float(near.mean())}
     for name, h in (("eq26", start_heights(e26, geo)), ("start", h_start), ("invert", inv.height)):
         out[name] = {"all": _rmse(h, truth), "near": _rmse(h, truth, near) if near.any() else float("nan"),
@@ -144,7 +185,7 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
 
         out["steps"] = [{"nominal": p["height_mm"],
                          **{k: step_height(h, geo.field_mm, p, coordinates=(X, Y)) for k, h in
-                            (("start", h_start), ("invert", inv.height))}} for p in steps()]
+                            (("truth", truth), ("start", h_start), ("invert", inv.height))}} for p in steps()]
     out["regions"] = [r.as_dict() for r in inv.regions]
     out["lifted"] = [p.as_dict() for p in inv.steps if p.status == "lifted"]
     out["searched"] = len(inv.steps)
@@ -196,7 +237,7 @@ def run(ctx):
         if kind == "rough":
             heights_ok = r["near_ratio"] <= 0.5 and r["worst_tile_um"] <= 0.0
         elif "steps" in r:
-            heights_ok = all(abs(p["invert"] - p["nominal"]) <= 0.1 * abs(p["nominal"]) for p in r["steps"])
+            heights_ok = all(step_ok(p) for p in r["steps"])
         else:
             heights_ok = r["invert"]["all"] <= r["start"]["all"]
         verdict = (verdict_from(True) if heights_ok and calibrated and g_ok
@@ -215,12 +256,14 @@ def run(ctx):
                 f"{len(r['regions'])} region(s) above the noise; {r['seconds']:.0f} s. {cal}")
         why = ""
         if "steps" in r:
-            why = "steps recovered (start, invert; mm): " + "; ".join(
-                f"{p['nominal']:+.1f}: {p['start']:+.3f}, {p['invert']:+.3f}" for p in r["steps"])
+            why = ("steps recovered (nominal, the truth's step as the same median measures it: start, invert; mm; "
+                   "within 10 % of the truth's: " + ", ".join(f"{p['nominal']:+.1f}" for p in r["steps"] if step_ok(p))
+                   + "): " + "; ".join(f"{p['nominal']:+.1f} ({p['truth']:+.3f}): {p['start']:+.3f}, "
+                                       f"{p['invert']:+.3f}" for p in r["steps"]))
             why += (f". Slope bias of the model gradient over the flat powder: {r['slope_bias'][0]:+.1e}, "
                     f"{r['slope_bias'][1]:+.1e} (absolute). {len(r['lifted'])} of {r['searched']} floating parts "
                     "lifted to the step their shadows show (analysis/step_offsets.py; step, mm: "
-                    + ", ".join(f"{p['step_before']:+.3f} -> {p['step_after']:+.3f} ± {p['error']:.3f}"
+                    + ", ".join(f"{p['step_before']:+.3f} -> {p['step_after']:+.3f} ± {p['error']:.3f} ({p['wall']})"
                                 for p in r["lifted"])
                     + "); a part not lifted keeps the slopes' step and its offset is in height_error (the 0.1 mm "
                     "steps cast shadows of 0.12 mm at 40 degrees of elevation, about half a pixel)")
@@ -271,8 +314,10 @@ def report(results) -> str:
             f"{100 * g['dzdx'][0]:.0f} / {100 * g['dzdx'][1]:.0f} % |")
     for r in results:
         if "steps" in r:
-            lines += ["", f"Steps recovered ({r['kind']} {r['res']}², {r['layout']}; mm, nominal: start, invert):", ""]
-            lines += [f"- {p['nominal']:+.1f}: {p['start']:+.3f}, {p['invert']:+.3f}" for p in r["steps"]]
+            lines += ["", f"Steps recovered ({r['kind']} {r['res']}², {r['layout']}, noise seed {r['seed']}; mm, "
+                      "nominal (truth): start, invert):", ""]
+            lines += [f"- {p['nominal']:+.1f} ({p['truth']:+.3f}): {p['start']:+.3f}, {p['invert']:+.3f}"
+                      f"{'' if step_ok(p) else ' (beyond 10 %)'}" for p in r["steps"]]
         if "slope_bias" in r:
             lines += ["", f"Slope bias of the model gradient over the flat powder ({r['kind']}): "
                       f"dZ/dx {r['slope_bias'][0]:+.2e}, dZ/dy {r['slope_bias'][1]:+.2e} (absolute)"]
@@ -290,19 +335,32 @@ def main(argv=None):
     ap.add_argument("--out", default="out/defects.md", help="the table (markdown; default out/defects.md here)")
     ap.add_argument("--only", nargs="*", default=["rough", "steps", "hills", "melt"], choices=list(LAYOUTS))
     ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    ap.add_argument("--seeds", default="7", metavar="K,K,...",
+                    help="noise seeds (default 7, the REPORT's); with several, each surface is measured once per "
+                         "seed (the renders are shared) and the steps get a table of what the noise moves")
     args = ap.parse_args(argv)
     if Path(args.out).exists() and not args.overwrite:
         ap.error(f"--out {args.out} exists: pass --overwrite to replace it")
+    try:
+        seeds = [int(k) for k in args.seeds.split(",")]
+    except ValueError:
+        ap.error(f"--seeds {args.seeds!r}: must be integers separated by commas, e.g. 1,2,3")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for kind in args.only:
             res = {"hills": 256, "melt": 512}.get(kind, args.res)
             layout = LAYOUTS[kind]
-            results.append(run_surface(kind, res, Path(tmp), layout=layout))
-            print(json.dumps({k: v for k, v in results[-1].items() if k not in ("regions", "figure")}, default=float),
-                  flush=True)
+            for seed in seeds:
+                results.append(run_surface(kind, res, Path(tmp), layout=layout, seed=seed))
+                print(json.dumps({k: v for k, v in results[-1].items() if k not in ("regions", "figure")},
+                                 default=float), flush=True)
+    text = report(results)
+    by_seed = [r for r in results if "steps" in r]
+    if len(seeds) > 1 and by_seed:
+        text += "\n".join(["", f"Steps under {len(seeds)} noise seeds (steps {by_seed[0]['res']}²; mm; spread: sample "
+                           "standard deviation over the seeds):", "", *seed_table(by_seed), ""])
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(report(results))
+    Path(args.out).write_text(text)
     print(f"wrote {args.out}")
 
 

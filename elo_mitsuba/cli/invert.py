@@ -207,7 +207,8 @@ def run(args) -> int:
     if res.steps:
         lifted = [p for p in res.steps if p.status == "lifted"]
         print(f"{len(res.steps)} floating part(s) searched for the step their shadows show, {len(lifted)} lifted"
-              + "".join(f"; {p.step_before:+.3f} -> {p.step_after:+.3f} mm at rows {p.rows[0]}-{p.rows[1]}, "
+              + "".join(f"; {p.step_before:+.3f} -> {p.step_after:+.3f} ± {p.error:.3f} mm ({p.wall} wall) at rows "
+                        f"{p.rows[0]}-{p.rows[1]}, "
                         f"cols {p.cols[0]}-{p.cols[1]}" for p in lifted) + " (header: steps)")
     if res.floating is not None and res.floating.any():
         print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by bands of misfit (a cliff), "
