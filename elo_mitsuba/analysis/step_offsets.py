@@ -481,9 +481,9 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
                                    coarse[1] - coarse[0], factors)
             near = (s_best, b)
         # the sharp wall is kept where it fits the window better by more than MIN_GAIN (as a lift must)
-        smooth, sharp = walls[False], walls[True]
-        use = sharp.lifted and sharp.value < (1.0 - MIN_GAIN) * (smooth.value if smooth.lifted else smooth.before)
-        chosen = sharp if use else smooth
+        cubic, crisp = walls[False], walls[True]
+        use = crisp.lifted and crisp.value < (1.0 - MIN_GAIN) * (cubic.value if cubic.lifted else cubic.before)
+        chosen = crisp if use else cubic
         record.objective_before, record.objective_after = chosen.before, chosen.value
         if not chosen.lifted:
             # the images say no more about the step than the solve did: kept
@@ -494,7 +494,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
         record.wall = "sharp" if use else "interpolated"
         # a facet of width w biased the step by about w (0.2 mm facets: +0.2 mm, 0.1 mm: +0.1 mm); the
         # two walls, where both lift, bracket the cliff's unresolved shape
-        spread = abs(sharp.step - smooth.step) if sharp.lifted and smooth.lifted else 0.0
+        spread = abs(crisp.step - cubic.step) if crisp.lifted and cubic.lifted else 0.0
         record.error = max(abs(s_best - s_coarse), pixel / factors[1], spread)
         lifted = _clean_step(h, band, part, sides) + (s_best - s0) * part
         h[sl] = np.where(np.isfinite(lifted[sl]), lifted[sl], h[sl])
