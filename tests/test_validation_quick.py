@@ -162,3 +162,15 @@ def test_convergence_settings_come_from_the_measured_errors():
     assert spp_for(spps, err, 0.01, -0.75) == (math.ceil(10.0 ** (1 / 0.75)), False)  # 22, inside the range
     assert spp_for(spps, err, 0.001, -0.75) == (math.ceil(100.0 ** (1 / 0.75)), True)  # 465, extrapolated
     assert spp_for(spps, err, 0.5, -0.75) == (1, False)
+
+
+@pytest.mark.parametrize("seeds", ["-1", "a", "1,-2", ""])
+def test_study_defects_refuses_bad_seeds_before_rendering(seeds, tmp_path, capsys):
+    # a negative seed reached numpy only after the render, as a traceback
+    from validation.study_defects import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main([f"--seeds={seeds}", "--out", str(tmp_path / "d.md")])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--seeds" in err[-1] and ">= 0" in err[-1]

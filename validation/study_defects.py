@@ -344,7 +344,9 @@ def main(argv=None):
     try:
         seeds = [int(k) for k in args.seeds.split(",")]
     except ValueError:
-        ap.error(f"--seeds {args.seeds!r}: must be integers separated by commas, e.g. 1,2,3")
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        ap.error(f"--seeds {args.seeds!r}: must be integers >= 0 separated by commas, e.g. 1,2,3")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for kind in args.only:
