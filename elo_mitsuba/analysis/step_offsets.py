@@ -454,7 +454,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
             if near is not None:
                 moves = [near[1], near[1] - move, near[1] + move]
             for b in moves:
-                if abs(b - moves[0]) > move and best[0] >= (1.0 - MIN_GAIN) * clean0:
+                if near is None and abs(b) > move and best[0] >= (1.0 - MIN_GAIN) * clean0:
                     break  # neither the boundary as found nor one move either way lifts it: kept
                 part = _moved(part0, comp, band, b)
                 background = (_clean_step(h, band, part, sides) - s0 * part)[sl]
@@ -465,7 +465,7 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
                     j = int(np.argmin(np.abs(coarse - (best[1] if b != moves[0] else near[0]))))
                     grid = coarse[max(j - NEAR_STEPS, 0):j + NEAR_STEPS + 1]
                 values = [objective(background, p, s) for s in grid]
-                if b == moves[0]:
+                if b == moves[0] and near is None:  # only the full search stops early on it
                     clean0 = objective(background, p, s0)  # the clean step at the solve's height
                 j = int(np.argmin(values))
                 if values[j] < best[0]:
