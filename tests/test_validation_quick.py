@@ -170,7 +170,7 @@ def test_study_defects_refuses_bad_seeds_before_rendering(seeds, tmp_path, capsy
     from validation.study_defects import main
 
     with pytest.raises(SystemExit) as exit_:
-        main([f"--seeds={seeds}", "--out", str(tmp_path / "d.md")])
+        main([f"--seeds={seeds}", "--out", str(tmp_path / "table")])
     assert exit_.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "--seeds" in err[-1] and ">= 0" in err[-1]
