@@ -19,7 +19,7 @@ from .errors import EloInputError
 
 
 def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool = False,
-                 what: str = "output") -> Path:
+                 what: str = "output", inputs: Iterable = ()) -> Path:
     """Return ``path`` as a :class:`~pathlib.Path`, or raise :class:`EloInputError` (one line).
 
     Parameters
@@ -32,11 +32,14 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
         Whether an existing file may be replaced (CLI: ``--overwrite``).
     what : str
         How the message names the file (``"output"``, ``"preview"``, ``"--scene"``, ...).
+    inputs : iterable of str or Path
+        The files the command reads: the output may not be one of them, even with ``overwrite``
+        (the command would replace what it is reading, and the user's data would be lost).
 
     Raises
     ------
     EloInputError
-        For a suffix not in ``suffixes``, an existing file without ``overwrite``, a path that is
+        For a suffix not in ``suffixes``, one of ``inputs``, an existing file without ``overwrite``, a path that is
         a folder, a parent folder that does not exist, is a file or cannot be written (read-only,
         immutable, ``/proc``: :func:`check_writable_folder`), or, with ``overwrite``, an existing
         file that cannot be replaced (immutable or append-only).
@@ -48,6 +51,11 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
             raise EloInputError(f"{what} {path}: must end in {' or '.join(suffixes)}")
     if path.is_dir():
         raise EloInputError(f"{what} {path} is a folder; give a file name")
+    if path.exists():
+        for source in inputs:
+            if source is not None and Path(source).exists() and path.samefile(source):
+                raise EloInputError(f"{what} {path} is also an input of this command; write to another file "
+                                    "(--overwrite does not replace what is being read)")
     if path.exists() and not overwrite:
         raise EloInputError(f"{what} {path} exists; pass --overwrite (Python: overwrite=True) to replace it")
     parent = path.parent

@@ -33,7 +33,7 @@ from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
-from .result import NEGLIGIBLE_EVENT_SHARE, RenderResult  # noqa: F401 -- part of this module's API
+from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
                      signal_units)
@@ -609,7 +609,10 @@ class EloScene:
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")
         meta = self.metadata(spp, seed)
         meta["error_estimate"] = {"method": METHOD, "channels": summary}
-        return RenderResult(channels, meta, errors)
+        result = RenderResult(channels, meta, errors)
+        meta["notes"] += [f"detector {n!r} received no electron anywhere in the scan ({NO_SIGNAL_CAUSES})"
+                          for n in result.dark_detectors]  # a fact of the geometry or a mistake in it: never silent
+        return result
 
 
 def _vector3(name: str, what: str, value) -> np.ndarray:

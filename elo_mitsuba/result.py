@@ -20,6 +20,11 @@ from .schema import error_channel, event_channel
 NEGLIGIBLE_EVENT_SHARE = 1e-3
 
 
+#: What leaves a detector without a single electron over the whole scan (said with its note).
+NO_SIGNAL_CAUSES = ("a missing or upside-down surface, a scan field wider than the surface, a detector below the "
+                    "surface or behind a shield, or one in the beam's path")
+
+
 @dataclass
 class RenderResult:
     """Detector images (numpy float32, orientation of :mod:`elo_mitsuba.grid`), the geometry that
@@ -93,6 +98,19 @@ class RenderResult:
         ['right', 'left']
         """
         return [name for name in self.channels if "." not in name]
+
+    @property
+    def dark_detectors(self) -> list[str]:
+        """The detectors that received no electron anywhere in the scan (every pixel 0): a fact of
+        the geometry or a mistake in it (:data:`NO_SIGNAL_CAUSES`), which a render says in a note.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> RenderResult({"right": np.ones((2, 2)), "left": np.zeros((2, 2))}).dark_detectors
+        ['left']
+        """
+        return [name for name in self.detectors if not np.any(self.channels[name])]
 
     def write_exr(self, path, overwrite: bool = False, error_channels: bool = False) -> Path:
         """Write the channels and metadata (error summary included) to an EXR; with

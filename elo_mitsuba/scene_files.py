@@ -89,6 +89,8 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> N
                         "or write a self-contained copy: elo-mitsuba new-scene NAME.xml --from SCENE")
         elif node.tag == "shape" and node.get("type") == "ply" and depth < 8:
             _check_ply(path, node, {**declared, **values})
+        elif node.tag == "sampler":
+            _check_sample_count(path, node, {**declared, **values})
 
 
 def _check_ply(path: Path, node, known: Mapping) -> None:
@@ -107,6 +109,22 @@ def _check_ply(path: Path, node, known: Mapping) -> None:
                 check_ply_indices(mesh)
             except EloInputError as e:
                 raise EloInputError(f"{path}: {e}") from None
+
+
+def _check_sample_count(path: Path, node, known: Mapping) -> None:
+    """A sampler's ``sample_count`` below 1 is refused before Mitsuba loads it: its ``multijitter``
+    divides by the count while loading (SIGFPE, no message) and ``independent`` renders nothing."""
+    for child in node:
+        if child.tag == "integer" and child.get("name") == "sample_count":
+            text = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), child.get("value", ""))
+            try:
+                count = int(text)
+            except ValueError:
+                return  # not a number: Mitsuba's own message names it
+            if count < 1:
+                where = f" (-D spp={count})" if "$" in child.get("value", "") else ""
+                raise EloInputError(f"{path}: the sampler's sample_count is {count}{where}: the samples per pixel "
+                                    "must be >= 1")
 
 
 def _refuse_value_without_file(path: Path, pattern: str, values: Mapping) -> None:
@@ -239,8 +257,8 @@ def write_scene_copy(scene_path, source="athene_flat", *, overwrite: bool = Fals
     """Write a copy of a shipped scene (or any scene file) that works from any folder: its
     includes and meshes referenced by absolute path (:func:`portable_scene_text`), the
     parameters and everything else unchanged, to edit as one's own."""
-    scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene")
     src = resolve_scene_path(source)
+    scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene", inputs=[src])
     declared_parameters(src)  # a malformed or incomplete source would be copied broken
     text = portable_scene_text(src)
     header = (f"<!-- Written by 'elo-mitsuba new-scene' from {src.name}: includes and meshes by absolute path, so "

@@ -15,6 +15,7 @@ import shutil
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,6 +89,8 @@ def d(tmp_path_factory):
     (d / "magic_only.exr").write_bytes(data[:4])
     (d / "png.exr").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
     shutil.copy(src / "flat_plate.xml", d / "plate_copy.xml")
+    np.save(d / "tall.npy", np.linspace(0.0, 500.0, 64).reshape(8, 8))  # a relief reaching the detectors
+    shutil.copy(Path(__file__).parents[1] / "examples" / "optimize_athene.toml", d / "design.toml")
     return d
 
 
@@ -127,6 +130,26 @@ CLI_CASES = [
      "--detector-samples 4 would change nothing: --quality draft integrates the 1st event"),
     ("reconstruct --field contradicts the header", ["reconstruct", "{d}/grad.exr", "-o", "{d}/h.npy", "--field", "40"],
      "field 40x40 mm contradicts the header's field_mm 80x80 mm"),
+    ("render, no electron reaches a detector", [*R, "--resolution", "4", "-D", "field=1e6"],
+     "flat_plate: no electron reached any detector anywhere in the scan"),
+    ("invert --fwhm beyond the field", [*INV, "--fwhm", "1e30"], "beam FWHM 1e+30 mm (--fwhm): must be below"),
+    ("invert --init relief reaching the detectors", [*INV, "--init", "{d}/tall.npy"],
+     "--init heights: a relief of 500 mm (largest less smallest height) reaches the detectors"),
+    ("invert output is its input", ["invert", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/corr.exr",
+                                    "--overwrite"], "output {d}/corr.exr is also an input of this command"),
+    ("new-scene onto its source", ["new-scene", "{d}/plate_copy.xml", "--from", "{d}/plate_copy.xml", "--overwrite"],
+     "scene {d}/plate_copy.xml is also an input of this command"),
+    ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
+     "the sampler's sample_count is 0 (-D spp=0)"),
+    # -- 8: contradictions refused
+    ("render --events with -D events", [*R, "--resolution", "4", "--events", "1", "-D", "events=3"],
+     "--events 1 and -D events=3 both set events"),
+    ("render --spp with -D spp", [*R, "--resolution", "4", "--quality", "scene", "--spp", "4", "-D", "spp=8"],
+     "--spp 4 and -D spp=8 both set spp"),
+    ("render -D twice", [*R, "--resolution", "4", "-D", "dh=100", "-D", "dh=200"],
+     "-D dh=100 and -D dh=200: the parameter is given twice with different values"),
+    ("optimize --design beyond the trials", ["optimize", "{d}/design.toml", "-o", "{d}/front.zarr", "--design", "100"],
+     "--design 100: the run stores designs 0 .. 99"),
     ("reflectance-map --work-distance without pivot", ["reflectance-map", "--zeta", "50", "-o", "{d}/m.png",
                                                        "--work-distance", "300"], "add --beam pivot"),
     ("reflectance-map --layout and --zeta", ["reflectance-map", "--layout", "zeta50", "--zeta", "50", "-o",
@@ -324,3 +347,13 @@ def test_nan_in_a_gradient_is_unknown_not_spread(d):
     # no height (NaN, heightmap.write_height) at most where masked; the rest finite, not spread
     assert np.isnan(h).sum() <= g["mask"].sum() and not np.isinf(h).any()
     assert np.nanmax(h) - np.nanmin(h) < 2 * (np.nanmax(plain) - np.nanmin(plain)) + 1e-9
+
+
+def test_a_dark_detector_is_said_in_a_note():
+    """A render in which no electron reaches a detector says so (the API writes it, the CLI refuses
+    to write four black images): the beam of a 1000 m field misses the 100 mm plate."""
+    dark = em.load_scene("flat_plate", res=4, field=1e6).render(quality="draft", progress=False)
+    assert dark.dark_detectors == ["right", "left", "back", "front"]
+    assert sum("received no electron anywhere in the scan" in n for n in dark.metadata["notes"]) == 4
+    lit = em.load_scene("flat_plate", res=4).render(quality="draft", progress=False)
+    assert lit.dark_detectors == [] and not any("received no electron" in n for n in lit.metadata["notes"])

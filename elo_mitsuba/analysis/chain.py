@@ -542,6 +542,8 @@ def invert(scan: Scan, geometry, *, fwhm_mm: float = 0.0, start=None, second_eve
         raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
     if chamber_later and not second_event:
         raise EloInputError("--chamber-later needs --second-event SIM_FLAT.exr (the flat plate's later events)")
+    inversion.check_beam_and_start(geometry, fwhm_mm, None if start is None or hasattr(start, "dzdx") else start,
+                                   what="--init heights")
     from .io import read_later_errors, read_later_events
 
     flat_later, share = read_later_events(second_event, scan.shape) if second_event else (None, None)

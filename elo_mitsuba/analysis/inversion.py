@@ -540,6 +540,44 @@ def _held_fixed_variance(corrected, img, flt, weights, names, later_error, flat_
     return float(np.sum(total) / max(np.sum(weights), 1.0))
 
 
+def check_beam_and_start(geometry, fwhm_mm: float, heights=None, *, what: str = "start heights") -> None:
+    """Refuse, before any work, a beam profile or starting heights that no scan can have.
+
+    The beam's FWHM must be finite, >= 0 and below the scan field's larger side (the renderer's own
+    rule, ``elo_beam``): a wider beam lights the whole field at every scan point, and its blur
+    kernel would outgrow the images (--fwhm 1e30 ran out of memory, 1e6 crashed, 1000 ran for
+    minutes on 32 x 32 pixels). The heights' relief (largest less smallest) must lie below the lowest
+    detector's centre: a surface that reaches the detectors is not a build surface, and the model's
+    tangent-plane geometry has no meaning there.
+
+    Examples
+    --------
+    >>> from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+    >>> geo = ScanGeometry.nominal((8, 8), 80.0, 272.0, 127.0)
+    >>> check_beam_and_start(geo, 0.27, np.zeros((8, 8)))
+    >>> check_beam_and_start(geo, 100.0)
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: beam FWHM 100 mm (--fwhm): must be below the scan field's 80 mm (a beam profile is a fraction of a millimetre)
+    """
+    field = max(geometry.field_mm)
+    if not (np.isfinite(fwhm_mm) and fwhm_mm >= 0):
+        raise EloInputError(f"beam FWHM {fwhm_mm!r} mm (--fwhm): must be a finite number >= 0")
+    if fwhm_mm >= field:
+        raise EloInputError(f"beam FWHM {fwhm_mm:g} mm (--fwhm): must be below the scan field's {field:g} mm "
+                            "(a beam profile is a fraction of a millimetre)")
+    if heights is None:
+        return
+    h = np.asarray(heights, float)
+    if not np.all(np.isfinite(h)):
+        raise EloInputError(f"{what}: not finite everywhere")
+    lowest = min(float(d.center[2]) for d in geometry.detectors.values())
+    relief = float(np.ptp(h)) if h.size else 0.0
+    if relief >= lowest:
+        raise EloInputError(f"{what}: a relief of {relief:.4g} mm (largest less smallest height) reaches the "
+                            f"detectors, the lowest at {lowest:g} mm above the plate; heights are in mm")
+
+
 def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwhm_mm: float = 0.0,
                    later: Mapping | None = None, flat_later: Mapping | None = None,
                    later_error: Mapping | None = None, flat_later_error: Mapping | None = None,
@@ -630,6 +668,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         raise EloInputError(f"discrepancy={discrepancy!r}: must be a finite number >= 0")
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
+    check_beam_and_start(geometry, fwhm_mm, None if start is None or hasattr(start, "dzdx") else start)
     shape = tuple(geometry.shape)
     for what, data in (("images", images), ("flats", flats)):
         missing = [n for n in DETECTOR_NAMES if n not in data]
@@ -647,6 +686,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     h0 = start_heights(start, geometry) if hasattr(start, "dzdx") else np.array(start, float)
     if h0.shape != shape or not np.all(np.isfinite(h0)):
         raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")
+    check_beam_and_start(geometry, fwhm_mm, h0, what="the start's heights (from the gradient)")
     data = _ScaleData(images, flats, later, flat_later, later_error, flat_later_error)
     budget = None if time_budget_s is None else float(time_budget_s)
     model_settings = dict(fwhm_mm=fwhm_mm, alpha=alpha, shadows=shadows, nodes=nodes)

@@ -135,6 +135,16 @@ def scan_inputs(args) -> dict:
                 event=args.event, field_mm=args.field, d_h=args.dh, d_w=args.dw, material=args.material)
 
 
+def scan_files(args) -> list:
+    """Every file :func:`add_scan_arguments`'s flags name (for the check that no output replaces one)."""
+    from ..constants import DETECTOR_NAMES
+
+    files = [args.object, *(args.flat or []), args.calibration]
+    for n in DETECTOR_NAMES:
+        files += [getattr(args, n), *(getattr(args, f"flat_{n}") or [])]
+    return [f for f in files if f]
+
+
 def model_inputs(args) -> dict:
     """The keywords of :func:`~elo_mitsuba.analysis.chain.model_geometry` from :func:`add_scan_arguments`'s flags."""
     return dict(d_h=args.dh, d_w=args.dw, radius=args.radius, work_distance_mm=args.wd, projection=args.projection,

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import EloInputError
 from ..budget import check_inversion
 from ..schema import BEAM_FWHM
-from ._args import add_scan_arguments, add_yes, model_inputs, positive_float, scan_inputs
+from ._args import add_scan_arguments, add_yes, model_inputs, positive_float, scan_files, scan_inputs
 
 DESCRIPTION = """\
 Solve for the height map itself: the heights whose modelled images (the renderer's 1st event with
@@ -126,9 +126,10 @@ def run(args) -> int:
 
     from ..heightmap import HEIGHT_SUFFIXES
 
-    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
+    read = [*scan_files(args), args.init, args.second_event]
+    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite, inputs=read)
     if args.preview:
-        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=read)
     if args.iterations is not None and args.iterations < 0:
         raise EloInputError(f"--iterations {args.iterations}: must be >= 0")
     if args.uncertainty_probes is not None and args.uncertainty_probes < 0:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from ._args import non_negative_int, positive_int
 
@@ -74,7 +75,18 @@ def run(args) -> int:
     from ..files import check_output
 
     spec = load_spec(args.spec)
-    # the files asked for are checked before any work
+    # the files asked for, and the design asked for, are checked before any work: the store holds the
+    # designs 0 .. trials - 1 once the run is done (a resumed store counts towards the same trials)
+    if args.design is not None:
+        held = spec.trials
+        if Path(args.output).exists() and not args.overwrite:
+            try:  # a store resumed from a run that asked for more trials keeps them
+                held = max(held, int(read_designs(args.output).sizes["design"]))
+            except Exception:  # not a store yet: optimize() says why
+                pass
+        if not args.design < held:
+            raise EloInputError(f"--design {args.design}: the run stores designs 0 .. {held - 1} "
+                                f"(optimizer.trials = {spec.trials} in {args.spec})")
     if args.plot:
         check_output(args.plot, (".png",), overwrite=args.overwrite, what="--plot")
     if args.scene:

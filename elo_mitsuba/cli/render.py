@@ -118,15 +118,23 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from ..options import check_combination
-    from ..render import NEGLIGIBLE_EVENT_SHARE, load_scene
+    from ..render import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, load_scene
     from ..scene_files import scene_values
 
     out = check_output(args.output, (".exr",), overwrite=args.overwrite)
     preview = check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview") if args.preview else None
-    params = dict(args.defines)
+    params = {}
+    for name, value in args.defines:
+        if name in params and params[name] != value:
+            raise EloInputError(f"-D {name}={params[name]} and -D {name}={value}: the parameter is given twice with "
+                                "different values; give it once")
+        params[name] = value
     if "spp" in params and args.quality != "scene":
         raise EloInputError(f"-D spp={params['spp']} sets the scene file's sampler, which --quality {args.quality} "
                             "replaces; give --spp instead (or --quality scene)")
+    for name, flag, value in (("spp", "--spp", args.spp), ("events", "--events", args.events)):
+        if name in params and value is not None:  # the flag would win and the header record the other
+            raise EloInputError(f"{flag} {value} and -D {name}={params[name]} both set {name}; give one")
     if args.resolution is not None:
         if "res" in params:
             raise EloInputError(f"--resolution {args.resolution} and -D res={params['res']} both set the resolution; "
@@ -149,6 +157,9 @@ def run(args) -> int:
         scene.configure(**given)
     result = scene.render(spp=args.spp, seed=args.seed, events=args.events, quality=args.quality,
                           progress=None if not args.quiet else False, force=args.yes)
+    if len(result.dark_detectors) == len(result.detectors):
+        raise EloInputError(f"{args.scene}: no electron reached any detector anywhere in the scan ({NO_SIGNAL_CAUSES}); "
+                            f"nothing written to {out}")
     result.write_exr(out, overwrite=args.overwrite, error_channels=args.error_channels)
     if preview is not None:
         from ..analysis.plots import preview_detectors
