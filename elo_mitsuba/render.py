@@ -179,8 +179,9 @@ class EloScene:
             key = f"{name}.to_world"
             out[name] = detector_geometry(shape, self.mi_params[key] if key in self.mi_params else None)
             if not (out[name]["area_mm2"] > 0 and np.all(np.isfinite(out[name]["normal"]))):
+                why = "a scale of 0 in its transform?" if out[name]["area_mm2"] == 0 else "a scale beyond float32?"
                 raise EloInputError(f"{self.path}: detector {name!r} has area {out[name]['area_mm2']:g} mm^2 "
-                                    "(a scale of 0 in its transform?); a detector needs a radius > 0")
+                                    f"({why}); a detector needs a finite radius > 0")
         return out
 
     def materials(self) -> dict[str, str]:

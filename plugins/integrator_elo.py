@@ -172,6 +172,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                 "and give it an id (its channel name)"
             )
         self.detectors = detectors
+        for name, shape in detectors:
+            _check_collector(name, shape)
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]
@@ -1069,6 +1071,17 @@ def _sample_direction(si, ray, ctx, u1, u2, alive):
     """g_BSE at ``si`` sampled with (u1, u2): the world direction and its weight S."""
     bs, weight = si.bsdf(ray).sample(ctx, si, u1, u2, alive)
     return si.to_world(bs.wo), weight[0]
+
+
+def _check_collector(name, shape):
+    """A detector counts the electrons that reach it (N_d/N_0): the radiance of the area emitter
+    that marks it is not read, so a radiance other than 1 would be a setting that is not applied."""
+    radiance = mi.traverse(shape.emitter()).get("radiance.value")
+    value = float(np.ravel(np.array(radiance, dtype=float))[0]) if radiance is not None else 1.0
+    if value != 1.0:
+        raise EloInputError(f"detector {name!r} has an emitter radiance of {value:g}, which the renderer does not use "
+                            "(a detector counts electrons: N_d/N_0); remove it, or scale the images (--units "
+                            "voltage for volts)")
 
 
 def _check_scatterer(shape):

@@ -90,6 +90,21 @@ def d(tmp_path_factory):
     (d / "png.exr").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
     shutil.copy(src / "flat_plate.xml", d / "plate_copy.xml")
     np.save(d / "tall.npy", np.linspace(0.0, 500.0, 64).reshape(8, 8))  # a relief reaching the detectors
+    disc = '<shape type="disk" id="{n}"><transform name="to_world"><scale value="{r}"/><lookat origin="{o}" ' \
+           'target="0, 0, 0" up="0, 1, 0"/></transform><emitter type="area"{e}</emitter></shape>'
+    origins = {"right": "127, 0, 272", "left": "-127, 0, 272", "back": "0, 127, 272", "front": "0, -127, 272"}
+
+    def plate_scene(name, radius="25", emitter=">"):
+        discs = "".join(disc.format(n=n, o=o, r=radius if n == "right" else "25", e=emitter if n == "right" else ">")
+                        for n, o in origins.items())
+        (d / name).write_text(
+            '<scene version="3.0.0"><integrator type="elo"/><sensor type="elo_beam"><float name="field" value="80"/>'
+            '<film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/>'
+            '<rfilter type="box"/></film></sensor><shape type="rectangle" id="plate"><transform name="to_world">'
+            '<scale x="100" y="100"/></transform><bsdf type="elo_bse"/></shape>' + discs + "</scene>")
+
+    plate_scene("radiance.xml", emitter='><rgb name="radiance" value="5"/>')
+    plate_scene("huge_detector.xml", radius="1e30")
     shutil.copy(Path(__file__).parents[1] / "examples" / "optimize_athene.toml", d / "design.toml")
     return d
 
@@ -139,6 +154,10 @@ CLI_CASES = [
                                     "--overwrite"], "output {d}/corr.exr is also an input of this command"),
     ("new-scene onto its source", ["new-scene", "{d}/plate_copy.xml", "--from", "{d}/plate_copy.xml", "--overwrite"],
      "scene {d}/plate_copy.xml is also an input of this command"),
+    ("render a detector with a radiance", ["render", "{d}/radiance.xml", "-o", "{d}/new.exr"],
+     "detector 'right' has an emitter radiance of 5, which the renderer does not use"),
+    ("render a detector beyond float32", ["render", "{d}/huge_detector.xml", "-o", "{d}/new.exr"],
+     "detector 'right' has area nan mm^2 (a scale beyond float32?)"),
     ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
      "the sampler's sample_count is 0 (-D spp=0)"),
     # -- 8: contradictions refused
