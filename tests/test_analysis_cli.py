@@ -246,3 +246,58 @@ def test_several_flats_are_averaged(scene, tmp_path, capsys):
         assert expected in err and err.count("\n") == 1, err
     with pytest.raises(Exception, match=r"recordings differ in shape \(1: 48x40, 2: 48x38 px\)"):
         mean_flat([flat, small])
+
+
+@pytest.mark.parametrize("dtype", ["complex64", "complex128", "bool", "timedelta64[s]", "datetime64[s]"])
+def test_gradient_refuses_images_that_are_not_real_numbers(tmp_path, capsys, dtype):
+    """Found by the bad-input sweep: a complex .npy was taken with a numpy ComplexWarning on stderr
+    and its imaginary part dropped."""
+    args = []
+    for n in DETECTOR_NAMES:
+        np.save(tmp_path / f"{n}.npy", np.ones((8, 8)))
+        args += [f"--{n}", str(tmp_path / f"{n}.npy")]
+    odd = np.ones((8, 8)).astype(dtype) if dtype.startswith(("complex", "bool")) else np.zeros((8, 8), dtype)
+    np.save(tmp_path / "odd.npy", odd)
+    args[1] = str(tmp_path / "odd.npy")
+    out = tmp_path / "g.exr"
+    assert main(["gradient", *args, "--no-flat", "--field", "80", "--dh", "272", "--dw", "127", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"elo-mitsuba: error: {tmp_path / 'odd.npy'}: expected one 2-D numeric image of real values "
+                   f"(integer or floating point), got shape (8, 8) ({odd.dtype})\n")
+    assert not out.exists()
+
+
+def _quadric(shape, field):
+    x, y = pixel_coordinates(shape, field)
+    z = 0.01 * x**2 - 0.05 * y**2 + 0.02 * x * y + 0.1 * x
+    return z - z.mean(), 0.02 * x + 0.02 * y + 0.1, -0.1 * y + 0.02 * x
+
+
+def test_reconstruct_non_square_pixels(tmp_path, capsys, monkeypatch):
+    """Found by the bad-input sweep: '--field 80,40' on a square image was refused only after the
+    solve, as 'only square pixels can be meshed'. The solvers take dx and dy apart, so a .npy
+    (no pixel size) is written; the formats that record one square pixel refuse before any work."""
+    shape, field = (30, 50), (80.0, 20.0)                    # pixels 1.6 x 0.667 mm
+    z, gx, gy = _quadric(shape, field)
+    grad = tmp_path / "g.exr"
+    write_exr(grad, {"dzdx": gx, "dzdy": gy})                # another tool's: no header
+    for method in ("dct", "masked"):
+        out = tmp_path / f"h_{method}.npy"
+        assert main(["reconstruct", str(grad), "-o", str(out), "--field", "80,20", "--method", method]) == 0
+        assert np.max(np.abs(np.load(out) - z)) < 1e-4   # exact for a quadric up to float32 input
+    capsys.readouterr()
+    from elo_mitsuba.analysis import chain
+
+    monkeypatch.setattr(chain, "heights", None)              # a refusal comes before the solve
+    for suffix in ("exr", "tif", "gsf"):
+        out = tmp_path / f"h.{suffix}"
+        assert main(["reconstruct", str(grad), "-o", str(out), "--field", "80,20", "--preview",
+                     str(tmp_path / "h.png")]) == 2
+        err = capsys.readouterr().err
+        assert err == (f"elo-mitsuba: error: --field 80,20 over 50x30 px gives pixels of 1.6 x 0.666667 mm; a .{suffix} "
+                       "height map records one square pixel size: write a .npy (no pixel size), or give a field "
+                       "with square pixels (e.g. --field 80,48)\n")
+        assert not out.exists() and not (tmp_path / "h.png").exists()
+    write_exr(tmp_path / "gh.exr", {"dzdx": gx, "dzdy": gy}, {"field_mm": [80.0, 20.0]})
+    assert main(["reconstruct", str(tmp_path / "gh.exr"), "-o", str(tmp_path / "h.tif")]) == 2
+    assert f"{tmp_path / 'gh.exr'}: header field_mm 80 x 20 mm over 50x30 px" in capsys.readouterr().err

@@ -7,6 +7,7 @@ the comment of each bound; the bounds leave ~2-4x headroom.
 
 import numpy as np
 import pytest
+from conftest import one_line_error
 
 from elo_mitsuba.analysis import (
     height_gradient,
@@ -202,3 +203,77 @@ def test_perspective_scan_slopes_are_converted_to_the_scan_grid():
     cx, cy = scan_grid_gradient(gx, gy, field, wd, heights=z(lx))
     conv, _ = integrate_gradient(cx, cy, field, method="dct")
     assert rms_err(conv) < 2e-3 < 0.02 < rms_err(raw)
+
+
+# -- slopes a perspective beam cannot land on (fuzz sweep, defect A) ------------------------------
+
+WD = 400.0
+
+
+def _corrugated(shape=(32, 32), field=(80.0, 80.0)):
+    """Slopes of a corrugated sheet over a 80 mm field: every one visible from the pivot."""
+    x, _ = pixel_coordinates(shape, field)
+    return 0.5 * np.cos(2 * np.pi * x / 10.0), np.zeros(shape)
+
+
+@pytest.mark.parametrize("scale", [1e6, 1e30])
+def test_slopes_facing_away_from_the_beam_are_refused_not_clamped(scale):
+    """A clamp of 1 + S.g/wd to 1e-6 turned slopes x1e6 and x1e30 into the same plausible height map;
+    now the pixels are counted and the worst is named with the bound wd/r it breaks."""
+    from elo_mitsuba.analysis.integrate import scan_grid_gradient
+
+    gx, gy = _corrugated()
+    gx, gy = gx * scale, gy * scale
+    x, y = pixel_coordinates(gx.shape, 80.0)
+    den = 1 + x * gx / WD
+    i, j = np.unravel_index(np.argmin(den), den.shape)
+    msg = one_line_error(lambda: scan_grid_gradient(gx, gy, 80.0, WD))
+    assert f"gradient: {int(np.sum(den <= 0))} of 1024 unmasked pixels hold a slope that faces away" in msg
+    assert f"work distance 400 mm); the worst, row {i} column {j}" in msg
+    assert f"dzdx {gx[i, j]:.4g}" in msg and f"wd/r = {WD / np.hypot(x[i, j], y[i, j]):.4g}" in msg
+
+
+def test_a_grazing_slope_is_converted_exactly_and_masked_pixels_are_exempt():
+    from elo_mitsuba.analysis.integrate import scan_grid_gradient
+
+    shape, field = (4, 4), 80.0
+    x, _ = pixel_coordinates(shape, field)               # x = -30, -10, 10, 30 mm
+    gx, gy = np.zeros(shape), np.zeros(shape)
+    gx[0, 3] = -(1 - 1e-9) * WD / x[0, 3]                # 1 + S.g/wd = 1e-9: just visible
+    cx, _ = scan_grid_gradient(gx, gy, field, WD)
+    assert cx[0, 3] == pytest.approx(gx[0, 3] / 1e-9, rel=1e-5) and np.all(cx[gx == 0] == 0)
+    gx[0, 3] = -WD / x[0, 3]                             # exactly grazing: refused
+    gx[1, 0] = np.nan                                    # unknown: neither refused nor used
+    assert "1 of 15 unmasked pixels" in one_line_error(lambda: scan_grid_gradient(gx, gy, field, WD))
+    mask = np.zeros(shape, bool)
+    mask[0, 3] = True                                    # untrusted: its value is not checked
+    cx, _ = scan_grid_gradient(gx, gy, field, WD, mask=mask)
+    assert np.isnan(cx[0, 3]) and np.isnan(cx[1, 0]) and np.isfinite(np.delete(cx.ravel(), [3, 4])).all()
+    for wd in (0.0, -400.0, np.nan, "abc"):
+        assert "a perspective scan needs a finite pivot height > 0" in one_line_error(
+            lambda wd=wd: scan_grid_gradient(np.zeros(shape), np.zeros(shape), field, wd))
+
+
+def test_the_api_pipeline_refuses_them_too():
+    from elo_mitsuba.analysis.chain import heights
+
+    gx, gy = _corrugated()
+    msg = one_line_error(lambda: heights(gx * 1e6, gy, 80.0, projection="perspective", work_distance_mm=WD))
+    assert "faces away from the beam" in msg
+    out = heights(gx, gy, 80.0, projection="perspective", work_distance_mm=WD)   # the plausible field runs
+    assert 0.5 < float(np.ptp(out["height"])) < 2.0
+
+
+def test_non_square_pixels_integrate_exactly():
+    """dx != dy enters every solver through its own pixel pitch: the trapezoid pair targets are
+    exact for a quadric (linear gradient), so least squares recovers it to rounding."""
+    shape, field = (30, 50), (80.0, 20.0)                # pixels 1.6 x 0.667 mm
+    x, y = pixel_coordinates(shape, field)
+    z = 0.01 * x**2 - 0.05 * y**2 + 0.02 * x * y + 0.1 * x - 0.3 * y
+    gx, gy = 0.02 * x + 0.02 * y + 0.1, -0.1 * y + 0.02 * x - 0.3
+    mask = np.zeros(shape, bool)
+    mask[10:14, 20:26] = True
+    for method, m in (("dct", None), ("masked", mask), ("robust", mask)):
+        h, out = integrate_gradient(gx, gy, field, method=method, mask=m)
+        ok = ~out
+        assert rmse(h, z, ok) < 1e-9, method

@@ -146,3 +146,102 @@ def test_an_exr_without_header_is_named(tmp_path, capsys):
     assert main(["gradient", str(tmp_path / "o.exr"), "--no-flat", "-o", str(tmp_path / "g.exr")]) == 2
     err = capsys.readouterr().err
     assert "o.exr has no elo-mitsuba geometry header" in err and "single" not in err
+
+
+# -- bad-input sweep: impossible slopes (A) and non-binary masks (D) ----------------------------
+
+
+def _grad_exr(path, dzdx, dzdy, mask=None, **header):
+    """A gradient EXR as 'gradient' writes it for a perspective scan 80 mm wide from 400 mm."""
+    meta = {"field_mm": [80.0, 80.0], "projection": "perspective", "work_distance_mm": 400.0, **header}
+    channels = {"dzdx": dzdx, "dzdy": dzdy}
+    if mask is not None:
+        channels["mask"] = np.asarray(mask, np.float32)
+    write_exr(path, channels, meta)
+    return str(path)
+
+
+def _ramp(slope, shape=(32, 32)):
+    """dZ/dx = slope * cos(2 pi x / 10 mm): the corrugated sheet's gradient, scaled."""
+    x = (np.arange(shape[1]) + 0.5) / shape[1] * 80.0 - 40.0
+    return np.tile(slope * np.cos(2 * np.pi * x / 10.0), (shape[0], 1)), np.zeros(shape)
+
+
+def _no_work(monkeypatch):
+    """Fail if the integration starts: a refusal must come before it."""
+    from elo_mitsuba.analysis import chain
+
+    def refuse(*a, **k):
+        raise AssertionError("integration started")
+
+    monkeypatch.setattr(chain, "heights", refuse)
+
+
+@pytest.mark.parametrize("scale", [1e6, 1e30])
+def test_slopes_that_face_away_from_the_beam_are_refused(tmp_path, capsys, monkeypatch, scale):
+    """Found by the sweep: slopes x1e6 and x1e30 both gave 'height range 1482 mm', exit 0."""
+    grad = _grad_exr(tmp_path / "g.exr", *_ramp(0.5 * scale))
+    _no_work(monkeypatch)
+    assert main(["reconstruct", grad, "-o", str(tmp_path / "h.npy")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"elo-mitsuba: error: {grad}: ")
+    assert "unmasked pixels hold a slope that faces away from the beam" in err and "work distance 400 mm" in err
+    assert not (tmp_path / "h.npy").exists()
+
+
+def test_masked_pixels_are_exempt_and_an_orthographic_scan_is_not_checked(tmp_path, capsys):
+    gx, gy = _ramp(0.5)
+    mask = np.zeros(gx.shape, bool)
+    mask[5:9, 0] = True
+    bad = gx.copy()
+    bad[mask] = 1e6                          # another tool's garbage under its mask (x < 0: faces away)
+    zero = gx.copy()
+    zero[mask] = 0.0
+    for name, g in (("bad", bad), ("zero", zero)):
+        assert main(["reconstruct", _grad_exr(tmp_path / f"{name}.exr", g, gy, mask), "-o",
+                     str(tmp_path / f"{name}.npy")]) == 0
+    assert np.array_equal(np.load(tmp_path / "bad.npy"), np.load(tmp_path / "zero.npy"), equal_nan=True)
+    # --ignore-mask trusts them: refused
+    assert main(["reconstruct", str(tmp_path / "bad.exr"), "-o", str(tmp_path / "i.npy"), "--ignore-mask"]) == 2
+    assert "4 of 1024 unmasked pixels" in capsys.readouterr().err
+    # an orthographic beam lands on any slope
+    grad = _grad_exr(tmp_path / "o.exr", bad, gy, projection="orthographic")
+    assert main(["reconstruct", grad, "-o", str(tmp_path / "o.npy"), "--ignore-mask"]) == 0
+
+
+@pytest.mark.parametrize("wd", [0.0, -400.0, None, "far"])
+def test_a_perspective_header_without_a_work_distance_is_refused(tmp_path, capsys, monkeypatch, wd):
+    grad = _grad_exr(tmp_path / "g.exr", *_ramp(0.5), work_distance_mm=wd)
+    _no_work(monkeypatch)
+    assert main(["reconstruct", grad, "-o", str(tmp_path / "h.npy")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"header projection 'perspective' with work_distance_mm {wd!r}" in err
+
+
+def test_a_relief_not_small_against_the_work_distance_is_warned_about(tmp_path, capsys):
+    """Slopes x10 (the sweep's 845 mm): every beam still lands, but neighbouring beams land far
+    apart and the conversion's 1 - h/wd = 1 no longer holds."""
+    for scale, warned in ((0.5, False), (5.0, True)):
+        grad = _grad_exr(tmp_path / f"g{scale}.exr", *_ramp(scale))
+        out = tmp_path / f"h{scale}.exr"
+        assert main(["reconstruct", grad, "-o", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert ("x the work distance 400 mm (> 0.05)" in err) is warned, err
+        _, meta = read_exr(out)
+        assert any("work distance" in w for w in meta["quality"]["warnings"]) is warned
+
+
+@pytest.mark.parametrize("value", [0.5, 1.5, -1.0])
+def test_a_mask_that_is_not_zero_or_one_is_refused(tmp_path, capsys, monkeypatch, value):
+    gx, gy = _ramp(0.5)
+    mask = np.zeros(gx.shape)
+    mask[3, 4] = mask[7, :] = value
+    grad = _grad_exr(tmp_path / "g.exr", gx, gy, mask)
+    monkeypatch.setattr("elo_mitsuba.analysis.chain.heights", None)  # never reached
+    assert main(["reconstruct", grad, "-o", str(tmp_path / "h.npy")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"elo-mitsuba: error: {grad}: channel 'mask' holds 33 value(s) other than 0 and 1 (first "
+                   f"{value:g} at row 3, column 4); a mask is 1 = untrusted, 0 = trusted\n")
+    assert not (tmp_path / "h.npy").exists()
+    monkeypatch.undo()
+    assert main(["reconstruct", grad, "-o", str(tmp_path / "h.npy"), "--ignore-mask"]) == 0

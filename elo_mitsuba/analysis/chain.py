@@ -453,7 +453,7 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
     gx, gy = dzdx, dzdy
     perspective = projection == "perspective" and bool(work_distance_mm)
     if perspective:
-        gx, gy = scan_grid_gradient(gx, gy, field_mm, work_distance_mm)
+        gx, gy = scan_grid_gradient(gx, gy, field_mm, work_distance_mm, mask=mask)
         if mask is not None:
             gx, gy = np.where(mask, 0.0, gx), np.where(mask, 0.0, gy)
     kw = {} if min_component_size is None else {"min_component_size": min_component_size}

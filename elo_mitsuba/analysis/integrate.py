@@ -646,7 +646,7 @@ def height_gradient(height, field_mm):
     return g_col / dx, -g_row / dy
 
 
-def scan_grid_gradient(dzdx, dzdy, field_mm, work_distance_mm, heights=None):
+def scan_grid_gradient(dzdx, dzdy, field_mm, work_distance_mm, heights=None, *, mask=None):
     """Surface slopes at the beam's landing points -> the gradient of the height *over the scan
     grid* of a perspective scan (beam from the pivot (0, 0, wd)).
 
@@ -658,19 +658,128 @@ def scan_grid_gradient(dzdx, dzdy, field_mm, work_distance_mm, heights=None):
     bowl (2 mm on the README's corrugated sheet). ``heights`` (mm, optional) refines the
     (1 - h/wd) factor; it is within 1e-3 of 1 for millimetre relief.
 
+    The denominator 1 + S . g / wd is the cosine between the surface normal and the beam (over
+    their lengths): <= 0 means a facet that faces away from the beam, which no beam lands on.
+    Such slopes at unmasked pixels are refused (:func:`check_scan_grid_slopes`), not clamped: a
+    clamp turned slopes scaled by 1e6 or 1e30 into the same plausible height map.
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        Slopes (mm/mm) where each pixel's beam lands; NaN where unknown.
+    field_mm : float or (float, float)
+        Scan field in mm.
+    work_distance_mm : float
+        Height of the beam's pivot above the plate (mm), finite and > 0.
+    heights : ndarray (H, W), optional
+        Heights (mm) for the (1 - h/wd) factor; 1 without them.
+    mask : ndarray of bool (H, W), optional
+        Untrusted pixels (True): not checked, NaN in the result where their slope faces away.
+
     Returns
     -------
     gx, gy : ndarray
-        The gradient of H over the scan grid; integrate these to get H per pixel.
+        The gradient of H over the scan grid; integrate these to get H per pixel. NaN where the
+        input is not finite.
+
+    Raises
+    ------
+    EloInputError
+        A work distance that is not finite and > 0, or an unmasked slope facing away from the beam.
+    """
+    dzdx = np.asarray(dzdx, float)
+    dzdy = np.asarray(dzdy, float)
+    den = check_scan_grid_slopes(dzdx, dzdy, field_mm, work_distance_mm, mask)
+    wd = float(work_distance_mm)
+    shrink = 1.0 if heights is None else 1.0 - np.asarray(heights, float) / wd
+    ok = np.isfinite(den) & (den > 0)
+    safe = np.where(ok, den, 1.0)
+    return (np.where(ok, shrink * dzdx / safe, np.nan), np.where(ok, shrink * dzdy / safe, np.nan))
+
+
+def check_scan_grid_slopes(dzdx, dzdy, field_mm, work_distance_mm, mask=None, *, source: str = "gradient"):
+    """Refuse slopes that face away from the beam of a perspective scan, in one line naming them.
+
+    The beam of scan point S = (x, y) comes from the pivot (0, 0, wd) and lands on a facet of
+    slope g only if 1 + S . g / wd > 0 (the cosine between the facet's normal and the beam is
+    positive): at r = |S| from the axis the surface may fall away from the axis by at most wd / r
+    (mm/mm). Pixels where ``mask`` is True, and non-finite slopes (unknown), are not checked.
+
+    Parameters
+    ----------
+    dzdx, dzdy : ndarray (H, W)
+        Slopes (mm/mm) where each pixel's beam lands.
+    field_mm : float or (float, float)
+        Scan field in mm.
+    work_distance_mm : float
+        Height of the pivot above the plate (mm).
+    mask : ndarray of bool (H, W), optional
+        Untrusted pixels (True).
+    source : str
+        How the message names the gradient (its file).
+
+    Returns
+    -------
+    ndarray (H, W)
+        The denominator 1 + S . g / wd (NaN where a slope is not finite).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dzdx = np.zeros((4, 4)); dzdx[0, 3] = -30.0      # at (30, 30) mm: falls steeply towards +x
+    >>> check_scan_grid_slopes(dzdx, np.zeros((4, 4)), 80.0, 400.0, source="g.exr")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: g.exr: 1 of 16 unmasked pixels hold a slope that faces away from the beam ...
     """
     from ..grid import pixel_coordinates
 
+    try:
+        wd = float(work_distance_mm)
+    except (TypeError, ValueError):
+        wd = math.nan
+    if not (math.isfinite(wd) and wd > 0):
+        raise EloInputError(f"{source}: work distance {work_distance_mm!r} mm: a perspective scan needs a finite "
+                            "pivot height > 0")
     dzdx = np.asarray(dzdx, float)
     dzdy = np.asarray(dzdy, float)
-    wd = float(work_distance_mm)
+    if dzdx.shape != dzdy.shape or dzdx.ndim != 2:
+        raise EloInputError(f"dzdx {dzdx.shape} and dzdy {dzdy.shape}: expected two 2-D arrays of one shape")
     x, y = pixel_coordinates(dzdx.shape, field_mm)
-    shrink = 1.0 if heights is None else 1.0 - np.asarray(heights, float) / wd
-    den = 1.0 + (x * dzdx + y * dzdy) / wd
-    den = np.where(np.abs(den) > 1e-6, den, 1e-6)
-    return shrink * dzdx / den, shrink * dzdy / den
+    finite = np.isfinite(dzdx) & np.isfinite(dzdy)
+    with np.errstate(all="ignore"):
+        den = np.where(finite, 1.0 + (x * np.where(finite, dzdx, 0.0) + y * np.where(finite, dzdy, 0.0)) / wd, np.nan)
+    checked = finite if mask is None else finite & ~np.asarray(mask, bool)
+    bad = checked & ~(np.isfinite(den) & (den > 0))
+    if bad.any():
+        worst = np.where(bad, np.nan_to_num(den, nan=-np.inf), np.inf)
+        i, j = np.unravel_index(int(np.argmin(worst)), den.shape)
+        r = math.hypot(x[i, j], y[i, j])
+        fall = -(x[i, j] * dzdx[i, j] + y[i, j] * dzdy[i, j]) / r
+        raise EloInputError(
+            f"{source}: {int(bad.sum())} of {int(checked.sum())} unmasked pixels hold a slope that faces away from "
+            f"the beam (1 + S.g/wd <= 0, perspective scan, work distance {wd:g} mm); the worst, row {i} column {j} "
+            f"({r:.4g} mm off axis), falls away from the axis by {fall:.4g} mm/mm (dzdx {dzdx[i, j]:.4g}, "
+            f"dzdy {dzdy[i, j]:.4g}) where the beam reaches at most wd/r = {wd / r:.4g}: a slope of the wrong "
+            "scale or sign; mask such pixels (mask 1) if they are unknown")
+    return den
 
+
+#: ``reconstruct``: a perspective scan's conversion (:func:`scan_grid_gradient`) takes the factor
+#: 1 - h/wd as 1; a height range above this share of the work distance makes that several % wrong.
+MAX_RELIEF_OVER_WORK_DISTANCE = 0.05
+
+
+def perspective_relief_warning(height, mask_out, work_distance_mm) -> str | None:
+    """One warning line when a perspective scan's height range is not small against the work
+    distance (:data:`MAX_RELIEF_OVER_WORK_DISTANCE`), else None."""
+    height = np.asarray(height, float)
+    valid = ~np.asarray(mask_out, bool)
+    span = float(np.ptp(height[valid])) if valid.any() else 0.0
+    wd = float(work_distance_mm)
+    if span > MAX_RELIEF_OVER_WORK_DISTANCE * wd:
+        return (f"the height range {span:.4g} mm is {span / wd:.2g} x the work distance {wd:g} mm (> "
+                f"{MAX_RELIEF_OVER_WORK_DISTANCE:g}): the perspective conversion assumes relief small against the "
+                "work distance and neighbouring beams landing close together; these heights are not reliable "
+                "(check the gradient's scale)")
+    return None

@@ -82,8 +82,11 @@ def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
         except Exception as exc:
             raise EloInputError(f"{path}: not a readable TIFF ({str(exc).splitlines()[0]})") from None
     arr = np.squeeze(np.asarray(arr))
-    if arr.ndim != 2 or not np.issubdtype(arr.dtype, np.number):
-        raise EloInputError(f"{path}: expected one 2-D numeric image, got shape {arr.shape} ({arr.dtype})")
+    # real numbers only: complex would lose its imaginary part (with a warning), bool is a mask,
+    # not a signal, and datetime/timedelta/object/string arrays hold no intensities
+    if arr.ndim != 2 or arr.dtype.kind not in "iuf":
+        raise EloInputError(f"{path}: expected one 2-D numeric image of real values (integer or floating point), "
+                            f"got shape {arr.shape} ({arr.dtype})")
     return arr.astype(float), meta
 
 
@@ -277,6 +280,13 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
         untrusted: the file's mask unless ``use_mask`` is False, and its NaN pixels; None if
         neither), ``field_mm`` (``field_mm`` if given, else the
         header's) and ``metadata`` (the header).
+
+    Raises
+    ------
+    EloInputError
+        Missing dzdx/dzdy, infinite gradients, a field that contradicts the header's or is missing,
+        and (unless ``use_mask`` is False) a mask channel with values other than 0 and 1: no
+        threshold is guessed for a mask of another tool.
     """
     channels, meta = read_exr(path)
     missing = [c for c in ("dzdx", "dzdy") if c not in channels]
@@ -307,7 +317,16 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     field = field_mm if field_mm is not None else recorded
     if field is None:
         raise EloInputError(f"{path}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
-    mask = channels["mask"] > 0.5 if "mask" in channels and use_mask else None
+    mask = None
+    if "mask" in channels and use_mask:
+        m = channels["mask"]
+        odd = ~((m == 0) | (m == 1))
+        if odd.any():
+            row, col = np.argwhere(odd)[0]
+            raise EloInputError(f"{path}: channel 'mask' holds {int(odd.sum())} value(s) other than 0 and 1 (first "
+                                f"{float(m[row, col]):g} at row {row}, column {col}); a mask is 1 = untrusted, "
+                                "0 = trusted")
+        mask = m == 1
     if unknown.any():
         mask = unknown if mask is None else mask | unknown
         channels = {**channels, **{c: np.where(unknown, np.float32(0), channels[c]) for c in ("dzdx", "dzdy")}}

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EloInputError
-from ._args import add_scan_arguments, model_inputs, positive_float, scan_inputs
+from ._args import add_scan_arguments, model_inputs, positive_float, scan_files, scan_inputs
 
 DESCRIPTION = """\
 Compute the surface gradient dZ/dx, dZ/dy of the build surface from four detector images
@@ -122,9 +122,9 @@ def run(args) -> int:
         value = getattr(args, flag)
         if value is not None and not np.isfinite(value):
             raise EloInputError(f"--{flag.replace('_', '-')} {value}: must be a finite number")
-    out = check_output(args.output, (".exr",), overwrite=args.overwrite)
+    out = check_output(args.output, (".exr",), overwrite=args.overwrite, inputs=scan_files(args))
     if args.preview:
-        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=scan_files(args))
     scan = chain.read_scan(**scan_inputs(args), model_discs=args.method == "model")
     geo = scan.geo
     model = chain.model_geometry(scan, **model_inputs(args)) if args.method == "model" else None

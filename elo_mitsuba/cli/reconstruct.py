@@ -36,7 +36,12 @@ Output by suffix (elo_mitsuba.heightmap): .exr (channels height and mask, 1 = no
 in the header), .tif (float32, the header as JSON in its ImageDescription, the pixel size in its
 resolution tags), .gsf (Gwyddion Simple Field, metres) or .npy (float64, no header). Pixels
 without a height hold NaN in TIFF/GSF/NPY, 0 with mask 1 in the EXR (use .exr, .tif or .gsf to
-keep the figures below).
+keep the figures below). Pixels that are not square (--field FX,FY with FX/W != FY/H) can only be
+written as .npy: the other formats record one pixel size.
+
+Refused before integrating: a mask channel with values other than 0 and 1, and, for a perspective
+scan, slopes that face away from the beam (1 + S.g/wd <= 0 at scan point S, work distance wd: the
+surface there would fall away from the axis by more than wd/r at r off axis; no beam lands on it).
 
 How far the result can be trusted is printed and stored in the header ("quality"):
   integrability residual  relative RMS misfit between the height map's gradient and the input
@@ -45,6 +50,8 @@ How far the result can be trusted is printed and stored in the header ("quality"
   bowl / relief           peak-to-valley of the best-fitting quadric (tilt + bowl) and of the
                           rest; a small gradient bias integrates to a bowl, so a bowl larger than
                           the relief is warned about: the height range is then not relief
+  relief / work distance  perspective scans: a height range above {wd:g} x the work distance is
+                          warned about (the conversion of slopes to the scan grid assumes less)
 """
 
 EPILOG = """\
@@ -56,11 +63,17 @@ examples:
 
 
 def add_parser(subparsers):
-    from ..analysis.integrate import MAX_INTEGRABILITY_RESIDUAL, MAX_MASKED_FRACTION, METHODS
+    from ..analysis.integrate import (
+        MAX_INTEGRABILITY_RESIDUAL,
+        MAX_MASKED_FRACTION,
+        MAX_RELIEF_OVER_WORK_DISTANCE,
+        METHODS,
+    )
 
     p = subparsers.add_parser(
         "reconstruct", help="gradient EXR -> height map (normal integration)",
-        description=DESCRIPTION.format(res=MAX_INTEGRABILITY_RESIDUAL, mask=MAX_MASKED_FRACTION), epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=DESCRIPTION.format(res=MAX_INTEGRABILITY_RESIDUAL, mask=MAX_MASKED_FRACTION,
+                                       wd=MAX_RELIEF_OVER_WORK_DISTANCE), epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("gradient", metavar="GRAD.exr", help="output of 'elo-mitsuba gradient'")
     p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|tif|gsf|npy)", help="height map to write")
@@ -84,25 +97,42 @@ def run(args) -> int:
     # the arguments first: a rejected one costs no import of the analysis (scipy, matplotlib)
     from ..heightmap import HEIGHT_SUFFIXES, write_height
 
-    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite)
+    out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite, inputs=[args.gradient])
     if args.preview:
-        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview")
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=[args.gradient])
     if args.min_component < 1:
         raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
     if not Path(args.gradient).is_file():
         raise EloInputError(f"{args.gradient}: no such file")
 
     from ..analysis.chain import heights
+    from ..analysis.integrate import check_scan_grid_slopes, perspective_relief_warning
     from ..analysis.io import read_gradient
     from ..analysis.plots import preview_height
     from ..schema import PROJECTION, WORK_DISTANCE
 
     grad = read_gradient(args.gradient, field_mm=args.field, use_mask=not args.ignore_mask)
     field, meta = grad["field_mm"], grad["metadata"]
-    rec = heights(grad["dzdx"], grad["dzdy"], field, mask=grad["mask"], method=args.method,
+    dzdx, dzdy, mask = grad["dzdx"], grad["dzdy"], grad["mask"]
+    # checked before any work: pixels the output can hold, slopes a perspective beam can land on
+    square = _check_pixels(args, out, field, dzdx.shape)
+    perspective = meta.get(PROJECTION) == "perspective"
+    if perspective:
+        wd = meta.get(WORK_DISTANCE)
+        if isinstance(wd, bool) or not isinstance(wd, (int, float)) or not (np.isfinite(wd) and wd > 0):
+            raise EloInputError(f"{args.gradient}: header projection 'perspective' with work_distance_mm {wd!r}; "
+                                "a perspective scan needs the pivot height, a finite number > 0 (mm)")
+        check_scan_grid_slopes(dzdx, dzdy, field, meta.get(WORK_DISTANCE), mask, source=str(args.gradient))
+        if mask is not None:  # untrusted: their values enter nothing (0, as 'gradient' writes them)
+            dzdx, dzdy = np.where(mask, np.float32(0), dzdx), np.where(mask, np.float32(0), dzdy)
+    rec = heights(dzdx, dzdy, field, mask=mask, method=args.method,
                   projection=meta.get(PROJECTION), work_distance_mm=meta.get(WORK_DISTANCE),
                   min_component_size=args.min_component)
     height, mask_out, method, quality = rec["height"], rec["mask"], rec["method"], rec["quality"]
+    if perspective:
+        line = perspective_relief_warning(height, mask_out, meta.get(WORK_DISTANCE))
+        if line:
+            quality["warnings"].append(line)
     out_meta = {
         "quantity": "height map (relative, zero mean)",
         "units": "mm",
@@ -117,7 +147,9 @@ def run(args) -> int:
     for key in ("d_h_mm", "d_w_mm", "material", "projection", "work_distance_mm"):
         if key in meta:
             out_meta[key] = meta[key]
-    write_height(out, height, mask_out, out_meta, overwrite=args.overwrite)
+    # a .npy records no pixel size, so it may hold non-square pixels (the solvers take dx and dy)
+    write_height(out, height, mask_out, out_meta if square else {k: v for k, v in out_meta.items() if k != "field_mm"},
+                 overwrite=args.overwrite)
     valid = ~mask_out
     span = float(np.ptp(height[valid])) if valid.any() else 0.0
     print(f"wrote {out}: method {method}, {height.shape[1]}x{height.shape[0]} px, height range {span:.4g} mm, "
@@ -132,3 +164,21 @@ def run(args) -> int:
                        title=f"Height map by normal integration ('{method}' solver)", overwrite=args.overwrite)
         print(f"wrote {args.preview}")
     return 0
+
+
+def _check_pixels(args, out, field, shape) -> bool:
+    """Whether the pixels are square; non-square ones only for a .npy output, which records no
+    pixel size (EXR, TIFF and GSF height maps record one square pitch)."""
+    import math
+
+    fx, fy = field
+    dx, dy = fx / shape[1], fy / shape[0]
+    if math.isclose(dx, dy, rel_tol=1e-6):
+        return True
+    if out.suffix.lower() != ".npy":
+        given = (f"--field {args.field[0]:g},{args.field[1]:g}" if args.field
+                 else f"{args.gradient}: header field_mm {fx:g} x {fy:g} mm")
+        raise EloInputError(f"{given} over {shape[1]}x{shape[0]} px gives pixels of {dx:g} x {dy:g} mm; "
+                            f"a {out.suffix} height map records one square pixel size: write a .npy (no pixel "
+                            f"size), or give a field with square pixels (e.g. --field {fx:g},{fx * shape[0] / shape[1]:g})")
+    return False
