@@ -44,6 +44,8 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
         immutable, ``/proc``: :func:`check_writable_folder`), or, with ``overwrite``, an existing
         file that cannot be replaced (immutable or append-only).
     """
+    if not str(path).strip():
+        raise EloInputError(f"{what}: the path is empty; give a file name")
     path = Path(path)
     if suffixes is not None:
         suffixes = tuple(suffixes)

@@ -402,8 +402,8 @@ def validate_heightmap(height, what: str = "height map", *, allow_nan: bool = Fa
     """Return ``height`` as a float64 2-D array, or raise :class:`EloInputError` (NaN, the pixels
     without a height, are kept with ``allow_nan``; infinities never)."""
     arr = np.asarray(height)
-    if arr.dtype.kind not in "fiub":
-        raise EloInputError(f"{what} has dtype {arr.dtype}; heights must be real numbers")
+    if arr.dtype.kind not in "fiu":  # a bool array is a mask, not heights
+        raise EloInputError(f"{what} has dtype {arr.dtype}; heights must be real numbers (integer or floating point)")
     arr = arr.astype(np.float64, copy=False)
     if arr.ndim == 3 and 1 in (arr.shape[0], arr.shape[-1]):
         arr = arr.reshape([n for n in arr.shape if n != 1] or [1])  # single-channel TIFF/PNG

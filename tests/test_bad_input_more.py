@@ -90,6 +90,7 @@ def d(tmp_path_factory):
     (d / "png.exr").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
     shutil.copy(src / "flat_plate.xml", d / "plate_copy.xml")
     np.save(d / "tall.npy", np.linspace(0.0, 500.0, 64).reshape(8, 8))  # a relief reaching the detectors
+    np.save(d / "bool.npy", np.eye(4, dtype=bool))
     disc = '<shape type="disk" id="{n}"><transform name="to_world"><scale value="{r}"/><lookat origin="{o}" ' \
            'target="0, 0, 0" up="0, 1, 0"/></transform><emitter type="area"{e}</emitter></shape>'
     origins = {"right": "127, 0, 272", "left": "-127, 0, 272", "back": "0, 127, 272", "front": "0, -127, 272"}
@@ -162,6 +163,8 @@ CLI_CASES = [
      "detector 'right' has an emitter radiance of 5, which the renderer does not use"),
     ("render a detector beyond float32", ["render", "{d}/huge_detector.xml", "-o", "{d}/new.exr"],
      "detector 'right' has area nan mm^2 (a scale beyond float32?)"),
+    ("mesh a bool array", ["mesh", "{d}/bool.npy", *MESH], "has dtype bool; heights must be real numbers"),
+    ("new-scene empty name", ["new-scene", ""], "scene: the path is empty"),
     ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
      "the sampler's sample_count is 0 (-D spp=0)"),
     # -- 8: contradictions refused
