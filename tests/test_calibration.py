@@ -143,3 +143,145 @@ def test_a_detector_at_the_drawn_position_is_reported_not_moved(mi, tmp_path, ca
     assert main(["calibrate", str(tmp_path / "flat.exr"), "-o", str(tmp_path / "c.json")]) == 0
     out = capsys.readouterr().out
     assert out.count("not moved (within the fit's 0.2 mm bias") == 4 and "; moved" not in out
+
+
+# -- images that are not of a flat plate, dead pixels (bad-input sweep): a 32^2 corrugated sheet
+# calibrated with exit 0 (right detector 275 mm off, "not moved", 34 % misfit); one dead pixel
+# moved the left detector 49 mm, also "not moved".
+
+SMALL = 32
+
+
+@pytest.fixture(scope="module")
+def small(mi, tmp_path_factory):
+    """32^2 renders (noise-free, the 1st event by quadrature) of the flat plate and the
+    corrugated sheet, a copy of the flat with one dead pixel, and one with 1 % noise."""
+    from elo_mitsuba.cli import main
+    from elo_mitsuba.exr import read_exr, write_exr
+
+    d = tmp_path_factory.mktemp("small")
+    for scene, name in (("flat_plate", "flat"), ("corrugated_sheet", "corr")):
+        assert main(["render", scene, "-o", str(d / f"{name}.exr"), "--resolution", str(SMALL), "--quiet"]) == 0
+    channels, meta = read_exr(d / "flat.exr")
+    flat = {n: np.array(channels[n], dtype=np.float64) for n in DETECTOR_NAMES}
+    dead = {n: v.copy() for n, v in flat.items()}
+    dead["left"][2, 2] = 0.0
+    write_exr(d / "dead.exr", dead, meta)
+    rng = np.random.default_rng(11)
+    noisy = {n: v * (1 + 0.01 * rng.standard_normal(v.shape)) for n, v in flat.items()}
+    write_exr(d / "noisy.exr", noisy, meta)
+    corr, corr_meta = read_exr(d / "corr.exr")
+    return {"dir": d, "meta": meta, "flat": flat, "dead": dead, "noisy": noisy,
+            "corr": {n: np.array(corr[n], dtype=np.float64) for n in DETECTOR_NAMES}, "corr_meta": corr_meta,
+            "true": ScanGeometry.from_metadata(meta, (SMALL, SMALL))}
+
+
+def test_images_not_of_a_flat_plate_are_refused_in_one_line(small, capsys):
+    from conftest import one_line_error
+
+    from elo_mitsuba.cli import main
+
+    d = small["dir"]
+    rc = main(["calibrate", str(d / "corr.exr"), "-o", str(d / "c_corr.json")])
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
+    line = lines[0]
+    assert line.startswith(f"elo-mitsuba: error: {d / 'corr.exr'}: rms misfit of the flat-plate fit: right "), line
+    assert "left " in line and "do not look like a flat plate" in line and "--max-misfit" in line, line
+    assert not (d / "c_corr.json").exists() and "wrote" not in out
+    # the API: the same refusal, an EloInputError of one line
+    geo = ScanGeometry.from_metadata(small["corr_meta"], (SMALL, SMALL))
+    assert "do not look like a flat plate" in one_line_error(lambda: calibrate(small["corr"], geo))
+    # four single files name theirs; --max-misfit lets it through (and then the labels say what the
+    # fit knows: nothing, not "not moved")
+    for n in DETECTOR_NAMES:
+        np.save(d / f"corr_{n}.npy", small["corr"][n])
+    files = [a for n in DETECTOR_NAMES for a in (f"--{n}", str(d / f"corr_{n}.npy"))]
+    assert main(["calibrate", *files, "--field", "80", "--dh", "272", "--dw", "127", "-o", str(d / "c.json")]) == 2
+    assert f"error: {d / 'corr_right.npy'}, {d / 'corr_left.npy'}: rms misfit" in capsys.readouterr().err
+    assert main(["calibrate", str(d / "corr.exr"), "--max-misfit", "100", "-o", str(d / "c_any.json")]) == 0
+    out = capsys.readouterr().out
+    assert "not moved" not in out and out.count("position not determined") >= 2, out
+
+
+def test_the_misfit_bound_follows_the_images_own_noise(small, mi):
+    """The bound's premise against the noise put in: a flat with 1 % noise per pixel is fitted to
+    about 1 % at 32^2 (one pixel per block) and about 0.5 % at 96^2 (2 x 2 pixels per block), and
+    the images' own noise estimate finds the 1 %; noise-free, the bound is the 1 % floor."""
+    import elo_mitsuba as em
+    from elo_mitsuba.analysis.calibration import MISFIT_FLOOR, misfit_bound
+
+    assert misfit_bound(small["flat"]["right"], 1)[0] == MISFIT_FLOOR
+    cal = calibrate(small["noisy"], small["true"])
+    big = em.load_scene("flat_plate", res=96).render(quality="default")
+    rng = np.random.default_rng(12)
+    noisy96 = {n: np.asarray(big.channels[n], float) * (1 + 0.01 * rng.standard_normal((96, 96)))
+               for n in DETECTOR_NAMES}
+    cal96 = calibrate(noisy96, ScanGeometry.from_metadata(big.metadata, (96, 96)))
+    for n in DETECTOR_NAMES:
+        for c, img, block_pixels in ((cal, small["noisy"][n], 1), (cal96, noisy96[n], 4)):
+            fit = c.detectors[n]
+            block_noise = 0.01 / np.sqrt(block_pixels)
+            assert fit.rms_residual == pytest.approx(block_noise, rel=0.15), (n, fit.rms_residual)
+            bound, noise = misfit_bound(img, block_pixels)
+            assert noise == pytest.approx(0.01, rel=0.15) and fit.noise == pytest.approx(noise)
+            assert fit.misfit_bound == pytest.approx(3 * block_noise, rel=0.15) and bound == fit.misfit_bound
+            assert fit.rejected == 0  # no block of plain noise is taken for a dead pixel
+
+
+def test_a_dead_pixel_does_not_move_a_detector(small, capsys):
+    """One dead pixel (left[2, 2] = 0) pulled the left detector 49 mm; now its block is left out:
+    the fit is that of the intact flat (within the intact fit's stated uncertainty: the pulled fit's
+    own was +-46 mm, wide enough to hide the 49 mm), and near the true centre."""
+    from elo_mitsuba.analysis.calibration import FIT_BIAS_MM
+    from elo_mitsuba.cli import main
+
+    true = small["true"]
+    clean = calibrate(small["flat"], true)
+    dead = calibrate(small["dead"], true)
+    for n in DETECTOR_NAMES:
+        a, b = clean.detectors[n], dead.detectors[n]
+        sigma = np.linalg.norm([a.sigma[k] for k in ("cx", "cy", "cz")])
+        shift = np.linalg.norm(np.subtract(a.disc.center, b.disc.center))
+        off = np.linalg.norm(np.subtract(b.disc.center, true.detectors[n].center))
+        assert shift <= max(2 * sigma, 1e-3) and off <= FIT_BIAS_MM + 2 * sigma, (n, shift, off, sigma)
+        assert b.rejected == (1 if n == "left" else 0)
+    # with 1 % noise: the dead pixel moves the fit by far less than the fit's own uncertainty
+    noisy_dead = {n: v.copy() for n, v in small["noisy"].items()}
+    noisy_dead["left"][2, 2] = 0.0
+    a, b = calibrate(small["noisy"], true).detectors["left"], calibrate(noisy_dead, true).detectors["left"]
+    sigma = np.linalg.norm([a.sigma[k] for k in ("cx", "cy", "cz")])
+    assert np.linalg.norm(np.subtract(a.disc.center, b.disc.center)) <= 0.5 * sigma and b.rejected == 1
+    d = small["dir"]
+    assert main(["calibrate", str(d / "dead.exr"), "-o", str(d / "c_dead.json")]) == 0
+    out = capsys.readouterr().out
+    assert "1 of 1024 blocks left out (dead or hot pixels)" in out and out.count("not moved (within") == 4, out
+    assert json.loads((d / "c_dead.json").read_text())["detectors"]["left"]["blocks_rejected"] == 1
+
+
+def test_good_flats_pass_and_say_what_the_fit_knows(small, capsys):
+    """A noise-free and a 1 %-noise 32^2 flat are accepted; the noisy one's centres are known to
+    +-30-45 mm (2 sigma), more than the 25 mm radius: 'position not determined', never 'not moved'."""
+    from elo_mitsuba.analysis.calibration import describe_displacement
+    from elo_mitsuba.cli import main
+
+    d = small["dir"]
+    assert main(["calibrate", str(d / "flat.exr"), "-o", str(d / "c_flat.json")]) == 0
+    assert capsys.readouterr().out.count("not moved (within the fit's 0.2 mm bias") == 4
+    assert main(["calibrate", str(d / "noisy.exr"), "-o", str(d / "c_noisy.json")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("position not determined (+-") == 4 and "not moved" not in out, out
+    # the wording alone: the bug's numbers, a non-finite uncertainty, and the ordinary cases
+    assert describe_displacement(275.4, 12393.0, scale_mm=25).startswith("position not determined (+-2.5e+04 mm")
+    assert describe_displacement(0.1, float("inf"), scale_mm=25).startswith("position not determined")
+    assert describe_displacement(0.17, 0.01, scale_mm=25).startswith("not moved")
+    assert describe_displacement(30.0, 20.0, scale_mm=25).startswith("position not determined")
+    assert describe_displacement(100.0, 20.0, scale_mm=25).startswith("moved 100.00 mm")
+
+
+def test_max_misfit_is_checked(small):
+    from conftest import one_line_error
+
+    for bad in (0, -0.1, "x", True, float("nan")):
+        assert "max_misfit" in one_line_error(lambda bad=bad: calibrate(small["flat"], small["true"], max_misfit=bad))

@@ -13,6 +13,13 @@ against the 1st-event model :class:`~.detector_model.FacetModel` on a coarse gri
 angles from the nominal one (deg), the gain, and optionally an offset. The radius is held at its
 nominal value: it scales the signal like the gain (S ~ area), so the two cannot be separated.
 
+Images that are not of a flat plate are refused (:class:`~elo_mitsuba.errors.EloInputError`):
+a detector whose rms misfit exceeds what a flat plate's images with their own noise leave
+(:func:`misfit_bound`) makes the fit's geometry meaningless, however small its stated error.
+Isolated dead or hot pixels do not pull the fit: blocks whose residual is more than
+:data:`OUTLIER_SIGMA` robust standard deviations off are left out and the fit repeated
+(:attr:`DetectorFit.rejected` counts them).
+
 The result, :class:`Calibration`, is written as ``CALIB.json`` (per detector: ``center``,
 ``normal``, ``radius``, ``gain``, ``offset``, one-sigma uncertainties, the parameter correlations
 and which parameters the data cannot separate) and turns nominal geometry into calibrated
@@ -46,15 +53,73 @@ FIT_GRID = 48
 FIT_BIAS_MM = 0.2
 
 
-def describe_displacement(moved_mm: float, sigma_mm: float) -> str:
+def describe_displacement(moved_mm: float, sigma_mm: float, scale_mm: float | None = None) -> str:
     """A fitted centre's distance from the drawing, against what the fit can tell: ``"not moved
     (within the fit's 0.2 mm bias and +-0.05 mm noise)"`` when ``moved_mm`` is within
     :data:`FIT_BIAS_MM` plus two standard errors ``sigma_mm``, else ``"moved 5.40 mm (+-0.05,
-    bias 0.2)"``."""
+    bias 0.2)"``. Where two standard errors exceed ``scale_mm`` (the detector's radius: the fit
+    cannot place the detector within its own size) or are not finite, "not moved" would claim what
+    the images cannot tell: ``"position not determined (+-34 mm at 2 sigma, more than the
+    detector's 25 mm radius)"``."""
     limit = FIT_BIAS_MM + 2.0 * sigma_mm
-    if moved_mm <= limit:
+    if moved_mm <= limit or not math.isfinite(sigma_mm):
+        if not math.isfinite(sigma_mm):
+            return "position not determined (the fit's uncertainty is not finite)"
+        if scale_mm is not None and 2.0 * sigma_mm > scale_mm:
+            return (f"position not determined (+-{2 * sigma_mm:.2g} mm at 2 sigma, more than the detector's "
+                    f"{scale_mm:g} mm radius)")
         return f"not moved (within the fit's {FIT_BIAS_MM:g} mm bias and +-{2 * sigma_mm:.2g} mm noise)"
     return f"moved {moved_mm:.2f} mm (+-{sigma_mm:.2f}, fit bias {FIT_BIAS_MM:g})"
+
+
+#: Refusing images that are not of a flat plate (:func:`misfit_bound`). A flat plate's image is
+#: smooth, so the fit leaves about the noise of the block means: sigma_pixel / sqrt(pixels per
+#: block), sigma_pixel the image's own relative noise (second differences over its smoothed level,
+#: :func:`~.noise.relative_noise`). A detector's rms misfit (relative, block means) may reach
+#: MISFIT_NOISE_FACTOR times that, at least MISFIT_FLOOR; sigma_pixel counts at most
+#: PIXEL_NOISE_CAP: relief finer than a pixel (or edges of relief) passes for noise in one image,
+#: and a flat-plate recording is not that noisy. Measured (misfit on the block means):
+#:   flat_plate renders, 16-1024 px: noise-free 0.000 %; with 1 % and 5 % multiplicative noise per
+#:   pixel the misfit is 0.88-1.07 x the estimated noise of the block means (1 % at 16-64 px,
+#:   0.49 % at 128, 0.024 % for 0.5 % at 1024); Monte-Carlo renders (quality=scene) 0.04-0.10 %,
+#:   0.9-1.15 x their noise; athene_flat (the plate in a chamber, events 1+2) 0.04-0.24 %.
+#:   corrugated_sheet, the worst detector: 45 % (16 px), 66 % (32), 84 % (64), 20 % (128),
+#:   9.5 % (256), 5.9 % (1024); its noise estimate is the relief itself (20-55 % per pixel at 16,
+#:   32, 128 and 256 px). The bound there: 15, 15, 1.3, 7.5, 3.0, 1.0 %.
+#:   One dead pixel at 32 px, before outliers were left out: 3.5 % (bound 1 %); a hot one (x10): 31 %.
+#: The factor 3 leaves room for noise that is not white (neighbours' differences understate an
+#: amplifier's low-pass along the lines); the floor, for a real machine's departures from the disc
+#: model (the renders' own are < 1e-5); the cap, 5-10 x the noise of a usable flat (0.5-1 %; at
+#: 32 px, 1 % already leaves the centres +-17 mm).
+MISFIT_NOISE_FACTOR = 3.0
+MISFIT_FLOOR = 0.01
+PIXEL_NOISE_CAP = 0.05
+#: A block whose residual is more than OUTLIER_SIGMA robust standard deviations (1.4826 MAD, at
+#: least OUTLIER_FLOOR: the model's own error on noise-free renders is < 1e-5) from the median is
+#: an outlier (a dead or hot pixel); the fit is repeated without it, at most OUTLIER_ROUNDS times.
+#: More than MAX_OUTLIER_FRACTION of the blocks off is no isolated defect: nothing is left out
+#: and the misfit check judges the images.
+OUTLIER_SIGMA = 5.0
+OUTLIER_FLOOR = 1e-3
+OUTLIER_ROUNDS = 3
+MAX_OUTLIER_FRACTION = 0.02
+
+
+def misfit_bound(image, block_pixels: int) -> tuple[float, float]:
+    """The largest rms misfit (relative) a flat plate's ``image`` may leave in a fit on block means
+    of ``block_pixels`` pixels each, and the image's own relative noise per pixel it is based on:
+    ``max(MISFIT_FLOOR, MISFIT_NOISE_FACTOR * min(noise, PIXEL_NOISE_CAP) / sqrt(block_pixels))``
+    with ``noise`` from the image's second differences (:func:`~.noise.relative_noise`)."""
+    from ..constants import DETECTOR_NAMES
+    from .noise import relative_noise
+
+    # relative_noise takes a set of four; the same image four times gives this image's own level
+    noise = relative_noise({n: image for n in DETECTOR_NAMES})
+    noise = float(noise) if math.isfinite(noise) else 0.0
+    block_noise = min(noise, PIXEL_NOISE_CAP) / math.sqrt(max(block_pixels, 1))
+    return float(max(MISFIT_FLOOR, MISFIT_NOISE_FACTOR * block_noise)), noise
+
+
 #: Disc rule of the calibration's model (more nodes than the gradient's: the fit is small).
 CALIBRATION_NODES = (2, 6)
 #: |correlation| above this: the pair is reported as not separable by the data.
@@ -76,11 +141,24 @@ class DetectorFit:
     correlation: dict
     degenerate: list
     rms_residual: float
+    #: blocks of the fit grid left out as outliers (dead or hot pixels), of ``blocks``
+    rejected: int = 0
+    blocks: int = 0
+    #: the largest rms misfit a flat plate's image may leave (:func:`misfit_bound`) and the
+    #: image's own relative noise per pixel it is based on
+    misfit_bound: float = float("nan")
+    noise: float = float("nan")
 
     def as_dict(self) -> dict:
         return {**self.disc.as_dict(), "gain": self.gain, "offset": self.offset, "sigma": self.sigma,
                 "correlation": self.correlation, "not_separable": self.degenerate,
-                "rms_residual_relative": self.rms_residual}
+                "rms_residual_relative": self.rms_residual, "blocks_rejected": self.rejected,
+                "blocks": self.blocks, "misfit_bound_relative": _finite_or_none(self.misfit_bound),
+                "pixel_noise_relative": _finite_or_none(self.noise)}
+
+
+def _finite_or_none(value: float):
+    return float(value) if math.isfinite(value) else None
 
 
 @dataclass
@@ -134,7 +212,8 @@ def block_mean(image, grid: int) -> tuple[np.ndarray, tuple]:
 
 
 def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False, grid: int = FIT_GRID,
-              fit_center: bool = True, fit_tilt: bool = True) -> Calibration:
+              fit_center: bool = True, fit_tilt: bool = True, max_misfit: float | None = None,
+              source=None) -> Calibration:
     """Fit every detector's centre, tilt and gain (and offset) to its flat-plate image.
 
     Parameters
@@ -149,13 +228,34 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
         The fit runs on ``grid`` x ``grid`` block means of each image.
     fit_center, fit_tilt : bool
         Hold the centre / the normal at the nominal value when False.
+    max_misfit : float, optional
+        The largest rms misfit (relative, e.g. 0.03) a detector's fit may leave; default: per
+        detector :func:`misfit_bound` (3 x the noise of its block means, at least 1 %);
+        ``math.inf`` accepts any.
+    source : str or mapping of str to str, optional
+        How the refusal names the images: one name, or a file per detector.
 
     Returns
     -------
     Calibration
+
+    Raises
+    ------
+    EloInputError
+        A detector's fit misfits its image by more than the bound: the images do not look like a
+        flat plate (or are far too noisy); nothing of the fit is returned. Isolated dead or hot
+        pixels are left out of the fit instead (:attr:`DetectorFit.rejected`).
     """
     from scipy.optimize import least_squares
 
+    if max_misfit is not None:
+        try:
+            ok = not isinstance(max_misfit, bool) and float(max_misfit) > 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise EloInputError(f"max_misfit {max_misfit!r}: need a relative misfit > 0 (e.g. 0.03), or None for "
+                                "the images' own bound")
     names = [n for n in nominal.detectors if n in flats]
     if not names:
         raise EloInputError(f"flat-plate images for {', '.join(nominal.detectors)} are needed; got {', '.join(flats)}")
@@ -171,6 +271,7 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
         if not np.all(np.isfinite(img)):
             raise EloInputError(f"flat-plate image {n!r} holds NaN or Inf; cannot calibrate")
         data[n], covered = block_mean(img, grid)
+        block_pixels = (covered[0] // data[n].shape[0]) * (covered[1] // data[n].shape[1])
         coarse_shape = data[n].shape
         if not np.median(data[n]) > 0:
             raise EloInputError(f"flat-plate image {n!r} is not positive (median {np.median(data[n]):g}); "
@@ -211,12 +312,12 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
             x[idx] = xf
             return x
 
-        def resid(xf):
+        def residual(xf, keep):
             x = full(xf)
             (m,) = models([x[:5]])
-            return (x[5] * m + x[6] - y) / level
+            return ((x[5] * m + x[6] - y) / level)[keep]
 
-        def jac(xf):
+        def jac(xf, keep):
             # central differences of the geometry, absolute steps well above float32 round-off
             # (the model is float32: a 1e-3 mm step would change the signal by ~1e-6)
             x = full(xf)
@@ -235,10 +336,29 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
                     cols.append(sig[0] / level)
                 else:
                     cols.append(np.full(sig[0].shape, 1.0 / level))
-            return np.stack(cols, axis=1)
+            return np.stack(cols, axis=1)[keep]
 
-        sol = least_squares(resid, x0[idx], jac=jac, method="trf", x_scale="jac", xtol=1e-8, ftol=1e-10,
-                            max_nfev=30)
+        def solve(keep):
+            return least_squares(residual, x0[idx], jac=jac, args=(keep,), method="trf", x_scale="jac",
+                                 xtol=1e-8, ftol=1e-10, max_nfev=30)
+
+        # isolated dead/hot pixels: leave out blocks far off a robust spread of the residuals and
+        # fit again from the drawing (the first fit may have been pulled far off by them)
+        everything = np.ones(y.shape, bool)
+        keep = everything
+        sol = first = solve(keep)
+        for _ in range(OUTLIER_ROUNDS):
+            r = residual(sol.x, everything)
+            centre = float(np.median(r[keep]))
+            spread = max(1.4826 * float(np.median(np.abs(r[keep] - centre))), OUTLIER_FLOOR)
+            new_keep = np.abs(r - centre) <= OUTLIER_SIGMA * spread
+            if np.count_nonzero(~new_keep) > MAX_OUTLIER_FRACTION * y.size:  # no isolated defect
+                keep, sol = everything, first
+                break
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+            sol = solve(keep)
         x = full(sol.x)
         r = sol.fun
         dof = max(len(r) - len(idx), 1)
@@ -256,11 +376,35 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
         correlation = {f"{names_free[i]}~{names_free[j]}": round(float(corr[i, j]), 4)
                        for i in range(len(idx)) for j in range(i + 1, len(idx))}
         degenerate = [k for k, v in correlation.items() if not abs(v) < DEGENERATE_CORRELATION]
+        bound, noise = misfit_bound(flats[name], block_pixels)
+        if max_misfit is not None:
+            bound = float(max_misfit)
         fits[name] = DetectorFit(disc=_disc_from(x, nominal_disc), gain=float(x[5]), offset=float(x[6]),
                                  sigma=sigma, correlation=correlation, degenerate=degenerate,
-                                 rms_residual=float(np.sqrt(np.mean(r * r))))
+                                 rms_residual=float(np.sqrt(np.mean(r * r))), rejected=int(np.count_nonzero(~keep)),
+                                 blocks=int(y.size), misfit_bound=bound, noise=noise)
+    _refuse_misfits(fits, source, max_misfit is not None)
     return Calibration(detectors=fits, source={"nominal": nominal.as_dict(), "grid": list(coarse_shape),
                                                "fit_offset": bool(fit_offset)})
+
+
+def _refuse_misfits(fits: Mapping, source, given: bool) -> None:
+    """One line naming every detector whose fit misfits its image beyond its bound, if any."""
+    bad = [(n, f) for n, f in fits.items() if not f.rms_residual <= f.misfit_bound]
+    if not bad:
+        return
+    where = ""
+    if isinstance(source, Mapping):
+        where = ", ".join(dict.fromkeys(str(source[n]) for n, _ in bad if n in source))
+    elif source:
+        where = str(source)
+    parts = ", ".join(f"{n} {100 * f.rms_residual:.3g} % > {100 * f.misfit_bound:.3g} %" for n, f in bad)
+    why = ("the given bound" if given else
+           f"bound {MISFIT_NOISE_FACTOR:g} x the noise of the block means from the images' own, at least "
+           f"{100 * MISFIT_FLOOR:g} %")
+    raise EloInputError(f"{where + ': ' if where else ''}rms misfit of the flat-plate fit: {parts} ({why}; a flat "
+                        "plate's images leave about their noise): these images do not look like a flat plate (or are "
+                        "too noisy to calibrate; --max-misfit / max_misfit= sets the bound)")
 
 
 def write_calibration(path, calibration: Calibration, *, overwrite: bool = False) -> Path:

@@ -23,7 +23,15 @@ per detector, center, normal, radius, gain, offset, one-sigma uncertainties, the
 correlations and the pairs the data cannot separate (|correlation| > 0.99): those are known only
 in combination, which is what the images (and the model gradient) depend on.
 Precision: with 0.5 % noise per pixel, about 0.2 mm in the centre from a 1024 x 1024 flat,
-about 3 mm from 128 x 128 (the noise of the block means sets it).
+about 3 mm from 128 x 128 (the noise of the block means sets it). A centre whose two standard
+errors exceed the detector's radius is reported as "position not determined", not "not moved".
+
+Images that are not of a flat plate are refused (exit 2, nothing written): a flat plate's image is
+smooth and leaves an rms misfit about the noise of its block means (the images' own noise per
+pixel, from their second differences, counted up to 5 %, over sqrt(pixels per block)); a detector
+whose misfit exceeds 3 x that, or 1 % if more, fails (--max-misfit PCT sets the bound). Isolated
+dead or hot pixels do not pull the fit: blocks more than 5 robust standard deviations off are left
+out and the fit repeated (the count is printed).
 
 Use the result with 'elo-mitsuba gradient --calibration CALIB.json'.
 """
@@ -61,6 +69,9 @@ def add_parser(subparsers):
     fit = p.add_argument_group("fit")
     fit.add_argument("--fit-offset", action="store_true", help="also fit a constant offset per detector")
     fit.add_argument("--no-tilt", action="store_true", help="hold each normal at its nominal direction")
+    fit.add_argument("--max-misfit", type=positive_float, metavar="PCT",
+                     help="largest rms misfit in %% a detector's fit may leave (default: 3 x the noise of its block "
+                          "means, from the images' own, at least 1 %%); above it the images are refused")
     fit.add_argument("--event", type=positive_int, metavar="K", help="use the per-event channels right.eK ... of the EXR")
     p.add_argument("--overwrite", action="store_true", help="replace an existing CALIB.json")
     p.set_defaults(run=run)
@@ -79,7 +90,10 @@ def run(args) -> int:
     nominal = calibration_start(header, shape, source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
                                 radius=args.radius, work_distance_mm=args.wd, projection=args.projection,
                                 material=args.material)
-    cal = calibrate(flats, nominal, fit_offset=args.fit_offset, fit_tilt=not args.no_tilt)
+    files = [str(f) for f in args.flat] or {n: str(getattr(args, n)) for n in DETECTOR_NAMES if getattr(args, n)}
+    cal = calibrate(flats, nominal, fit_offset=args.fit_offset, fit_tilt=not args.no_tilt,
+                    max_misfit=None if args.max_misfit is None else args.max_misfit / 100,
+                    source=", ".join(files) if isinstance(files, list) else files)
     cal.source["input"] = [str(f) for f in args.flat] if len(args.flat) > 1 else source
     write_calibration(out, cal, overwrite=args.overwrite)
     for name, fit in cal.detectors.items():
@@ -88,9 +102,11 @@ def run(args) -> int:
         sig = [fit.sigma.get(k, 0.0) for k in ("cx", "cy", "cz")]
         tilt = np.degrees(np.arccos(np.clip(np.dot(fit.disc.normal, nominal.detectors[name].normal), -1, 1)))
         note = f"; not separable: {', '.join(fit.degenerate)}" if fit.degenerate else ""
-        moved = describe_displacement(float(np.linalg.norm(c - nom)), float(np.linalg.norm(sig)))
+        moved = describe_displacement(float(np.linalg.norm(c - nom)), float(np.linalg.norm(sig)),
+                                      scale_mm=float(nominal.detectors[name].radius))
+        left_out = (f"; {fit.rejected} of {fit.blocks} blocks left out (dead or hot pixels)" if fit.rejected else "")
         print(f"  {name:6s} centre [{c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}] mm (+-{max(sig):.2f}; {moved}), "
               f"tilt {tilt:.2f} deg, gain {fit.gain:.5g}, "
-              f"rms misfit {100 * fit.rms_residual:.3f} %{note}")
+              f"rms misfit {100 * fit.rms_residual:.3f} % (bound {100 * fit.misfit_bound:.3g} %){left_out}{note}")
     print(f"wrote {out}")
     return 0
