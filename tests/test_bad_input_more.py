@@ -165,6 +165,8 @@ CLI_CASES = [
      "detector 'right' has area nan mm^2 (a scale beyond float32?)"),
     ("mesh a bool array", ["mesh", "{d}/bool.npy", *MESH], "has dtype bool; heights must be real numbers"),
     ("new-scene empty name", ["new-scene", ""], "scene: the path is empty"),
+    ("calibrate --event with --second-event", ["calibrate", "{d}/flat.exr", "--event", "1", "--second-event",
+                                               "{d}/flat.exr", "-o", "{d}/c.json"], "--event 1 already takes one event"),
     ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
      "the sampler's sample_count is 0 (-D spp=0)"),
     # -- 8: contradictions refused

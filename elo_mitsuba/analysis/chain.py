@@ -565,9 +565,16 @@ def invert(scan: Scan, geometry, *, fwhm_mm: float = 0.0, start=None, second_eve
                                     flat_later_error=flat_later_error, **solver)
 
 
-def read_calibration_flats(flat: Sequence = (), files: Mapping | None = None, event: int | None = None):
+def read_calibration_flats(flat: Sequence = (), files: Mapping | None = None, event: int | None = None,
+                           second_event=None):
     """The flat-plate images a calibration fits (the mean of several EXR recordings of one set-up,
-    or four single-channel files), their header and how messages name its file."""
+    or four single-channel files), their header and how messages name its file.
+
+    ``second_event`` (a render of the flat plate in its chamber with ``--events >= 2``): each
+    pixel's share of events >= 2 in that render is taken out of the images (times 1 - share), so
+    that the 1st-event fit sees the 1st event; a chamber's later events are smooth over the field
+    and a fit without them moves the detectors to mimic them (athene_flat, 128^2: 10-16 mm).
+    """
     from ..schema import SETUP_KEYS
     from .io import load_detector_set
     from .stsa import mean_flat
@@ -576,6 +583,9 @@ def read_calibration_flats(flat: Sequence = (), files: Mapping | None = None, ev
     flat = list(flat or [])
     if flat and any(files.values()):
         raise EloInputError("flat-plate images: give FLAT.exr files or the four single files, not both")
+    if second_event is not None and event is not None:
+        raise EloInputError(f"--event {event} already takes one event's channels; --second-event removes the later "
+                            "events of the total: give one")
     sets = [load_detector_set(f, None, "flat-plate images", event) for f in flat] or \
         [load_detector_set(None, files, "flat-plate images", event)]
     if sets[0][0] is None:
@@ -588,6 +598,11 @@ def read_calibration_flats(flat: Sequence = (), files: Mapping | None = None, ev
                                     f"{header.get(key)!r}; average only recordings of one set-up")
     flats = mean_flat([images for images, _ in sets])
     source = str(flat[0]) if flat else "command line"  # the header's file
+    if second_event is not None:
+        from .io import read_later_events
+
+        _, share = read_later_events(second_event, next(iter(flats.values())).shape)
+        flats = {n: img * (1.0 - share[n]) for n, img in flats.items()}
     return flats, header, source
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
@@ -32,6 +33,10 @@ pixel, from their second differences, counted up to 5 %, over sqrt(pixels per bl
 whose misfit exceeds 3 x that, or 1 % if more, fails (--max-misfit PCT sets the bound). Isolated
 dead or hot pixels do not pull the fit: blocks more than 5 robust standard deviations off are left
 out and the fit repeated (the count is printed).
+
+A flat in a chamber records the walls' later events too (athene_flat: 6.5 % of the signal), which
+the 1st-event fit takes for moved detectors (10-16 mm) and larger gains: give --second-event with a
+render of the flat plate in that chamber (--events 2) to take them out first.
 
 Use the result with 'elo-mitsuba gradient --calibration CALIB.json'.
 """
@@ -73,6 +78,10 @@ def add_parser(subparsers):
                      help="largest rms misfit in %% a detector's fit may leave (default: 3 x the noise of its block "
                           "means, from the images' own, at least 1 %%); above it the images are refused")
     fit.add_argument("--event", type=positive_int, metavar="K", help="use the per-event channels right.eK ... of the EXR")
+    fit.add_argument("--second-event", metavar="SIM_FLAT.exr",
+                     help="a render of the flat plate in its chamber with --events >= 2 (the drawing's geometry): "
+                          "each pixel's share of events >= 2 is taken out of the images before the 1st-event fit, "
+                          "which would otherwise move the detectors to mimic the chamber's later events")
     p.add_argument("--overwrite", action="store_true", help="replace an existing CALIB.json")
     p.set_defaults(run=run)
     return p
@@ -85,7 +94,11 @@ def run(args) -> int:
 
     out = check_output(args.output, (".json",), overwrite=args.overwrite, what="calibration")
     flats, header, source = read_calibration_flats(args.flat, {n: getattr(args, n) for n in DETECTOR_NAMES},
-                                                   args.event)
+                                                   args.event, second_event=args.second_event)
+    if int(header.get("events", 1)) > 1 and args.event is None and args.second_event is None:
+        print(f"note: {source} was rendered with events={header['events']}: the fit's model is the 1st event, and it "
+              "moves the detectors to mimic the later events (athene_flat: 10-16 mm); use --event 1, or "
+              "--second-event SIM_FLAT.exr for recordings", file=sys.stderr)
     shape = next(iter(flats.values())).shape
     nominal = calibration_start(header, shape, source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
                                 radius=args.radius, work_distance_mm=args.wd, projection=args.projection,
