@@ -210,7 +210,9 @@ class EloScene:
         meta = {
             "generator": f"elo-mitsuba {__version__}",
             "scene": str(self.path),
-            "parameters": self.params,
+            # the scene file's parameters as this render applied them (a preset replaces the sampler's spp)
+            "parameters": {**self.params, **{k: str(v) for k, v in (("spp", spp), ("events", self.integrator.events))
+                                             if k in self.params}},
             UNITS: signal_units(self.integrator.units),
             **grid_header((s.field, s.field_y), (h, w)),  # the key names of schema.py, its one writer
             "pixel_size_mm": s.field / s.resolution[0],

@@ -81,3 +81,14 @@ def test_cli_refuses_settings_that_would_not_take_effect(tmp_path, args, message
               *args[:2]) if args[0] != "--seed" else None
     if ok is not None:
         assert ok.returncode == 0, ok.stderr  # with the scene's own sampling they do take effect
+
+
+def test_the_header_records_the_parameters_as_applied():
+    """A scene parameter the render replaced (the sampler's spp under a preset, the events of
+    render(events=)) is recorded as applied, not as given: the header never says 64 spp for 1."""
+    scene = em.load_scene("flat_plate", res=4, spp=64)
+    own = scene.render(progress=False)  # the scene file's sampler: its spp applies
+    assert own.metadata["spp"] == 64 and own.metadata["parameters"]["spp"] == "64"
+    preset = scene.render(quality="default", events=2, progress=False)
+    assert preset.metadata["spp"] == 1 and preset.metadata["events"] == 2
+    assert preset.metadata["parameters"]["spp"] == "1" and preset.metadata["parameters"]["events"] == "2"
