@@ -174,7 +174,7 @@ def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
     if METADATA_ATTRIBUTE in header:
         try:
             meta = json.loads(header[METADATA_ATTRIBUTE])
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} is not valid JSON") from None
         if not isinstance(meta, dict):
             raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} holds a JSON "

@@ -44,8 +44,12 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
         immutable, ``/proc``: :func:`check_writable_folder`), or, with ``overwrite``, an existing
         file that cannot be replaced (immutable or append-only).
     """
+    if not (isinstance(overwrite, bool) or type(overwrite).__name__ == "bool_"):  # 'no' or 1 would read as consent
+        raise EloInputError(f"overwrite={overwrite!r}: must be True or False")
     if not str(path).strip():
         raise EloInputError(f"{what}: the path is empty; give a file name")
+    if "\x00" in str(path):  # C libraries cut the name there and write to another file
+        raise EloInputError(f"{what} {str(path)!r}: a path cannot hold a NUL character")
     path = Path(path)
     if suffixes is not None:
         suffixes = tuple(suffixes)

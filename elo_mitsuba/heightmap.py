@@ -424,7 +424,7 @@ def validate_heightmap(height, what: str = "height map", *, allow_nan: bool = Fa
 def validate_pixel_size(pixel_size_mm) -> float:
     try:
         p = float(pixel_size_mm)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise EloInputError(f"pixel size {pixel_size_mm!r} is not a number; give it in mm (> 0)") from None
     if not math.isfinite(p) or p <= 0:
         raise EloInputError(f"pixel size {pixel_size_mm!r} mm must be a finite number > 0")

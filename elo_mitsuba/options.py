@@ -182,7 +182,10 @@ def _coerce(f: dataclasses.Field, value):
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
         raise EloInputError(f"elo: {name}={value!r}; must be a number")
-    number = float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an int beyond float (10**400)
+        raise EloInputError(f"elo: {name}={value!r}; must be a finite number") from None
     if kind == "int":
         if not (math.isfinite(number) and number == int(number)):
             raise EloInputError(f"elo: {name}={value!r}; must be a whole number")

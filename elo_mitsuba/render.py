@@ -33,6 +33,7 @@ from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
+from .arguments import flag, shown, whole_number
 from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
@@ -323,6 +324,7 @@ class EloScene:
                 if not hasattr(bsdf, "set_material"):
                     raise EloInputError(f"shape {shape_id!r} has no elo_bse BSDF")
                 bsdf.set_material(material)
+                self.params.pop("material", None)  # no longer what the shapes hold: the header's 'materials' says
                 return
         ids = ", ".join(sorted(s.id() for s in self.scene.shapes() if s.id()))
         raise EloInputError(f"no shape with id {shape_id!r} (shapes: {ids})")
@@ -373,7 +375,7 @@ class EloScene:
         c = _vector3(name, "centre", center if center is not None else geo["center"])
         try:
             r = float(radius if radius is not None else geo["radius"])
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise EloInputError(f"detector {name!r}: radius {radius!r}; need a number of mm > 0") from None
         if not (r > 0 and math.isfinite(r)):
             raise EloInputError(f"detector {name!r}: radius {r}; need a finite number of mm > 0")
@@ -424,7 +426,7 @@ class EloScene:
         >>> [round(v, 4) for v in scene.detector_geometry()["right"]["center"]]
         [127.0, 0.0, 272.0]
         """
-        names = list(self._loaded) if names is None else list(names)
+        names = list(self._loaded) if names is None else [names] if isinstance(names, str) else list(names)
         unknown = [n for n in names if n not in self._loaded]
         if unknown:
             raise EloInputError(f"no placed detector {unknown[0]!r} (detectors: {', '.join(self._loaded)})")
@@ -543,9 +545,11 @@ class EloScene:
         >>> bool(0 < result.channels["right"].mean() < 1)
         True
         """
-        seed = _whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
-        if spp is not None:
-            spp = _whole_number("spp", spp, 1, None)
+        seed = whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
+        spp, force = None if spp is None else whole_number("spp", spp, 1, None), flag("force", force)
+        progress = flag("progress", progress, none=True)
+        if quality is not None and (not isinstance(quality, str) or quality not in QUALITIES + ("custom",)):
+            raise EloInputError(f"quality {shown(quality)}; choose one of {', '.join(QUALITIES)}")
         if events is not None:
             self.set_events(events)
         # the quality is applied at every render, so that the result depends on the scene's state
@@ -622,24 +626,11 @@ def _vector3(name: str, what: str, value) -> np.ndarray:
     """Three finite millimetre values, or one line naming the detector and the value."""
     try:
         v = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         v = np.array([np.nan])
     if v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise EloInputError(f"detector {name!r}: {what} {value!r}; need 3 finite numbers (x, y, z)")
+        raise EloInputError(f"detector {name!r}: {what} {shown(value)}; need 3 finite numbers (x, y, z)")
     return v
-
-
-def _whole_number(name: str, value, lo: int, hi: int | None) -> int:
-    """``value`` as an int in [lo, hi], or one line naming ``name``, the value and the range."""
-    try:
-        number = float(value)
-        ok = math.isfinite(number) and number == int(number) and not isinstance(value, bool)
-    except (TypeError, ValueError):
-        ok = False
-    if not ok or int(number) < lo or (hi is not None and int(number) > hi):
-        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise EloInputError(f"{name}={value!r}; must be a whole number {bound}")
-    return int(number)
 
 
 def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:
@@ -712,6 +703,7 @@ def render(scene, spp: int | None = None, events: int | None = None, seed: int =
     """
     if not isinstance(scene, EloScene):
         scene = load_scene(scene, variant=variant, detector_layout=detector_layout, **params)
-    elif params or detector_layout:
-        raise EloInputError("scene parameters are fixed once an EloScene is loaded; use set_detector/set_material")
+    elif params or detector_layout or variant is not None:
+        raise EloInputError("scene parameters (and the variant) are fixed once an EloScene is loaded; use "
+                            "set_detector/set_material, or load_scene anew")
     return scene.render(spp=spp, seed=seed, events=events, force=force)

@@ -292,7 +292,56 @@ API_CASES = [
     ("read_calibration below", lambda: _read_calibration({"center": [127, 0, -1]}), "at or below the build plane"),
     ("read_calibration gain 0", lambda: _read_calibration({"gain": 0}), "finite gain other than 0"),
     ("heightmap_to_mesh beyond float32", lambda: _mesh(np.full((3, 3), 4e38)), "beyond the float32 range"),
+    # the Python API's sweep (2026-12-05): truthy non-bools read as consent, numbers beyond float,
+    # settings that silently changed or emptied a result
+    ("write_exr overwrite='no'", lambda: _scene().render(quality="draft", progress=False).write_exr(
+        "/tmp/never-written.exr", overwrite="no"), "overwrite='no': must be True or False"),
+    ("write_exr NUL in the path", lambda: write_exr("/tmp/never\x00written.exr", {"a": np.zeros((2, 2))}),
+     "a path cannot hold a NUL character"),
+    ("render force='False'", lambda: _scene().render(force="False"), "force='False'; must be True or False"),
+    ("render progress='no'", lambda: _scene().render(progress="no"), "progress='no'; must be True or False (or None)"),
+    ("render quality a list", lambda: _scene().render(quality=["draft"]), "quality ['draft']; choose one of"),
+    ("render spp text", lambda: _scene().render(spp="4"), "spp='4'; must be a whole number >= 1"),
+    ("render events beyond float", lambda: _scene().render(events=10 ** 400), "elo: events=1000"),
+    ("configure beyond float", lambda: _scene().configure(detector_samples=10 ** 400), "must be a finite number"),
+    ("render a loaded scene with a variant", lambda: em.render(_scene(), variant="bogus"),
+     "fixed once an EloScene is loaded"),
+    ("ScanGeometry shape 16.5", lambda: _geometry((16.5, 16)), "shape (16.5, 16): give (rows, columns)"),
+    ("calibrate without the back detector", lambda: _calibrate(drop="back"), "back missing (got right, left, front)"),
+    ("calibrate grid 0", lambda: _calibrate(grid=0), "grid=0; must be a whole number >= 2"),
+    ("surface_gradient min_sum nan", lambda: _gradient(min_sum=math.nan), "min_sum=nan; must be a number in [0, 2)"),
+    ("model_gradient iterations 1.5", lambda: _model_gradient(iterations=1.5), "iterations=1.5; must be a whole number"),
 ]
+
+
+def _geometry(shape=(8, 8)):
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+    return ScanGeometry.nominal(shape, 80.0, 272.0, 127.0)
+
+
+def _flats():
+    from elo_mitsuba.analysis import flat_plate_images
+
+    return flat_plate_images((8, 8), 80.0, 272.0, 127.0, model="lambert")
+
+
+def _calibrate(drop=None, **kw):
+    from elo_mitsuba.analysis.calibration import calibrate
+
+    return calibrate({n: v for n, v in _flats().items() if n != drop}, _geometry(), **kw)
+
+
+def _gradient(**kw):
+    from elo_mitsuba.analysis import surface_gradient
+
+    return surface_gradient(_flats(), _flats(), 80.0, 272.0, 127.0, **kw)
+
+
+def _model_gradient(**kw):
+    from elo_mitsuba.analysis.model_gradient import model_gradient
+
+    return model_gradient(_flats(), _flats(), _geometry(), **kw)
 
 
 def _read_calibration(right, tmp=[]):  # noqa: B006 - one folder for the module's calls
@@ -320,6 +369,14 @@ def _mesh(height):
 def test_api_bad_input(call, fragment):
     message = one_line_error(call)
     assert fragment in message, message
+
+
+def test_a_refused_render_changes_nothing():
+    """A render refused for its quality leaves the events as they were (set_events ran first)."""
+    scene = _scene()
+    with pytest.raises(em.EloInputError, match="quality 'bogus'"):
+        scene.render(events=2, quality="bogus")
+    assert scene.options.events == 1
 
 
 def test_refused_configure_changes_nothing():

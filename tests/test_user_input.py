@@ -92,3 +92,13 @@ def test_the_header_records_the_parameters_as_applied():
     preset = scene.render(quality="default", events=2, progress=False)
     assert preset.metadata["spp"] == 1 and preset.metadata["events"] == 2
     assert preset.metadata["parameters"]["spp"] == "1" and preset.metadata["parameters"]["events"] == "2"
+
+
+def test_a_material_set_after_loading_is_not_recorded_as_the_scene_parameter():
+    """set_material changes what a shape holds: the header's per-shape 'materials' says it, and the
+    scene file's 'material' parameter, no longer applied, is not recorded."""
+    scene = em.load_scene("flat_plate", res=4)
+    assert scene.render(progress=False).metadata["parameters"]["material"] == "Ti-6Al-4V"
+    scene.set_material("plate", "Cu")
+    meta = scene.render(progress=False).metadata
+    assert meta["materials"]["plate"].startswith("Cu") and "material" not in meta["parameters"]

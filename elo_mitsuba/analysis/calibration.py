@@ -251,14 +251,23 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
     if max_misfit is not None:
         try:
             ok = not isinstance(max_misfit, bool) and float(max_misfit) > 0
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             ok = False
         if not ok:
             raise EloInputError(f"max_misfit {max_misfit!r}: need a relative misfit > 0 (e.g. 0.03), or None for "
                                 "the images' own bound")
+    from ..arguments import shown, whole_number
+
+    grid = whole_number("grid", grid, 2, None)
+    if not hasattr(nominal, "detectors") or not hasattr(nominal, "field_mm"):
+        raise EloInputError(f"nominal={shown(nominal)}: must be a ScanGeometry (the drawing's detectors, beam and field)")
+    if not isinstance(flats, Mapping):
+        raise EloInputError(f"flats={shown(flats)}: must map each detector's name to its flat-plate image")
     names = [n for n in nominal.detectors if n in flats]
-    if not names:
-        raise EloInputError(f"flat-plate images for {', '.join(nominal.detectors)} are needed; got {', '.join(flats)}")
+    missing = [n for n in nominal.detectors if n not in flats]
+    if missing:  # a detector left out would keep the drawing's geometry without a word
+        raise EloInputError(f"flat-plate images for {', '.join(nominal.detectors)} are needed; "
+                            f"{', '.join(missing)} missing (got {', '.join(map(str, flats)) or 'none'})")
     first = np.asarray(flats[names[0]], float)
     if first.ndim != 2 or first.shape != tuple(nominal.shape):
         raise EloInputError(f"flat-plate images are {first.shape}, the geometry {nominal.shape}: one scan needed")
@@ -437,7 +446,7 @@ def read_calibration(path) -> Calibration:
             raise EloInputError(f"{path}: detector {name!r} lacks {', '.join(missing)} (need center, normal, radius)")
         try:
             disc = Disc(d["center"], d["normal"], d["radius"])
-        except (TypeError, ValueError) as exc:  # text where numbers belong
+        except (TypeError, ValueError, OverflowError) as exc:  # text where numbers belong
             raise EloInputError(f"{path}: detector {name!r}: center {d['center']!r}, normal {d['normal']!r}, radius "
                                 f"{d['radius']!r}; need 3 numbers, 3 numbers and a number of mm > 0") from None
         except EloInputError as exc:
@@ -447,7 +456,7 @@ def read_calibration(path) -> Calibration:
         for key, default in (("gain", 1.0), ("offset", 0.0), ("rms_residual_relative", float("nan"))):
             try:
                 numbers[key] = float(d.get(key, default))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise EloInputError(f"{path}: detector {name!r}: {key} {d[key]!r} is not a number") from None
         if not (math.isfinite(numbers["gain"]) and numbers["gain"] != 0 and math.isfinite(numbers["offset"])):
             raise EloInputError(f"{path}: detector {name!r}: gain {numbers['gain']!r}, offset {numbers['offset']!r}; "

@@ -275,6 +275,13 @@ def surface_gradient(images: Mapping, flats: Mapping | None, field_mm, d_h, d_w,
     >>> round(float(result.dzdx.mean()), 4), round(float(np.abs(result.dzdy).max()), 4), bool(result.mask.any())
     (0.1, 0.0, False)
     """
+    from ..arguments import fraction
+
+    for name, value in (("min_flat_fraction", min_flat_fraction), ("min_corrected", min_corrected),
+                        ("min_denominator", min_denominator)):
+        fraction(name, value)
+    fraction("min_sum", min_sum, 0.0, 2.0)  # R^C + L^C is 2 on a flat plate
+    fraction("geometric_margin", geometric_margin)  # a cosine: 0 flags normals that face a detector edge-on
     if flats is None:
         corrected = check_images(images, "corrected images")
         bad_in = np.zeros(next(iter(corrected.values())).shape, dtype=bool)

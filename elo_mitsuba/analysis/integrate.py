@@ -736,7 +736,7 @@ def check_scan_grid_slopes(dzdx, dzdy, field_mm, work_distance_mm, mask=None, *,
 
     try:
         wd = float(work_distance_mm)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         wd = math.nan
     if not (math.isfinite(wd) and wd > 0):
         raise EloInputError(f"{source}: work distance {work_distance_mm!r} mm: a perspective scan needs a finite "

@@ -52,7 +52,7 @@ def check_detector_geometry(d_h, d_w) -> tuple[float, float]:
     for name, val in (("d_h", d_h), ("d_w", d_w)):
         try:
             v = float(val)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise EloInputError(f"{name}={val!r}: expected a length in mm") from None
         if not (np.isfinite(v) and v > 0):
             raise EloInputError(f"{name}={val!r} mm: must be finite and > 0")

@@ -226,8 +226,14 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     >>> round(float(result.dzdx.mean()), 2), round(float(result.dzdy.mean()) + 0.0, 2)
     (0.1, 0.0)
     """
-    if int(iterations) < 1:
-        raise EloInputError(f"iterations={iterations!r}: need at least 1")
+    from ..arguments import fraction, whole_number
+
+    whole_number("iterations", iterations, 1, 1000)
+    fraction("min_corrected", min_corrected)
+    fraction("min_sum", min_sum, 0.0, 2.0)  # R^C + L^C is 2 on a flat plate
+    fraction("geometric_margin", geometric_margin)
+    if not hasattr(geometry, "detectors") or not hasattr(geometry, "field_mm"):
+        raise EloInputError("geometry: must be a ScanGeometry (analysis.scan_geometry)")
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
     d_h, d_w = geometry.symmetric_layout()

@@ -30,6 +30,10 @@ from ..grid import field_xy, pixel_coordinates
 from ..schema import PROJECTIONS, HeaderGeometry, geometry_header, read_geometry
 
 
+#: The most scan points a side (a 1 m field at 1 um pixels): a larger number is a slip.
+MAX_SIDE = 1_000_000
+
+
 @dataclass(frozen=True)
 class Disc:
     """A disc detector: centre (mm), unit front normal (towards the scan field), radius (mm)."""
@@ -96,7 +100,13 @@ class ScanGeometry:
         wd = float(self.work_distance_mm)
         if not (np.isfinite(wd) and wd > 0):
             raise EloInputError(f"work distance {self.work_distance_mm!r} mm: must be finite and > 0")
-        h, w = (int(v) for v in self.shape)
+        try:  # (rows, columns): whole numbers, not a truncated 16.5 or a third axis
+            h, w = (int(v) for v in self.shape)
+            ok = (h, w) == tuple(self.shape) and 1 <= min(h, w) and max(h, w) <= MAX_SIDE
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise EloInputError(f"shape {self.shape!r}: give (rows, columns), two whole numbers from 1 to {MAX_SIDE}")
         object.__setattr__(self, "shape", (h, w))
         object.__setattr__(self, "field_mm", field_xy(self.field_mm, (h, w)))
         object.__setattr__(self, "work_distance_mm", wd)

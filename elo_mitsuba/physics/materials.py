@@ -112,7 +112,7 @@ def validate_composition(composition: Mapping[str, float], what: str = "composit
             )
         try:
             f = float(frac)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise EloInputError(f"{what}: fraction of {sym} is {frac!r}, not a number") from None
         if not (np.isfinite(f) and 0.0 < f <= 1.0):
             raise EloInputError(f"{what}: fraction of {sym} is {frac!r}; allowed is (0, 1]")
@@ -158,7 +158,7 @@ def _measured(name: str, composition: dict) -> Material:
 
     try:
         total = float(sum(float(v) for v in composition.values()))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         total = math.nan  # validate_composition names the bad fraction
     if math.isfinite(total) and COMPOSITION_SUM_TOL < abs(total - 1.0) <= MEASURED_COMPOSITION_TOL:
         scaled = {s: float(v) / total for s, v in composition.items()}

@@ -129,7 +129,7 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
         numeric = vals.dtype.kind in "iuf"
         try:
             wanted = float(value) if numeric else str(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             wanted = None
         hits = [i for i, v in enumerate(vals)
                 if wanted is not None and (np.isclose(float(v), wanted, rtol=1e-9, atol=0) if numeric else str(v) == wanted)]
