@@ -142,6 +142,7 @@ class EloScene:
         #: each placed detector's transform as loaded (float64 copies), for restore_detectors()
         self._loaded = {name: np.array(self.mi_params[f"{name}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
                         for name in self.detector_names if f"{name}.to_world" in self.mi_params}
+        self._placed: dict = {}  # each moved detector's centre and radius as set_detector last set them
         self._check_detectors()
 
     # -- introspection --
@@ -371,7 +372,9 @@ class EloScene:
             raise EloInputError(f"no detector {name!r} (detectors: {', '.join(self.detector_names)})")
         if key not in self.mi_params:
             raise EloInputError(f"detector {name!r} is not a disk; move it by editing the scene")
-        geo = self.detector_geometry()[name]
+        # where it is: as last set (float64), not as read back from the float32 transform, so that a
+        # move's result does not depend on the moves before it
+        geo = {**self.detector_geometry()[name], **self._placed.get(name, {})}
         c = _vector3(name, "centre", center if center is not None else geo["center"])
         try:
             r = float(radius if radius is not None else geo["radius"])
@@ -398,6 +401,7 @@ class EloScene:
             self.mi_params[key] = mi.Transform4f(mi.ScalarTransform4f(previous))
             self.mi_params.update()
             raise
+        self._placed[name] = {"center": c, "radius": r}
 
     def restore_detectors(self, names=None) -> None:
         """Put detectors ``names`` (default: all) back where the scene file placed them.
@@ -432,6 +436,7 @@ class EloScene:
             raise EloInputError(f"no placed detector {unknown[0]!r} (detectors: {', '.join(self._loaded)})")
         for name in names:
             self.mi_params[f"{name}.to_world"] = self.mi.Transform4f(self.mi.ScalarTransform4f(self._loaded[name]))
+            self._placed.pop(name, None)
         if names:
             self.mi_params.update()
 

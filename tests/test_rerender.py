@@ -117,3 +117,17 @@ def test_restore_detectors_puts_them_back_as_loaded():
         np.testing.assert_allclose(again[name], img, rtol=1e-6, atol=1e-6 * float(np.abs(img).max()))
     with pytest.raises(em.EloInputError, match=r"no placed detector 'nowhere' \(detectors: right, left"):
         scene.restore_detectors(["nowhere"])
+
+
+def test_a_move_does_not_depend_on_the_moves_before_it():
+    """set_detector's promise: the result depends on its arguments alone. The default centre and
+    radius (where the detector is) were read back from the float32 transform, so a detector moved
+    away and back rendered 4.7e-10 (3e-7 of the signal) off a fresh scene's single move."""
+    def moved(*centres):
+        scene = em.load_scene("flat_plate", res=8)
+        for c in centres:
+            scene.set_detector("right", center=c)
+            result = scene.render(spp=4, progress=False)
+        return result.channels["right"]
+
+    assert np.array_equal(moved((150, 0, 250)), moved((100, 50, 300), (150, 0, 250)))
