@@ -44,7 +44,8 @@ from ..scene_files import check_detector_placement
 from .detector_model import FacetModel, to_vector
 from .scan_geometry import Disc, ScanGeometry
 
-#: Coarse grid the fit runs on (block means of the flat image).
+#: Coarse grid the fit runs on (block means of the flat image): at least this many blocks a side
+#: (fewer pixels: one per pixel), as many as whole blocks of h // FIT_GRID pixels fill (below 2 x FIT_GRID).
 FIT_GRID = 48
 #: The fit's own bias in a detector centre (mm): fitted to a noise-free 1st-event render of the
 #: flat plate with the detectors at the drawn position (scenes_xml/flat_plate.xml, events=1,
@@ -201,12 +202,23 @@ def _disc_from(x, nominal: Disc) -> Disc:
 
 
 def block_mean(image, grid: int) -> tuple[np.ndarray, tuple]:
-    """Means of ``grid`` x ``grid`` blocks of an image (trailing rows/columns that do not fill a
-    block are dropped) and the (H, W) the blocks cover."""
+    """Means of blocks of ``h // grid`` x ``w // grid`` pixels (one pixel below ``grid``), as many as
+    fill the image (at least ``grid`` a side, fewer than ``2 grid``; trailing rows/columns that do
+    not fill a block are dropped, fewer than a block's), and the (H, W) the blocks cover. Blocks of
+    exactly ``grid`` a side left 44 % of a 64^2 image unused.
+
+    Examples
+    --------
+    >>> means, covered = block_mean(np.ones((64, 100)), 48)
+    >>> means.shape, covered
+    ((64, 50), (64, 100))
+    >>> block_mean(np.ones((1024, 32)), 48)[0].shape
+    (48, 32)
+    """
     image = np.asarray(image, float)
     h, w = image.shape
-    gy, gx = min(grid, h), min(grid, w)
-    by, bx = h // gy, w // gx
+    by, bx = max(1, h // grid), max(1, w // grid)
+    gy, gx = h // by, w // bx
     cut = image[: gy * by, : gx * bx]
     return cut.reshape(gy, by, gx, bx).mean(axis=(1, 3)), (gy * by, gx * bx)
 

@@ -15,8 +15,8 @@ Fit where each detector really is, from the four images of a plane plate (any un
 N_d/N_0): per detector its centre (x, y, z mm), the tilt of its normal (two angles, deg) and its
 amplifier gain (image units per N_d/N_0), optionally a constant offset, by least squares against
 the 1st-event model (full g_BSE of Eq. 13, disc detectors, the beam of each scan point). Each
-detector's image depends on that detector alone, so each is fitted on its own, on 48 x 48 block
-means of its image.
+detector's image depends on that detector alone, so each is fitted on its own, on block means
+of its image (48 to 95 a side, covering all of it but fewer pixels than a block's).
 
 The start is the drawing: --dh/--dw (and --radius, --wd) or, without them, the detectors of the
 EXR header. The radius is held: it scales the signal like the gain. The output CALIB.json holds,
