@@ -35,7 +35,7 @@ dead or hot pixels do not pull the fit: blocks more than 5 robust standard devia
 out and the fit repeated (the count is printed).
 
 A flat in a chamber records the walls' later events too (athene_flat: 6.5 % of the signal), which
-the 1st-event fit takes for moved detectors (10-16 mm) and larger gains: give --second-event with a
+the 1st-event fit takes for moved detectors (9.5-17.5 mm) and larger gains: give --second-event with a
 render of the flat plate in that chamber (--events 2) to take them out first.
 
 Use the result with 'elo-mitsuba gradient --calibration CALIB.json'.
@@ -97,7 +97,7 @@ def run(args) -> int:
                                                    args.event, second_event=args.second_event)
     if int(header.get("events", 1)) > 1 and args.event is None and args.second_event is None:
         print(f"note: {source} was rendered with events={header['events']}: the fit's model is the 1st event, and it "
-              "moves the detectors to mimic the later events (athene_flat: 10-16 mm); use --event 1, or "
+              "moves the detectors to mimic the later events (athene_flat: 9.5-17.5 mm); use --event 1, or "
               "--second-event SIM_FLAT.exr for recordings", file=sys.stderr)
     shape = next(iter(flats.values())).shape
     nominal = calibration_start(header, shape, source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
