@@ -90,3 +90,26 @@ def fraction(name: str, value, lo: float = 0.0, hi: float = 1.0) -> float:
     if not ok:
         raise EloInputError(f"{name}={shown(value)}; must be a number in [{lo:g}, {hi:g})")
     return number
+
+
+def vector3(what: str, value):
+    """Three finite numbers (mm) as a float64 array, or one line naming ``what`` and the value.
+
+    Examples
+    --------
+    >>> vector3("centre", (127, 0, 272)).tolist()
+    [127.0, 0.0, 272.0]
+    >>> vector3("detector 'right': centre", (1, 2))
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: detector 'right': centre (1, 2); need 3 finite numbers (x, y, z)
+    """
+    import numpy as np
+
+    try:
+        v = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError, OverflowError):
+        v = np.array([np.nan])
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise EloInputError(f"{what} {shown(value)}; need 3 finite numbers (x, y, z)")
+    return v

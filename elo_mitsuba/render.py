@@ -33,7 +33,7 @@ from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
-from .arguments import flag, shown, whole_number
+from .arguments import flag, shown, vector3, whole_number
 from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
@@ -375,7 +375,7 @@ class EloScene:
         # where it is: as last set (float64), not as read back from the float32 transform, so that a
         # move's result does not depend on the moves before it
         geo = {**self.detector_geometry()[name], **self._placed.get(name, {})}
-        c = _vector3(name, "centre", center if center is not None else geo["center"])
+        c = vector3(f"detector {name!r}: centre", center if center is not None else geo["center"])
         try:
             r = float(radius if radius is not None else geo["radius"])
         except (TypeError, ValueError, OverflowError):
@@ -385,7 +385,7 @@ class EloScene:
         if not np.any(np.abs(c) > 1e-9):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
                                 "from above it")
-        n = _vector3(name, "normal", normal) if normal is not None else -c
+        n = vector3(f"detector {name!r}: normal", normal) if normal is not None else -c
         if not np.linalg.norm(n) > 0:
             raise EloInputError(f"detector {name!r}: normal {n.tolist()} is zero")
         n = n / np.linalg.norm(n)
@@ -555,30 +555,36 @@ class EloScene:
         progress = flag("progress", progress, none=True)
         if quality is not None and (not isinstance(quality, str) or quality not in QUALITIES + ("custom",)):
             raise EloInputError(f"quality {shown(quality)}; choose one of {', '.join(QUALITIES)}")
-        if events is not None:
-            self.set_events(events)
-        # the quality is applied at every render, so that the result depends on the scene's state
-        # (events, resolution, beam) and the arguments, never on what was rendered before
-        quality = quality if quality is not None else self.quality
-        if quality in QUALITY_PRESETS:  # sample counts configured earlier that the preset would not use
-            check_combination({k: v for k, v in self._configured.items() if k in SAMPLE_OPTIONS},
-                              base=self.integrator.options, qualities=[quality],
-                              events=events if events is not None else self.integrator.events,
-                              bounce_possible=self.integrator.bounce_possible)
-        preset_spp = self.set_quality(quality)
-        spp = int(preset_spp if spp is None else spp)
-        pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
-        per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
-        halves, first_status = split_render(spp, self.integrator, self.sensor.fwhm)
-        sampler = self.sensor.sampler()
-        passes = [pass_sizes(sampler, n, per_pass) for n, _ in halves]
-        n_passes = sum(pass_count(sizes) for sizes in passes)
-        names = self.integrator.channel_names()
-        # the mean channels are film channels too (the fit below them counted the named ones)
-        channels = len(names) + 1 + len(self.integrator.mean_channels())
-        notes = check_render(self.sensor.resolution, channels, spp, self.integrator.traced_events(),
-                             max(n_passes, 2 if len(halves) > 1 else 1),
-                             detector_points=detector_points(self.integrator), force=force)
+        before = (self.integrator.events, self.quality)  # what a refused render leaves as it was
+        try:
+            if events is not None:
+                self.set_events(events)
+            # the quality is applied at every render, so that the result depends on the scene's state
+            # (events, resolution, beam) and the arguments, never on what was rendered before
+            quality = quality if quality is not None else self.quality
+            if quality in QUALITY_PRESETS:  # sample counts configured earlier that the preset would not use
+                check_combination({k: v for k, v in self._configured.items() if k in SAMPLE_OPTIONS},
+                                  base=self.integrator.options, qualities=[quality],
+                                  events=events if events is not None else self.integrator.events,
+                                  bounce_possible=self.integrator.bounce_possible)
+            preset_spp = self.set_quality(quality)
+            spp = int(preset_spp if spp is None else spp)
+            pixels = self.sensor.resolution[0] * self.sensor.resolution[1]
+            per_pass = max(1, min(spp, MAX_SPP_PER_PASS, SAMPLES_PER_PASS // max(pixels, 1)))
+            halves, first_status = split_render(spp, self.integrator, self.sensor.fwhm)
+            sampler = self.sensor.sampler()
+            passes = [pass_sizes(sampler, n, per_pass) for n, _ in halves]
+            n_passes = sum(pass_count(sizes) for sizes in passes)
+            names = self.integrator.channel_names()
+            # the mean channels are film channels too (the fit below them counted the named ones)
+            channels = len(names) + 1 + len(self.integrator.mean_channels())
+            notes = check_render(self.sensor.resolution, channels, spp, self.integrator.traced_events(),
+                                 max(n_passes, 2 if len(halves) > 1 else 1),
+                                 detector_points=detector_points(self.integrator), force=force)
+        except EloError:  # the next render applies its own quality (set_quality) from these
+            self.set_events(before[0])
+            self.quality = before[1]
+            raise
         if progress is not False:
             for note in notes:
                 print(f"elo-mitsuba: note: {note}", file=sys.stderr, flush=True)
@@ -625,17 +631,6 @@ class EloScene:
         meta["notes"] += [f"detector {n!r} received no electron anywhere in the scan ({NO_SIGNAL_CAUSES})"
                           for n in result.dark_detectors]  # a fact of the geometry or a mistake in it: never silent
         return result
-
-
-def _vector3(name: str, what: str, value) -> np.ndarray:
-    """Three finite millimetre values, or one line naming the detector and the value."""
-    try:
-        v = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError, OverflowError):
-        v = np.array([np.nan])
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise EloInputError(f"detector {name!r}: {what} {shown(value)}; need 3 finite numbers (x, y, z)")
-    return v
 
 
 def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:

@@ -372,11 +372,16 @@ def test_api_bad_input(call, fragment):
 
 
 def test_a_refused_render_changes_nothing():
-    """A render refused for its quality leaves the events as they were (set_events ran first)."""
+    """A refused render leaves the scene's events and quality as they were."""
     scene = _scene()
     with pytest.raises(em.EloInputError, match="quality 'bogus'"):
         scene.render(events=2, quality="bogus")
     assert scene.options.events == 1
+    # refused by the time estimate, after the events and the quality were set: both as they were
+    with pytest.raises(em.EloInputError, match="refused"):
+        scene.render(events=2, quality="draft", spp=2 ** 40)
+    assert scene.options.events == 1 and scene.quality == "scene"
+    assert scene.render(progress=False).metadata["events"] == 1
 
 
 def test_refused_configure_changes_nothing():
