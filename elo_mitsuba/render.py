@@ -473,8 +473,7 @@ class EloScene:
         >>> scene.quality, spp >= 1
         ('draft', True)
         """
-        if quality not in QUALITIES + ("custom",):
-            raise EloInputError(f"quality {quality!r}; choose one of {', '.join(QUALITIES)}")
+        _check_quality(quality)
         if quality in ("scene", "custom"):
             if quality == "scene" and self._own_fields is not None:
                 self.integrator.configure(self.integrator.options.replace(**self._own_fields))
@@ -553,8 +552,8 @@ class EloScene:
         seed = whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
         spp, force = None if spp is None else whole_number("spp", spp, 1, None), flag("force", force)
         progress = flag("progress", progress, none=True)
-        if quality is not None and (not isinstance(quality, str) or quality not in QUALITIES + ("custom",)):
-            raise EloInputError(f"quality {shown(quality)}; choose one of {', '.join(QUALITIES)}")
+        if quality is not None:
+            _check_quality(quality)
         before = (self.integrator.events, self.quality)  # what a refused render leaves as it was
         try:
             if events is not None:
@@ -631,6 +630,12 @@ class EloScene:
         meta["notes"] += [f"detector {n!r} received no electron anywhere in the scan ({NO_SIGNAL_CAUSES})"
                           for n in result.dark_detectors]  # a fact of the geometry or a mistake in it: never silent
         return result
+
+
+def _check_quality(quality) -> None:
+    """One line for a quality that is not a preset's name, ``scene`` or ``custom``."""
+    if not isinstance(quality, str) or quality not in QUALITIES + ("custom",):
+        raise EloInputError(f"quality {shown(quality)}; choose one of {', '.join(QUALITIES)}")
 
 
 def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:

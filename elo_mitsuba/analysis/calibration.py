@@ -111,11 +111,9 @@ def misfit_bound(image, block_pixels: int) -> tuple[float, float]:
     of ``block_pixels`` pixels each, and the image's own relative noise per pixel it is based on:
     ``max(MISFIT_FLOOR, MISFIT_NOISE_FACTOR * min(noise, PIXEL_NOISE_CAP) / sqrt(block_pixels))``
     with ``noise`` from the image's second differences (:func:`~.noise.relative_noise`)."""
-    from ..constants import DETECTOR_NAMES
     from .noise import relative_noise
 
-    # relative_noise takes a set of four; the same image four times gives this image's own level
-    noise = relative_noise({n: image for n in DETECTOR_NAMES})
+    noise = relative_noise({"image": image})
     noise = float(noise) if math.isfinite(noise) else 0.0
     block_noise = min(noise, PIXEL_NOISE_CAP) / math.sqrt(max(block_pixels, 1))
     return float(max(MISFIT_FLOOR, MISFIT_NOISE_FACTOR * block_noise)), noise
@@ -458,7 +456,7 @@ def read_calibration(path) -> Calibration:
             raise EloInputError(f"{path}: detector {name!r} lacks {', '.join(missing)} (need center, normal, radius)")
         try:
             disc = Disc(d["center"], d["normal"], d["radius"])
-        except (TypeError, ValueError, OverflowError) as exc:  # text where numbers belong
+        except (TypeError, ValueError, OverflowError):  # text where numbers belong
             raise EloInputError(f"{path}: detector {name!r}: center {d['center']!r}, normal {d['normal']!r}, radius "
                                 f"{d['radius']!r}; need 3 numbers, 3 numbers and a number of mm > 0") from None
         except EloInputError as exc:

@@ -668,7 +668,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         raise EloInputError(f"discrepancy={discrepancy!r}: must be a finite number >= 0")
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
-    check_beam_and_start(geometry, fwhm_mm, None if start is None or hasattr(start, "dzdx") else start)
+    check_beam_and_start(geometry, fwhm_mm)  # the start's heights once they are known, below
     shape = tuple(geometry.shape)
     for what, data in (("images", images), ("flats", flats)):
         missing = [n for n in DETECTOR_NAMES if n not in data]
@@ -686,7 +686,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     h0 = start_heights(start, geometry) if hasattr(start, "dzdx") else np.array(start, float)
     if h0.shape != shape or not np.all(np.isfinite(h0)):
         raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")
-    check_beam_and_start(geometry, fwhm_mm, h0, what="the start's heights (from the gradient)")
+    check_beam_and_start(geometry, fwhm_mm, h0)
     data = _ScaleData(images, flats, later, flat_later, later_error, flat_later_error)
     budget = None if time_budget_s is None else float(time_budget_s)
     model_settings = dict(fwhm_mm=fwhm_mm, alpha=alpha, shadows=shadows, nodes=nodes)

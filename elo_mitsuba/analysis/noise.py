@@ -39,8 +39,8 @@ def estimate_noise(corrected, weights) -> float:
 
 
 def relative_noise(images: Mapping, smoothing_px: float = 4.0) -> float:
-    """Relative noise level (std / signal) of one set of detector images, e.g. the object's or the
-    flat plate's alone: :func:`estimate_noise` of each image over its own Gaussian-smoothed
+    """Relative noise level (std / signal) of one set of detector images (or of any images given by
+    name), e.g. the object's or the flat plate's alone: :func:`estimate_noise` of each image over its own Gaussian-smoothed
     version (``smoothing_px``), which divides out the slowly varying level (the detectors' solid
     angles, the material). Where the corrected images carry sigma_C^2 = sigma_object^2 +
     sigma_flat^2, this tells the two shares apart: how much a mean of more flat recordings
@@ -48,7 +48,7 @@ def relative_noise(images: Mapping, smoothing_px: float = 4.0) -> float:
     from scipy.ndimage import gaussian_filter
 
     ratios, weights = [], []
-    for n in DETECTOR_NAMES:
+    for n in [n for n in DETECTOR_NAMES if n in images] or list(images):  # a set of four, or any images
         a = np.asarray(images[n], float)
         smooth = gaussian_filter(np.where(np.isfinite(a), a, 0.0), smoothing_px, mode="nearest")
         ok = np.isfinite(a) & (np.abs(smooth) > MIN_FLAT * np.median(np.abs(smooth)))

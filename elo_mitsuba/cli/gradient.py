@@ -122,9 +122,10 @@ def run(args) -> int:
         value = getattr(args, flag)
         if value is not None and not np.isfinite(value):
             raise EloInputError(f"--{flag.replace('_', '-')} {value}: must be a finite number")
-    out = check_output(args.output, (".exr",), overwrite=args.overwrite, inputs=scan_files(args))
+    read = scan_files(args)
+    out = check_output(args.output, (".exr",), overwrite=args.overwrite, inputs=read)
     if args.preview:
-        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=scan_files(args))
+        check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=read)
     scan = chain.read_scan(**scan_inputs(args), model_discs=args.method == "model")
     geo = scan.geo
     model = chain.model_geometry(scan, **model_inputs(args)) if args.method == "model" else None
