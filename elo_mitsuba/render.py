@@ -38,7 +38,7 @@ from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # no
 from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
                      signal_units)
-from .scene_files import (check_detector_placement, declared_parameters, explain_mitsuba_error,
+from .scene_files import (check_detector_placement, detector_up, declared_parameters, explain_mitsuba_error,
                           resolve_scene_path, scene_values)
 
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
@@ -389,7 +389,7 @@ class EloScene:
         if not np.linalg.norm(n) > 0:
             raise EloInputError(f"detector {name!r}: normal {n.tolist()} is zero")
         n = n / np.linalg.norm(n)
-        up = [0, 0, 1] if abs(n[2]) < 0.999 else [0, 1, 0]
+        up = detector_up(c, n)
         xf = (mi.ScalarTransform4f().look_at(origin=c.tolist(), target=(c + n).tolist(), up=up)
               @ mi.ScalarTransform4f().scale(r))
         previous = np.array(self.mi_params[key].matrix, dtype=np.float64).reshape(4, 4)  # a copy

@@ -200,6 +200,30 @@ def check_detector_placement(name: str, center, normal, radius: float, where: st
                             f"{np.round(n, 3).tolist()}); its front face must see the origin")
 
 
+def detector_up(center, normal) -> list[float]:
+    """The ``up`` vector of the look-at that orients a detector disc about its normal: the azimuthal
+    direction z x centre, as parts/detectors.xml orients the four detectors (lookat up = +y for the
+    right one, then turned about z). A disc is symmetric, but its samples are drawn in its own
+    frame: a detector moved to where the scene placed it renders as the scene does only in the
+    same frame. On the z-axis, or where that direction is (nearly) the normal, +y, else +x.
+
+    >>> detector_up((127, 0, 272), (-127, 0, -272))
+    [0.0, 1.0, 0.0]
+    >>> detector_up((0, 127, 272), (0, -127, -272))
+    [-1.0, 0.0, 0.0]
+    """
+    import numpy as np
+
+    c = np.asarray(center, dtype=float).reshape(3)
+    n = np.asarray(normal, dtype=float).reshape(3)
+    n = n / np.linalg.norm(n)
+    for up in (np.array([-c[1], c[0], 0.0]), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])):
+        length = np.linalg.norm(up)
+        if length > 1e-9 * max(1.0, np.linalg.norm(c)) and abs(np.dot(up / length, n)) < 0.999:
+            return (up / length + 0.0).tolist()
+    raise AssertionError("no up vector: +x and +y cannot both lie along one normal")
+
+
 def explain_mitsuba_error(exc: Exception, path: Path, values: Mapping[str, str] | None = None) -> str:
     """One line from Mitsuba's multi-line loader error: where, and the innermost message.
 

@@ -258,7 +258,7 @@ def export_scene(discs: Mapping, path, *, overwrite: bool = False) -> Path:
     """
     from xml.sax.saxutils import quoteattr
 
-    from ..scene_files import portable_scene_text, scenes_dir
+    from ..scene_files import detector_up, portable_scene_text, scenes_dir
 
     path = check_output(path, (".xml",), overwrite=overwrite, what="scene")
     src = scenes_dir() / "athene_flat.xml"
@@ -273,7 +273,7 @@ def export_scene(discs: Mapping, path, *, overwrite: bool = False) -> Path:
               f"    <include filename={quoteattr(plates)}/>"]
     for name, d in discs.items():
         c, n = np.asarray(d.center), np.asarray(d.normal)
-        up = (0.0, 0.0, 1.0) if abs(n[2]) < 0.99 else (1.0, 0.0, 0.0)
+        up = detector_up(c, n)  # the frame set_detector gives it: the design renders as evaluated
         target = c + n
 
         def f(v):
