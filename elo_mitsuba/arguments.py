@@ -92,8 +92,30 @@ def fraction(name: str, value, lo: float = 0.0, hi: float = 1.0) -> float:
     return number
 
 
-def vector3(what: str, value):
-    """Three finite numbers (mm) as a float64 array, or one line naming ``what`` and the value.
+def length(what: str, value) -> float:
+    """``value`` as a finite length > 0 (mm); text and bools are refused, though float() takes them.
+
+    Examples
+    --------
+    >>> length("radius", 25)
+    25.0
+    >>> length("detector 'right': radius", True)
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: detector 'right': radius True; need a finite number of mm > 0
+    """
+    try:
+        number = float(value) if not isinstance(value, (bool, str, bytes)) else math.nan
+    except (TypeError, ValueError, OverflowError):
+        number = math.nan
+    if not (math.isfinite(number) and number > 0) or type(value).__name__ == "bool_":
+        raise EloInputError(f"{what} {shown(value)}; need a finite number of mm > 0")
+    return number
+
+
+def vector3(what: str, value, limit: float | None = None):
+    """Three finite numbers (mm) as a float64 array, or one line naming ``what`` and the value;
+    with ``limit``, each within +-limit.
 
     Examples
     --------
@@ -112,4 +134,50 @@ def vector3(what: str, value):
         v = np.array([np.nan])
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         raise EloInputError(f"{what} {shown(value)}; need 3 finite numbers (x, y, z)")
+    if limit is not None and np.abs(v).max() > limit:
+        raise EloInputError(f"{what} {shown(value)}; need 3 numbers (x, y, z) within +-{limit:g} mm")
     return v
+
+
+def real_array(name: str, value, ndim: int | None = 2, *, shape=None):
+    """``value`` as a float64 array of real numbers, ``ndim``-dimensional (and of ``shape``, when
+    given), not empty. Complex numbers (whose imaginary part numpy would drop), bools, dates, text
+    and objects are refused, not converted. NaN and Inf pass: callers that mask them say so.
+
+    Examples
+    --------
+    >>> real_array("dzdx", [[0, 1], [2, 3]]).dtype
+    dtype('float64')
+    >>> real_array("image", [[1j, 0]])
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: image: an array of complex numbers; need real numbers
+    >>> real_array("heights", [[0.0, 1.0]], shape=(2, 2))
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: heights: shape (1, 2); need (2, 2)
+    """
+    import numpy as np
+
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise EloInputError(f"{name}: {shown(value)} is not an array of numbers ({exc})") from None
+    if raw.dtype.kind not in "iuf":
+        kind = {"c": "complex numbers", "b": "bools", "M": "dates", "m": "time spans", "U": "text", "S": "text",
+                "O": "Python objects"}.get(raw.dtype.kind, f"dtype {raw.dtype}")
+        if raw.dtype.kind == "O":
+            try:  # a list of arrays or numbers is fine
+                raw = raw.astype(float)
+            except (TypeError, ValueError, OverflowError):
+                raise EloInputError(f"{name}: an array of {kind}; need real numbers") from None
+        else:
+            raise EloInputError(f"{name}: an array of {kind}; need real numbers")
+    out = raw.astype(np.float64)
+    if ndim is not None and out.ndim != ndim:
+        raise EloInputError(f"{name}: {out.ndim}-D array of shape {out.shape}; need a {ndim}-D array")
+    if shape is not None and out.shape != tuple(shape):
+        raise EloInputError(f"{name}: shape {out.shape}; need {tuple(shape)}")
+    if out.size == 0:
+        raise EloInputError(f"{name}: an empty array (shape {out.shape})")
+    return out

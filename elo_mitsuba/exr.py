@@ -22,6 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
+from .arguments import real_array, shown
 from .errors import EloInputError
 from .files import atomic_write, check_output
 from .grid import ORIENTATION
@@ -87,14 +88,23 @@ def write_exr(path, channels: Mapping[str, np.ndarray], metadata: Mapping | None
     if not isinstance(path, (str, os.PathLike)):
         raise EloInputError(f"EXR path {path!r} ({type(path).__name__}): give a file name ending in .exr")
     path = check_output(path, (".exr",), overwrite=overwrite)
+    if not isinstance(channels, Mapping):
+        raise EloInputError(f"{path}: channels {shown(channels)}: give a mapping {{channel name: 2-D image}}")
     if not channels:
         raise EloInputError(f"{path}: no channels to write")
+    for name in channels:
+        if not isinstance(name, str) or not name or "\0" in name:
+            raise EloInputError(f"{path}: channel name {name!r}: need a non-empty text")
     shapes = {np.shape(v) for v in channels.values()}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise EloInputError(f"{path}: channels must be 2-D images of one shape, got {sorted(shapes)}")
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2 or 0 in next(iter(shapes)):
+        raise EloInputError(f"{path}: channels must be 2-D images of one shape with pixels, got {sorted(shapes)}")
+    if metadata is not None and not isinstance(metadata, Mapping):
+        raise EloInputError(f"{path}: metadata {shown(metadata)}: give a mapping (the header's JSON object)")
     data = {}
     for name, img in channels.items():
-        arr = np.ascontiguousarray(np.asarray(img, dtype=np.float32))
+        raw = np.asarray(img)
+        raw = raw.astype(np.float32) if raw.dtype == bool else raw  # a mask: 1 = True
+        arr = np.ascontiguousarray(real_array(f"{path}: channel {name!r}", raw).astype(np.float32))
         if not np.all(np.isfinite(arr)):
             raise EloInputError(f"{path}: channel {name!r} holds NaN or Inf; refusing to write it")
         data[name] = arr
@@ -149,6 +159,8 @@ def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
     """
     import OpenEXR
 
+    if not isinstance(path, (str, os.PathLike)) or "\0" in str(path):
+        raise EloInputError(f"EXR path {shown(path)}: give a file name")
     path = Path(path)
     if not path.is_file():
         raise EloInputError(f"{path}: no such file")
@@ -224,6 +236,8 @@ def metadata_json(path, meta) -> str:
     """The header as strict JSON: NaN or Inf in the geometry is a defect to refuse, not to store."""
     try:
         return json.dumps(meta, default=_json_default, allow_nan=False)
+    except TypeError as exc:  # an object JSON cannot hold
+        raise EloInputError(f"{path}: {exc}; metadata values must be numbers, text, lists or mappings") from None
     except ValueError:
         where = _first_non_finite(meta)
         raise EloInputError(f"{path}: the metadata holds NaN or Inf{f' at {where}' if where else ''}; "

@@ -56,7 +56,11 @@ def field_xy(field_mm, shape=None) -> tuple[float, float]:
     >>> field_xy((80, 60))
     (80.0, 60.0)
     """
-    arr = np.atleast_1d(np.asarray(field_mm, dtype=float)).ravel()
+    try:  # text and bools are not lengths, though numpy would convert them
+        raw = np.asarray(field_mm)
+        arr = np.atleast_1d(raw.astype(float)).ravel() if raw.dtype.kind in "iufO" else np.array([np.nan])
+    except (TypeError, ValueError, OverflowError):
+        arr = np.array([np.nan])
     if arr.size == 1:
         arr = np.array([arr[0], arr[0] if shape is None else arr[0] * shape_hw(shape)[0] / shape_hw(shape)[1]])
     if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):

@@ -126,8 +126,18 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     ('height.exr', 1.0, [[False, False, False], [True, False, False]])
     """
     path = check_output(path, HEIGHT_SUFFIXES, overwrite=overwrite)
-    height = np.asarray(height, dtype=float)
-    mask = np.zeros(height.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    from .arguments import real_array
+
+    height = real_array("height", height)
+    if mask is None:
+        mask = np.zeros(height.shape, dtype=bool)
+    else:
+        mask = np.asarray(mask)
+        if mask.dtype != bool and not np.all(np.isin(real_array("mask", mask, ndim=None), (0.0, 1.0))):
+            raise EloInputError("mask: holds values other than 0 and 1 (True = no height); give bools")
+        mask = mask.astype(bool)
+        if mask.shape != height.shape:
+            raise EloInputError(f"mask shape {mask.shape} differs from the height map's {height.shape}")
     if not np.all(np.isfinite(height[~mask])):
         raise EloInputError(f"{path}: height holds NaN or Inf at trusted pixels; refusing to write it")
     stored = np.where(mask, np.nan, height)

@@ -186,6 +186,8 @@ def _coerce(f: dataclasses.Field, value):
         number = float(value)
     except OverflowError:  # an int beyond float (10**400)
         raise EloInputError(f"elo: {name}={value!r}; must be a finite number") from None
+    except (TypeError, ValueError):  # an array of several numbers
+        raise EloInputError(f"elo: {name}={' '.join(repr(value).split())}; must be one number") from None
     if kind == "int":
         if not (math.isfinite(number) and number == int(number)):
             raise EloInputError(f"elo: {name}={value!r}; must be a whole number")

@@ -33,13 +33,13 @@ from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
-from .arguments import flag, shown, vector3, whole_number
+from .arguments import flag, length, shown, vector3, whole_number
 from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # noqa: F401 -- part of this module's API
 from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
                      signal_units)
-from .scene_files import (check_detector_placement, detector_up, declared_parameters, explain_mitsuba_error,
-                          resolve_scene_path, scene_values)
+from .scene_files import (check_detector_placement, check_detectors_apart, declared_parameters, detector_up,
+                          explain_mitsuba_error, resolve_scene_path, scene_values)
 
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
@@ -240,8 +240,10 @@ class EloScene:
         return meta
 
     def _check_detectors(self):
-        for name, geo in self.detector_geometry().items():
+        geometry = self.detector_geometry()
+        for name, geo in geometry.items():
             check_detector_placement(name, geo["center"], geo["normal"], geo["radius"], where=str(self.path))
+        check_detectors_apart(geometry, where=str(self.path))
 
     # -- changing parameters without reloading --
     @property
@@ -375,19 +377,15 @@ class EloScene:
         # where it is: as last set (float64), not as read back from the float32 transform, so that a
         # move's result does not depend on the moves before it
         geo = {**self.detector_geometry()[name], **self._placed.get(name, {})}
-        c = vector3(f"detector {name!r}: centre", center if center is not None else geo["center"])
-        try:
-            r = float(radius if radius is not None else geo["radius"])
-        except (TypeError, ValueError, OverflowError):
-            raise EloInputError(f"detector {name!r}: radius {radius!r}; need a number of mm > 0") from None
-        if not (r > 0 and math.isfinite(r)):
-            raise EloInputError(f"detector {name!r}: radius {r}; need a finite number of mm > 0")
+        c = vector3(f"detector {name!r}: centre", center if center is not None else geo["center"], limit=1e6)
+        r = length(f"detector {name!r}: radius", radius if radius is not None else geo["radius"])
         if not np.any(np.abs(c) > 1e-9):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
                                 "from above it")
         n = vector3(f"detector {name!r}: normal", normal) if normal is not None else -c
         if not np.linalg.norm(n) > 0:
             raise EloInputError(f"detector {name!r}: normal {n.tolist()} is zero")
+        n = n / np.abs(n).max()  # no norm of (1e300, 0, -1e300) overflows to inf
         n = n / np.linalg.norm(n)
         up = detector_up(c, n)
         xf = (mi.ScalarTransform4f().look_at(origin=c.tolist(), target=(c + n).tolist(), up=up)
@@ -430,7 +428,8 @@ class EloScene:
         >>> [round(v, 4) for v in scene.detector_geometry()["right"]["center"]]
         [127.0, 0.0, 272.0]
         """
-        names = list(self._loaded) if names is None else [names] if isinstance(names, str) else list(names)
+        names = (list(self._loaded) if names is None else [names] if isinstance(names, str) or not hasattr(names, "__iter__")
+                 else list(names))
         unknown = [n for n in names if n not in self._loaded]
         if unknown:
             raise EloInputError(f"no placed detector {unknown[0]!r} (detectors: {', '.join(self._loaded)})")

@@ -200,6 +200,59 @@ def check_detector_placement(name: str, center, normal, radius: float, where: st
                             f"{np.round(n, 3).tolist()}); its front face must see the origin")
 
 
+def check_detectors_apart(geometry: Mapping[str, Mapping], where: str = "") -> None:
+    """Refuse two detector discs that share points (``geometry``: name -> ``center``, ``normal``,
+    ``radius``): two plates cannot fill the same space, and both would count the electrons
+    arriving there. Discs that touch along a line of zero length, or lie one behind another, pass.
+
+    >>> disc = {"center": (127, 0, 272), "normal": (-127, 0, -272), "radius": 25}
+    >>> check_detectors_apart({"right": disc, "back": {**disc, "center": (0, 127, 272)}})
+    >>> check_detectors_apart({"right": disc, "back": {**disc, "center": (127, 10, 272)}})
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: detectors 'right' and 'back' intersect (centres 10 mm apart, radii 25 and 25 mm): two plates cannot occupy the same space; move one
+    """
+    import numpy as np
+
+    at = f"{where}: " if where else ""
+    names = list(geometry)
+    discs = []
+    for name in names:
+        g = geometry[name]
+        n = np.asarray(g["normal"], dtype=float).reshape(3)
+        discs.append((np.asarray(g["center"], dtype=float).reshape(3), n / np.linalg.norm(n), float(g["radius"])))
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            (c1, n1, r1), (c2, n2, r2) = discs[i], discs[j]
+            if _discs_intersect(c1, n1, r1, c2, n2, r2):
+                raise EloInputError(
+                    f"{at}detectors {names[i]!r} and {names[j]!r} intersect (centres {np.linalg.norm(c2 - c1):.3g} mm "
+                    f"apart, radii {r1:g} and {r2:g} mm): two plates cannot occupy the same space; move one")
+
+
+def _discs_intersect(c1, n1, r1, c2, n2, r2) -> bool:
+    """Whether two discs (centre, unit normal, radius) share a segment of positive length or, in
+    one plane, an area: their chords on the line where their planes meet overlap."""
+    import numpy as np
+
+    scale = max(r1, r2)
+    u = np.cross(n1, n2)
+    if np.linalg.norm(u) < 1e-9:  # parallel planes: only coplanar discs can meet
+        return abs(np.dot(n1, c2 - c1)) < 1e-6 * scale and np.linalg.norm(c2 - c1) < r1 + r2
+    u = u / np.linalg.norm(u)
+    d1, d2, k = np.dot(n1, c1), np.dot(n2, c2), np.dot(n1, n2)
+    p0 = ((d1 - d2 * k) * n1 + (d2 - d1 * k) * n2) / (1.0 - k * k)  # a point on both planes
+    chords = []
+    for c, r in ((c1, r1), (c2, r2)):
+        t = np.dot(c - p0, u)
+        half_squared = r * r - np.sum((p0 + t * u - c) ** 2)
+        if half_squared <= 0:
+            return False
+        h = np.sqrt(half_squared)
+        chords.append((t - h, t + h))
+    return min(chords[0][1], chords[1][1]) - max(chords[0][0], chords[1][0]) > 1e-9 * scale
+
+
 def detector_up(center, normal) -> list[float]:
     """The ``up`` vector of the look-at that orients a detector disc about its normal: the azimuthal
     direction z x centre, as parts/detectors.xml orients the four detectors (lookat up = +y for the
@@ -215,11 +268,13 @@ def detector_up(center, normal) -> list[float]:
     import numpy as np
 
     c = np.asarray(center, dtype=float).reshape(3)
+    c = c / max(float(np.abs(c).max()), 1e-300)  # a direction: scaled so that no norm overflows
     n = np.asarray(normal, dtype=float).reshape(3)
+    n = n / np.abs(n).max()
     n = n / np.linalg.norm(n)
     for up in (np.array([-c[1], c[0], 0.0]), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])):
         length = np.linalg.norm(up)
-        if length > 1e-9 * max(1.0, np.linalg.norm(c)) and abs(np.dot(up / length, n)) < 0.999:
+        if length > 1e-9 and abs(np.dot(up / length, n)) < 0.999:
             return (up / length + 0.0).tolist()
     raise AssertionError("no up vector: +x and +y cannot both lie along one normal")
 

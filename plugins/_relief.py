@@ -1,4 +1,5 @@
-"""Relief under the beam: scattering surfaces the beam hits that are not one plane.
+"""What the beam meets: relief under it (scattering surfaces it hits that are not one plane), and
+detectors in its path (:func:`detectors_in_beam`).
 
 Such a surface can scatter electrons onto itself over distances of its own relief (flank to
 flank), so events >= 2 vary on that scale, also along a flank whose normals agree: the bounce
@@ -41,6 +42,40 @@ def relief_under_beam(scene, sensor, surfaces, probe=None):
         if bool(dr.any(mask)):
             hit_ids.add(id(shape))
     return [s.id() or "a shape" for s in candidates if id(s) in hit_ids]
+
+
+def detectors_in_beam(detectors, sensor, probe):
+    """[(name, share)] of the ``detectors`` ([(name, shape)]) that the beam of ``sensor`` meets
+    before any surface, with the share of the scan field where it does (:func:`beam_probe`'s grid,
+    its margin left out). There the beam ends on the detector: no electron reaches the plate."""
+    margin = 3.0 * float(np.ravel(getattr(sensor, "sigma", 0.0))[0])
+    wd, fx, fy = float(sensor.wd), 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
+    orthographic = getattr(sensor, "projection", "perspective") == "orthographic"
+
+    def may_block(shape):  # its bounding box meets the beam's cone (or prism) under the gun
+        box = shape.bbox()
+        low = max(float(box.min.z), 0.0)
+        if low >= wd:
+            return False
+        shrink = 1.0 if orthographic else 1.0 - low / wd
+        return (float(box.min.x) <= fx * shrink and float(box.max.x) >= -fx * shrink
+                and float(box.min.y) <= fy * shrink and float(box.max.y) >= -fy * shrink)
+
+    detectors = [(name, shape) for name, shape in detectors if may_block(shape)]
+    if not detectors:
+        return []
+    si = probe()
+    u = np.linspace(-0.5, 0.5, GRID)
+    inside_x = np.abs(u * (float(sensor.field) + 2 * margin)) <= 0.5 * float(sensor.field)
+    inside_y = np.abs(u * (float(sensor.field_y) + 2 * margin)) <= 0.5 * float(sensor.field_y)
+    inside = (inside_y[:, None] & inside_x[None, :]).ravel()
+    found = []
+    for name, shape in detectors:
+        mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))
+        share = float(np.count_nonzero(np.asarray(mask, dtype=bool) & inside)) / max(1, np.count_nonzero(inside))
+        if share > 0:
+            found.append((name, share))
+    return found
 
 
 def beam_probe(scene, sensor, grid=GRID):

@@ -112,7 +112,7 @@ from ._detectors import find_detectors, is_planar, parse_detector_list, quadratu
 from ._occlusion import shape_key, unblockable, unblockable_regions
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
-from ._relief import beam_probe, relief_under_beam
+from ._relief import beam_probe, detectors_in_beam, relief_under_beam
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
 __doc__ += parameter_table() + "\n"
@@ -198,6 +198,11 @@ class EloIntegrator(mi.SamplingIntegrator):
 
         self.relief = relief_under_beam(scene, beam, surfaces, probe) if self.bounce_possible and beam is not None else []
         self.notes = []
+        for name, share in (detectors_in_beam(detectors, beam, probe) if beam is not None else []):
+            self.notes.append(
+                f"detector {name!r} lies in the beam's path over about {100 * share:.3g} % of the scan field: "
+                "there the beam lands on it, not on the build surface, and those pixels show no surface (move "
+                "it out of the cone from the gun to the field)")
         if self.events > 1 and not self.bounce_possible:
             self.notes.append(
                 "events >= 2 are exactly zero: the only scattering surface is one plane (no chamber, "

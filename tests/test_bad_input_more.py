@@ -311,7 +311,138 @@ API_CASES = [
     ("calibrate grid 0", lambda: _calibrate(grid=0), "grid=0; must be a whole number >= 2"),
     ("surface_gradient min_sum nan", lambda: _gradient(min_sum=math.nan), "min_sum=nan; must be a number in [0, 2)"),
     ("model_gradient iterations 1.5", lambda: _model_gradient(iterations=1.5), "iterations=1.5; must be a whole number"),
+    # the sweep's leftovers (2026-12-05, second session): wrong types read as other values, raw
+    # tracebacks, a setting that silently changed the answer
+    ("calibrate fit_offset='no'", lambda: _calibrate(fit_offset="no"), "fit_offset='no'; must be True or False"),
+    ("calibrate without detectors", lambda: _calibrate_with(_geometry_kw(detectors={})), "has no detectors"),
+    ("calibrate text images", lambda: _calibrate_with(_geometry(), {n: np.full((8, 8), "abc") for n in _flats()}),
+     "flat-plate image 'right': an array of text; need real numbers"),
+    ("calibrate a 4x4 image", lambda: _calibrate_with(_geometry((4, 4)), {n: v[:4, :4] for n, v in _flats().items()}),
+     "need at least 8 pixels a side"),
+    ("model_gradient nodes 0", lambda: _model_gradient(nodes=0), "nodes=0; must be two whole numbers"),
+    ("model_gradient heights of another shape", lambda: _model_gradient(heights=np.zeros((4, 4))),
+     "heights: shape (4, 4); need (8, 8)"),
+    ("model_gradient NaN heights", lambda: _model_gradient(heights=np.full((8, 8), np.nan)), "heights: hold NaN or Inf"),
+    ("model_gradient start text", lambda: _model_gradient(start="x"), "start='x': must be a GradientResult"),
+    ("model_gradient flat_second_event lacks a detector", lambda: _model_gradient(
+        flat_second_event={"right": np.zeros((8, 8))}), "flat_second_event: missing detector image(s) left"),
+    ("surface_gradient complex images", lambda: _gradient_of({n: v + 1j for n, v in _flats().items()}),
+     "object images: right: an array of complex numbers"),
+    ("surface_gradient field as text", lambda: _gradient_field("80"), "field_mm='80': give one or two finite lengths"),
+    ("surface_gradient d_h as text", lambda: _surface_gradient_dh("272"), "d_h='272': expected a length in mm"),
+    ("invert_heights geometry None", lambda: _invert(geometry=None), "geometry=None: must be a ScanGeometry"),
+    ("invert_heights force='no'", lambda: _invert(force="no"), "force='no'; must be True or False"),
+    ("invert_heights scales 0", lambda: _invert(scales=0), "scales=0; must be a whole number >= 1"),
+    ("invert_heights time budget 0", lambda: _invert(time_budget_s=0), "time_budget_s=0: must be a number of seconds"),
+    ("invert_heights border past the middle", lambda: _invert(fixed_border=100), "fixed_border=100; must be a whole"),
+    ("invert_heights start text", lambda: _invert(start="flat"), "start heights: an array of text"),
+    ("integrate mask of 2s", lambda: _integrate_with(mask=np.full((8, 8), 2.0)), "mask: holds values other than 0 and 1"),
+    ("integrate min_component_size -1", lambda: _integrate_with(min_component_size=-1),
+     "min_component_size=-1; must be a whole number >= 1"),
+    ("integrate_robust tol nan", lambda: _integrate_robust(tol=math.nan), "tol=nan: must be a finite number"),
+    ("integrate_fft mirror='no'", lambda: _integrate_fft(mirror="no"), "mirror='no'; must be True or False"),
+    ("height_gradient 1x1", lambda: _height_gradient(np.zeros((1, 1))), "differences need 2 pixels a side"),
+    ("ScanGeometry aim offset nan", lambda: _geometry_kw(aim_offset_mm=(math.nan, 0)), "aim_offset_mm (nan, 0)"),
+    ("ScanGeometry d_h negative", lambda: _nominal(d_h=-272), "d_h=-272 mm: must be finite and > 0"),
+    ("write_exr channels a list", lambda: write_exr("/tmp/never-written.exr", [np.zeros((2, 2))]),
+     "give a mapping {channel name: 2-D image}"),
+    ("write_exr empty channel name", lambda: write_exr("/tmp/never-written.exr", {"": np.zeros((2, 2))}),
+     "channel name '': need a non-empty text"),
+    ("write_exr 0x0", lambda: write_exr("/tmp/never-written.exr", {"a": np.zeros((0, 0))}), "2-D images of one shape"),
+    ("write_exr complex", lambda: write_exr("/tmp/never-written.exr", {"a": np.zeros((2, 2)) + 1j}),
+     "channel 'a': an array of complex numbers"),
+    ("write_exr metadata object", lambda: write_exr("/tmp/never-written.exr", {"a": np.zeros((2, 2))}, {"x": object()}),
+     "cannot store object in EXR metadata"),
+    ("read_exr None", lambda: read_exr(None), "EXR path None: give a file name"),
+    ("write_height mask of another shape", lambda: _write_height(np.zeros((4, 4)), np.zeros((3, 3), bool)),
+     "mask shape (3, 3) differs from the height map's (4, 4)"),
+    ("write_height text", lambda: _write_height(np.full((2, 2), "abc")), "height: an array of text"),
+    ("configure an array of numbers", lambda: _scene().configure(detector_samples=np.array([4, 5])),
+     "detector_samples=array([4, 5]); must be one number"),
+    ("restore_detectors 5", lambda: _scene().restore_detectors(5), "no placed detector 5"),
+    ("set_detector radius True", lambda: _scene().set_detector("right", radius=True), "radius True; need a finite"),
+    ("set_detector centre beyond float32", lambda: _scene().set_detector("right", center=(1e300, 0, 1e300)),
+     "within +-1e+06 mm"),
+    ("sweep seed beyond float", lambda: _sweep_spec(seed=10 ** 400), "must be a whole number in [0, 4294967295]"),
 ]
+
+
+def _calibrate_with(geometry, flats=None):
+    from elo_mitsuba.analysis.calibration import calibrate
+
+    return calibrate(_flats() if flats is None else flats, geometry)
+
+
+def _gradient_of(images):
+    from elo_mitsuba.analysis import surface_gradient
+
+    return surface_gradient(images, _flats(), 80.0, 272.0, 127.0)
+
+
+def _gradient_field(field):
+    from elo_mitsuba.analysis import surface_gradient
+
+    return surface_gradient(_flats(), _flats(), field, 272.0, 127.0)
+
+
+def _surface_gradient_dh(d_h):
+    from elo_mitsuba.analysis import surface_gradient
+
+    return surface_gradient(_flats(), _flats(), 80.0, d_h, 127.0)
+
+
+def _invert(geometry="nominal", **kw):
+    from elo_mitsuba.analysis.inversion import invert_heights
+
+    return invert_heights(_flats(), _flats(), _geometry() if geometry == "nominal" else geometry, **kw)
+
+
+def _integrate_with(**kw):
+    from elo_mitsuba.analysis.integrate import integrate_gradient
+
+    return integrate_gradient(np.zeros((8, 8)), np.zeros((8, 8)), 8.0, **kw)
+
+
+def _integrate_robust(**kw):
+    from elo_mitsuba.analysis.integrate import integrate_robust
+
+    return integrate_robust(np.zeros((8, 8)), np.zeros((8, 8)), 8.0, **kw)
+
+
+def _integrate_fft(**kw):
+    from elo_mitsuba.analysis.integrate import integrate_fft
+
+    return integrate_fft(np.zeros((8, 8)), np.zeros((8, 8)), 8.0, **kw)
+
+
+def _height_gradient(height):
+    from elo_mitsuba.analysis.integrate import height_gradient
+
+    return height_gradient(height, 8.0)
+
+
+def _geometry_kw(**kw):
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+    return ScanGeometry(field_mm=80.0, shape=(8, 8), **{"detectors": _geometry().detectors, **kw})
+
+
+def _nominal(d_h=272.0, d_w=127.0):
+    from elo_mitsuba.analysis.scan_geometry import ScanGeometry
+
+    return ScanGeometry.nominal((8, 8), 80.0, d_h, d_w)
+
+
+def _write_height(height, mask=None):
+    from elo_mitsuba.heightmap import write_height
+
+    return write_height("/tmp/never-written-height.npy", height, mask)
+
+
+def _sweep_spec(**top):
+    from elo_mitsuba.sweeps.spec import load_spec
+
+    return load_spec({"scene": "flat_plate", "vary": {"dh": [200, 272]}, **top})
 
 
 def _geometry(shape=(8, 8)):
@@ -447,3 +578,20 @@ def test_a_dark_detector_is_said_in_a_note():
     assert sum("received no electron anywhere in the scan" in n for n in dark.metadata["notes"]) == 4
     lit = em.load_scene("flat_plate", res=4).render(quality="draft", progress=False)
     assert lit.dark_detectors == [] and not any("received no electron" in n for n in lit.metadata["notes"])
+
+
+def test_a_detector_in_the_beams_path_is_said_in_a_note():
+    """A detector between the gun and the field stops the beam there (no surface under those
+    pixels) and said nothing. A 25 mm disc 30 mm above the middle of the 80 mm field, seen from
+    the gun at the work distance wd, covers pi (25 wd / (wd - 30))^2 / 80^2 of the field (36 % at
+    wd = 400 mm)."""
+    scene = em.load_scene("flat_plate", res=8)
+    plain = scene.render(quality="draft", progress=False).metadata
+    assert not any("beam's path" in n for n in plain["notes"])
+    scene.set_detector("right", center=(0, 0, 30))
+    notes = [n for n in scene.render(quality="draft", progress=False).metadata["notes"] if "beam's path" in n]
+    assert len(notes) == 1 and notes[0].startswith("detector 'right' lies in the beam's path over about ")
+    share = float(notes[0].split("about ")[1].split(" %")[0])
+    wd = plain["work_distance_mm"]
+    expected = 100 * math.pi * (25 * wd / (wd - 30)) ** 2 / 80 ** 2
+    assert abs(share - expected) < 2.0, (share, expected)  # the probe's 65 x 65 grid

@@ -297,3 +297,36 @@ def test_plates_parameter_selects_backscattering_copper(mi):
         em.load_scene("flat_plate", plates="gold")
     with pytest.raises(em.EloInputError, match="layout='zeta30' is not available; allowed: zeta25, zeta50"):
         em.load_scene("flat_plate", layout="zeta30")
+
+
+def test_discs_that_share_points_are_found_as_a_dense_sampling_finds_them():
+    """scene_files.check_detectors_apart's exact test (the two discs' chords on the line where
+    their planes meet) against brute force: disc 1 sampled every 0.15 mm, a sample on plane 2
+    (within the spacing) and inside disc 2 means they meet. Pairs within 1 mm of touching are
+    left out (the sampling cannot tell); both verdicts must occur often."""
+    from elo_mitsuba.scene_files import _discs_intersect
+
+    rng = np.random.default_rng(7)
+    h = 0.15
+    grid = np.arange(-30.0, 30.0 + h, h)
+    gu, gv = (a.ravel() for a in np.meshgrid(grid, grid))
+    verdicts = {True: 0, False: 0}
+    for _ in range(160):
+        c1, c2 = rng.uniform(-15, 15, (2, 3))
+        n1, n2 = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+        r1, r2 = rng.uniform(5, 30, 2)
+        e1 = np.cross(n1, [1.0, 0, 0] if abs(n1[0]) < 0.9 else [0, 1.0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n1, e1)
+        inside = gu ** 2 + gv ** 2 <= r1 ** 2
+        p = c1 + gu[inside, None] * e1 + gv[inside, None] * e2
+        s = (p - c2) @ n2
+        on_plane = np.abs(s) <= h
+        d2 = np.linalg.norm(p[on_plane] - s[on_plane, None] * n2 - c2, axis=1)
+        depth1 = r1 - np.hypot(gu[inside], gv[inside])[on_plane]  # how far inside disc 1's rim
+        clearly_in = bool(np.any((d2 < r2 - 1.0) & (depth1 > 1.0)))
+        clearly_out = not np.any(d2 < r2 + 1.0)
+        if clearly_in or clearly_out:
+            assert _discs_intersect(c1, n1, r1, c2, n2, r2) == clearly_in, (c1, n1, r1, c2, n2, r2)
+            verdicts[clearly_in] += 1
+    assert verdicts[True] >= 30 and verdicts[False] >= 30, verdicts

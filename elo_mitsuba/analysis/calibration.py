@@ -47,6 +47,8 @@ from .scan_geometry import Disc, ScanGeometry
 #: Coarse grid the fit runs on (block means of the flat image): at least this many blocks a side
 #: (fewer pixels: one per pixel), as many as whole blocks of h // FIT_GRID pixels fill (below 2 x FIT_GRID).
 FIT_GRID = 48
+#: Smallest image side the fit takes: 8 x 8 values against up to 7 parameters per detector.
+MIN_SIDE = 8
 #: The fit's own bias in a detector centre (mm): fitted to a noise-free 1st-event render of the
 #: flat plate with the detectors at the drawn position (scenes_xml/flat_plate.xml, events=1,
 #: 64, 128 and 256 px), every centre comes out 0.17-0.18 mm from where it is (the model's disc
@@ -266,25 +268,32 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
         if not ok:
             raise EloInputError(f"max_misfit {max_misfit!r}: need a relative misfit > 0 (e.g. 0.03), or None for "
                                 "the images' own bound")
-    from ..arguments import shown, whole_number
+    from ..arguments import flag, real_array, shown, whole_number
 
     grid = whole_number("grid", grid, 2, None)
+    fit_offset, fit_center, fit_tilt = (flag(k, v) for k, v in
+                                        (("fit_offset", fit_offset), ("fit_center", fit_center), ("fit_tilt", fit_tilt)))
     if not hasattr(nominal, "detectors") or not hasattr(nominal, "field_mm"):
         raise EloInputError(f"nominal={shown(nominal)}: must be a ScanGeometry (the drawing's detectors, beam and field)")
     if not isinstance(flats, Mapping):
         raise EloInputError(f"flats={shown(flats)}: must map each detector's name to its flat-plate image")
+    if not nominal.detectors:
+        raise EloInputError("the nominal geometry has no detectors: nothing to calibrate")
     names = [n for n in nominal.detectors if n in flats]
     missing = [n for n in nominal.detectors if n not in flats]
     if missing:  # a detector left out would keep the drawing's geometry without a word
         raise EloInputError(f"flat-plate images for {', '.join(nominal.detectors)} are needed; "
                             f"{', '.join(missing)} missing (got {', '.join(map(str, flats)) or 'none'})")
-    first = np.asarray(flats[names[0]], float)
+    first = real_array(f"flat-plate image {names[0]!r}", flats[names[0]], ndim=None)
     if first.ndim != 2 or first.shape != tuple(nominal.shape):
         raise EloInputError(f"flat-plate images are {first.shape}, the geometry {nominal.shape}: one scan needed")
+    if min(first.shape) < MIN_SIDE:
+        raise EloInputError(f"flat-plate images of {first.shape[1]}x{first.shape[0]} px: need at least {MIN_SIDE} "
+                            "pixels a side to fit a detector's centre, tilt and gain")
     coarse_shape = None
     data = {}
     for n in names:
-        img = np.asarray(flats[n], float)
+        img = real_array(f"flat-plate image {n!r}", flats[n], ndim=None)
         if img.shape != first.shape:
             raise EloInputError(f"flat-plate image {n!r} is {img.shape}, {names[0]!r} {first.shape}")
         if not np.all(np.isfinite(img)):

@@ -51,6 +51,28 @@ def unit_disc_rule(n_s: int, n_phi: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return (rr * np.cos(pp)).ravel(), (rr * np.sin(pp)).ravel(), np.array(weights).ravel()
 
 
+def check_nodes(nodes) -> tuple[int, int]:
+    """``nodes`` as the rule's (radial, angular) node counts, each a whole number in [1, 64].
+
+    >>> check_nodes((2, 6))
+    (2, 6)
+    >>> check_nodes(0)
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: nodes=0; must be two whole numbers (radial, angular), e.g. (1, 4)
+    """
+    from ..arguments import shown, whole_number
+    from ..errors import EloInputError
+
+    try:
+        pair = tuple(nodes)
+    except TypeError:
+        pair = ()
+    if len(pair) != 2:
+        raise EloInputError(f"nodes={shown(nodes)}; must be two whole numbers (radial, angular), e.g. {DEFAULT_NODES}")
+    return whole_number("nodes (radial)", pair[0], 1, 64), whole_number("nodes (angular)", pair[1], 1, 64)
+
+
 def disc_nodes_world(disc, nodes=DEFAULT_NODES) -> tuple[np.ndarray, np.ndarray]:
     """World positions (J, 3) and area weights (J,) of the rule's nodes on one disc."""
     n = np.asarray(disc.normal, float)
@@ -101,6 +123,7 @@ class FacetModel:
         from ..plugins.bsdf_elo_bse import TABLE_SIZE
 
         self.dr = dr
+        nodes = check_nodes(nodes)
         self.material = get_material(material)
         self.names = tuple(detectors)
         self.lobe_width_deg = float(lobe_width_deg)

@@ -40,6 +40,7 @@ import numpy as np
 
 # scipy is imported inside the solvers: 'elo-mitsuba reconstruct --help' reads this module's
 # constants, and a help text or a rejected argument must not pay for importing scipy (~0.3 s)
+from ..arguments import flag, real_array, shown, whole_number
 from ..errors import EloInputError
 from .layout import pixel_size
 
@@ -67,12 +68,31 @@ MAX_INTEGRABILITY_RESIDUAL = 0.3
 MAX_MASKED_FRACTION = 0.5
 
 
-def _pixel_gradients(dzdx, dzdy, field_mm):
-    """Gradients in mm per pixel along columns (+x) and rows (-y); non-finite -> 0."""
-    dzdx = np.asarray(dzdx, dtype=float)
-    dzdy = np.asarray(dzdy, dtype=float)
+def _gradient_pair(dzdx, dzdy):
+    """dzdx, dzdy as float arrays of real numbers, 2-D and of one shape."""
+    dzdx, dzdy = real_array("dzdx", dzdx, ndim=None), real_array("dzdy", dzdy, ndim=None)
     if dzdx.shape != dzdy.shape or dzdx.ndim != 2:
         raise EloInputError(f"dzdx {dzdx.shape} and dzdy {dzdy.shape}: expected two 2-D arrays of one shape")
+    return dzdx, dzdy
+
+
+def _mask_array(mask, shape):
+    """``mask`` (True = untrusted) as bools of ``shape``: 0/1 or bool values only (2 or NaN would
+    read as True)."""
+    raw = np.asarray(mask)
+    if raw.dtype != bool:
+        values = real_array("mask", raw, ndim=None)
+        if not np.all((values == 0) | (values == 1)):
+            raise EloInputError("mask: holds values other than 0 and 1 (True = untrusted); give bools")
+        raw = values.astype(bool)
+    if raw.shape != tuple(shape):
+        raise EloInputError(f"mask shape {raw.shape} differs from the gradient's {tuple(shape)}")
+    return raw
+
+
+def _pixel_gradients(dzdx, dzdy, field_mm):
+    """Gradients in mm per pixel along columns (+x) and rows (-y); non-finite -> 0."""
+    dzdx, dzdy = _gradient_pair(dzdx, dzdy)
     dx, dy = pixel_size(dzdx.shape, field_mm)
     gc = np.nan_to_num(dzdx, nan=0.0, posinf=0.0, neginf=0.0) * dx
     gr = -np.nan_to_num(dzdy, nan=0.0, posinf=0.0, neginf=0.0) * dy  # rows run towards -y
@@ -105,6 +125,7 @@ def integrate_fft(dzdx, dzdy, field_mm, *, mirror: bool = True) -> np.ndarray:
     >>> z.shape, bool(abs(z.mean()) < 1e-12)
     ((8, 8), True)
     """
+    mirror = flag("mirror", mirror)
     from scipy import fft as sfft
 
     gc, gr = _pixel_gradients(dzdx, dzdy, field_mm)
@@ -280,8 +301,10 @@ def integrate_masked(dzdx, dzdy, field_mm, mask=None, *, min_component_size: int
     >>> height.round(4).tolist(), mask_out.tolist()
     ([[-0.6, -0.1, 0.4], [0.0, -0.1, 0.4]], [[False, False, False], [True, False, False]])
     """
-    dzdx = np.asarray(dzdx, dtype=float)
-    dzdy = np.asarray(dzdy, dtype=float)
+    dzdx, dzdy = _gradient_pair(dzdx, dzdy)
+    whole_number("direct_limit", direct_limit, 0, None)
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        raise EloInputError(f"tol={shown(tol)}: must be a finite number > 0")
     valid, labels = _trusted_domain(dzdx, dzdy, mask, min_component_size)
     gc, gr = _pixel_gradients(dzdx, dzdy, field_mm)
     height = np.zeros(dzdx.shape)
@@ -308,12 +331,10 @@ def _trusted_domain(dzdx, dzdy, mask, min_component_size):
     ``min_component_size`` pixels) and their component labels."""
     from scipy import ndimage
 
+    min_component_size = whole_number("min_component_size", min_component_size, 1, None)
     bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
     if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != dzdx.shape:
-            raise EloInputError(f"mask shape {mask.shape} differs from the gradient's {dzdx.shape}")
-        bad |= mask
+        bad |= _mask_array(mask, dzdx.shape)
     valid = ~bad
     labels, n_comp = ndimage.label(valid)  # 4-connectivity: the pairs of the functional
     if n_comp:
@@ -398,10 +419,12 @@ def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None 
     >>> round(float(z_ls[2, -1] - z_ls[2, 0]), 2), round(float(z[2, -1] - z[2, 0]), 2)
     (0.81, 0.99)
     """
-    dzdx = np.asarray(dzdx, dtype=float)
-    dzdy = np.asarray(dzdy, dtype=float)
-    if dzdx.shape != dzdy.shape or dzdx.ndim != 2:
-        raise EloInputError(f"dzdx {dzdx.shape} and dzdy {dzdy.shape}: expected two 2-D arrays of one shape")
+    dzdx, dzdy = _gradient_pair(dzdx, dzdy)
+    whole_number("iterations", iterations, 1, None)
+    whole_number("direct_limit", direct_limit, 0, None)
+    return_weights = flag("return_weights", return_weights)
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):
+        raise EloInputError(f"tol={shown(tol)}: must be a finite number >= 0")
     if scale_mm is not None and not (math.isfinite(scale_mm) and scale_mm > 0):
         raise EloInputError(f"scale_mm {scale_mm!r}: must be a finite number > 0")
     valid, labels = _trusted_domain(dzdx, dzdy, mask, min_component_size)
@@ -496,6 +519,7 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
     ([0.0, -0.5, 0.0, 0.5], [True, True, True])
     """
     dzdx, dzdy, bad = _checked_inputs(dzdx, dzdy, mask)
+    whole_number("min_component_size", min_component_size, 1, None)  # also where no mask uses it
     method = resolve_method(method, dzdx, dzdy, bad)
     if method == "masked":
         return integrate_masked(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size)
@@ -513,16 +537,10 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
 
 def _checked_inputs(dzdx, dzdy, mask):
     """The gradient as float arrays of one 2-D shape, and the untrusted pixels (mask or non-finite)."""
-    dzdx = np.asarray(dzdx, dtype=float)
-    dzdy = np.asarray(dzdy, dtype=float)
-    if dzdx.shape != dzdy.shape or dzdx.ndim != 2:
-        raise EloInputError(f"dzdx {dzdx.shape} and dzdy {dzdy.shape}: expected two 2-D arrays of one shape")
+    dzdx, dzdy = _gradient_pair(dzdx, dzdy)
     bad = ~(np.isfinite(dzdx) & np.isfinite(dzdy))
     if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != dzdx.shape:
-            raise EloInputError(f"mask shape {mask.shape} differs from the gradient's {dzdx.shape}")
-        bad = bad | mask
+        bad = bad | _mask_array(mask, dzdx.shape)
     return dzdx, dzdy, bad
 
 
@@ -640,7 +658,9 @@ def height_gradient(height, field_mm):
     >>> dzdx.round(4).tolist()[0], float(np.abs(dzdy).max())
     ([0.5, 0.5, 0.5, 0.5], 0.0)
     """
-    height = np.asarray(height, dtype=float)
+    height = real_array("height", height)
+    if min(height.shape) < 2:
+        raise EloInputError(f"height: {height.shape[1]}x{height.shape[0]} px; differences need 2 pixels a side")
     dx, dy = pixel_size(height.shape, field_mm)
     g_row, g_col = np.gradient(height)
     return g_col / dx, -g_row / dy

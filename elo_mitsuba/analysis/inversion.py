@@ -55,6 +55,7 @@ from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
 from .noise import MIN_FLAT, estimate_noise, local_chi2
+from .stsa import check_images
 from .height_model import (HeightModel, SuperResolvedModel, corners_from_pixels,
                            pixels_from_corners)
 
@@ -654,12 +655,19 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     -------
     InversionResult
     """
-    for name, v in (("iterations", iterations), ("cg_iterations", cg_iterations),
-                    ("uncertainty_probes", uncertainty_probes), ("fixed_border", fixed_border)):
-        if int(v) != v or v < 0:
-            raise EloInputError(f"{name}={v!r}: must be an integer >= 0")
-    if int(super_resolution) != super_resolution or super_resolution < 1:
-        raise EloInputError(f"super_resolution={super_resolution!r}: must be an integer >= 1")
+    from ..arguments import flag, real_array, shown, whole_number
+
+    if not hasattr(geometry, "detectors") or not hasattr(geometry, "field_mm"):
+        raise EloInputError(f"geometry={shown(geometry)}: must be a ScanGeometry (analysis.scan_geometry)")
+    for name, v, lo in (("iterations", iterations, 0), ("cg_iterations", cg_iterations, 1),
+                        ("uncertainty_probes", uncertainty_probes, 0), ("scales", scales, 1),
+                        ("super_resolution", super_resolution, 1)):
+        whole_number(name, v, lo, None)
+    whole_number("fixed_border", fixed_border, 0, max((min(geometry.shape) - 1) // 2, 0))
+    shadows, local, force = flag("shadows", shadows), flag("local", local), flag("force", force)
+    if time_budget_s is not None and not (isinstance(time_budget_s, (int, float)) and not isinstance(time_budget_s, bool)
+                                          and np.isfinite(time_budget_s) and time_budget_s > 0):
+        raise EloInputError(f"time_budget_s={shown(time_budget_s)}: must be a number of seconds > 0, or None")
     if alpha is not None and not (np.isfinite(alpha) and alpha >= 0):
         raise EloInputError(f"alpha={alpha!r}: must be a finite number >= 0")
     if not (np.isfinite(tol) and tol >= 0):
@@ -671,9 +679,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     check_beam_and_start(geometry, fwhm_mm)  # the start's heights once they are known, below
     shape = tuple(geometry.shape)
     for what, data in (("images", images), ("flats", flats)):
-        missing = [n for n in DETECTOR_NAMES if n not in data]
-        if missing:
-            raise EloInputError(f"{what} lack the detector(s) {', '.join(missing)}")
+        data = check_images(data, what)
         for n in DETECTOR_NAMES:
             if np.shape(data[n]) != shape:
                 raise EloInputError(f"{what}[{n!r}] is {np.shape(data[n])}, the scan geometry {shape}")
@@ -683,7 +689,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         from .model_gradient import model_gradient
 
         start = model_gradient(images, flats, geometry)
-    h0 = start_heights(start, geometry) if hasattr(start, "dzdx") else np.array(start, float)
+    h0 = start_heights(start, geometry) if hasattr(start, "dzdx") else real_array("start heights", start)
     if h0.shape != shape or not np.all(np.isfinite(h0)):
         raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")
     check_beam_and_start(geometry, fwhm_mm, h0)

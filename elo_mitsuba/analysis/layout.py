@@ -50,7 +50,9 @@ def check_detector_geometry(d_h, d_w) -> tuple[float, float]:
     """
     out = []
     for name, val in (("d_h", d_h), ("d_w", d_w)):
-        try:
+        try:  # text and bools are not lengths, though float() would take them
+            if isinstance(val, (str, bytes, bool, np.bool_)):
+                raise TypeError
             v = float(val)
         except (TypeError, ValueError, OverflowError):
             raise EloInputError(f"{name}={val!r}: expected a length in mm") from None

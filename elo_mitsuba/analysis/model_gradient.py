@@ -37,7 +37,7 @@ from ..errors import EloInputError
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
 from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
 from .noise import local_chi2
-from .stsa import MIN_SUM
+from .stsa import MIN_SUM, check_images
 
 #: Levenberg-Marquardt iterations (each: one kernel of three model evaluations).
 ITERATIONS = 10
@@ -226,7 +226,7 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     >>> round(float(result.dzdx.mean()), 2), round(float(result.dzdy.mean()) + 0.0, 2)
     (0.1, 0.0)
     """
-    from ..arguments import fraction, whole_number
+    from ..arguments import fraction, real_array, shown, whole_number
 
     whole_number("iterations", iterations, 1, 1000)
     fraction("min_corrected", min_corrected)
@@ -237,11 +237,18 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
     d_h, d_w = geometry.symmetric_layout()
-    images = dict(images)
+    images = check_images(images, "object images" if flats is not None else "corrected images")
+    if heights is not None:
+        heights = real_array("heights", heights, shape=tuple(geometry.shape))
+        if not np.all(np.isfinite(heights)):
+            raise EloInputError("heights: hold NaN or Inf; need a height (mm) at every pixel")
+    if start is not None and not all(hasattr(start, k) for k in ("dzdx", "dzdy", "mask")):
+        raise EloInputError(f"start={shown(start)}: must be a GradientResult (dzdx, dzdy, mask), e.g. of surface_gradient")
     if flat_second_event is not None:
         if flats is None:
             raise EloInputError("flat_second_event needs the flat-plate images")
-        share = {n: np.clip(np.asarray(flat_second_event[n], float), 0.0, 0.99) for n in DETECTOR_NAMES}
+        flat_second_event = check_images(flat_second_event, "flat_second_event")
+        share = {n: np.clip(flat_second_event[n], 0.0, 0.99) for n in DETECTOR_NAMES}
         flats = {n: np.asarray(flats[n], float) * (1.0 - share[n]) for n in DETECTOR_NAMES}
         images = {n: np.asarray(images[n], float) - np.asarray(flats[n]) * share[n] / (1.0 - share[n])
                   for n in DETECTOR_NAMES}

@@ -28,6 +28,7 @@ from ..constants import (
 from ..errors import EloInputError
 from ..grid import field_xy, pixel_coordinates
 from ..schema import PROJECTIONS, HeaderGeometry, geometry_header, read_geometry
+from .layout import check_detector_geometry
 
 
 #: The most scan points a side (a 1 m field at 1 um pixels): a larger number is a slip.
@@ -110,6 +111,13 @@ class ScanGeometry:
         object.__setattr__(self, "shape", (h, w))
         object.__setattr__(self, "field_mm", field_xy(self.field_mm, (h, w)))
         object.__setattr__(self, "work_distance_mm", wd)
+        try:
+            offset = np.asarray(self.aim_offset_mm, dtype=float).reshape(-1)
+        except (TypeError, ValueError, OverflowError):
+            offset = np.array([np.nan])
+        if offset.shape != (2,) or not np.all(np.isfinite(offset)):
+            raise EloInputError(f"aim_offset_mm {self.aim_offset_mm!r}: need 2 finite numbers (x, y) in mm")
+        object.__setattr__(self, "aim_offset_mm", (float(offset[0]), float(offset[1])))
         object.__setattr__(self, "detectors", dict(self.detectors))
         from ..physics import get_material
 
@@ -120,6 +128,7 @@ class ScanGeometry:
     def nominal(cls, shape, field_mm, d_h, d_w, *, radius=DETECTOR_DIAMETER_MM / 2, **kw) -> "ScanGeometry":
         """The symmetric layout of Eq. 17: four discs at (+-d_w, 0, d_h), (0, +-d_w, d_h), facing the
         origin, of radius ``radius`` (mm; ATHENE's 50 mm discs by default)."""
+        d_h, d_w = check_detector_geometry(d_h, d_w)
         dets = {}
         for name in DETECTOR_NAMES:
             ex, ey = DETECTOR_DIRECTIONS[name]

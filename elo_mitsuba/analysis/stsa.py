@@ -15,6 +15,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..arguments import real_array
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 
@@ -31,7 +32,7 @@ def check_images(images: Mapping, what: str = "images", names=DETECTOR_NAMES) ->
     missing = [n for n in names if n not in images]
     if missing:
         raise EloInputError(f"{what}: missing detector image(s) {', '.join(missing)}; need {', '.join(names)}")
-    out = {n: np.asarray(images[n], dtype=float) for n in names}
+    out = {n: real_array(f"{what}: {n}", images[n], ndim=None) for n in names}
     shapes = {a.shape for a in out.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
         raise EloInputError(f"{what}: detector images must be 2-D and of one shape, got {sorted(shapes)}")

@@ -310,7 +310,7 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
             _fail(source, f"{sec} must be a table ([{sec}]), not {type(t[sec]).__name__}")
     fixed = {}
     for k, v in t.get("fixed", {}).items():
-        if not _scalar(v) or (_number(v) and not math.isfinite(v)):
+        if not _scalar(v) or (_number(v) and not _finite(v)):
             _fail(source, f"fixed.{k} = {v!r}; a fixed scene parameter is one finite number or a string")
         if k in RENDER_KEYS or k == "res":
             _fail(source, f"fixed.{k}: set it in [render] ({', '.join(RENDER_KEYS)})")
@@ -456,7 +456,7 @@ def _members(source, where, key, value) -> list[Member]:
     kinds = {type(v) for v in vals}
     if not all(_scalar(v) for v in vals):
         _fail(source, f"{where} = {value!r}; scene parameter values are numbers or strings")
-    bad = [v for v in vals if _number(v) and not math.isfinite(v)]
+    bad = [v for v in vals if _number(v) and not _finite(v)]
     if bad:
         _fail(source, f"{where}: value {bad[0]!r}; scene parameter values are finite numbers or strings")
     if len({float if k is int else k for k in kinds}) > 1:
@@ -471,11 +471,11 @@ def _detector_member(source, where, detector, attr, value) -> Member:
     out = []
     for v in vals:
         if attr == "radius":
-            if not _number(v) or not (v > 0 and math.isfinite(v)):
+            if not _number(v) or not (v > 0 and _finite(v)):
                 _fail(source, f"{where}: radius {v!r}; give numbers > 0 (mm)")
             out.append(float(v))
         else:
-            if not (isinstance(v, list) and len(v) == 3 and all(_number(c) and math.isfinite(c) for c in v)):
+            if not (isinstance(v, list) and len(v) == 3 and all(_number(c) and _finite(c) for c in v)):
                 _fail(source, f"{where}: {v!r}; a {attr} is a list of 3 numbers ({'mm' if attr == 'center' else 'unit vector'})")
             vec = tuple(float(c) for c in v)
             if attr == "normal" and not any(vec):
@@ -502,8 +502,15 @@ def _number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _finite(v) -> bool:
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an int beyond float (10**400) is not a usable number either
+        return False
+
+
 def _integer(source, where, v, lo, hi) -> int:
-    if not (_number(v) and math.isfinite(v) and float(v) == int(v)) or v < lo or (hi is not None and v > hi):
+    if not (_number(v) and _finite(v) and float(v) == int(v)) or v < lo or (hi is not None and v > hi):
         rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
         _fail(source, f"{where} = {v!r}; must be a whole number {rng}")
     return int(v)
@@ -548,7 +555,7 @@ def _surface(source, s, base: Path):
             load_heightmap(path)
         except EloInputError as exc:
             _fail(source, f"surface.height_map: {exc}")
-        if not (_number(s.get("pixel_mm")) and math.isfinite(s["pixel_mm"]) and s["pixel_mm"] > 0):
+        if not (_number(s.get("pixel_mm")) and _finite(s["pixel_mm"]) and s["pixel_mm"] > 0):
             _fail(source, f"surface.pixel_mm = {s.get('pixel_mm')!r}; the height map's pixel size in mm (> 0)")
         out["height_map"] = str(path.resolve())
         out["pixel_mm"] = float(s["pixel_mm"])
