@@ -167,6 +167,9 @@ CLI_CASES = [
     ("new-scene empty name", ["new-scene", ""], "scene: the path is empty"),
     ("calibrate --event with --second-event", ["calibrate", "{d}/flat.exr", "--event", "1", "--second-event",
                                                "{d}/flat.exr", "-o", "{d}/c.json"], "--event 1 already takes one event"),
+    ("calibrate --second-event of a 1st-event render", ["calibrate", "{d}/flat.exr", "--second-event", "{d}/flat.exr",
+                                                         "-o", "{d}/c.json"],
+     "flat.exr: rendered with events=1; later events need --events >= 2"),
     ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
      "the sampler's sample_count is 0 (-D spp=0)"),
     # -- 8: contradictions refused

@@ -152,9 +152,9 @@ def read_later_events(path, shape) -> tuple[dict, dict]:
     e.g. the flat plate in the chamber: (later events in the render's units N_d/N_0, their share
     of each pixel's total)."""
     total, meta = read_detector_exr(path)
-    first, _ = read_detector_exr(path, 1)
-    if int(meta.get("events", 1)) < 2:
+    if int(meta.get("events", 1)) < 2:  # before its per-event channels are looked for
         raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; later events need --events >= 2")
+    first, _ = read_detector_exr(path, 1)
     if next(iter(total.values())).shape != tuple(shape):
         raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
     later, share = {}, {}
