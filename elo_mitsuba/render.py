@@ -143,7 +143,7 @@ class EloScene:
         self._loaded = {name: np.array(self.mi_params[f"{name}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
                         for name in self.detector_names if f"{name}.to_world" in self.mi_params}
         self._placed: dict = {}  # each moved detector's centre and radius as set_detector last set them
-        self._check_detectors()
+        self.check_detectors()
 
     # -- introspection --
     @property
@@ -239,11 +239,17 @@ class EloScene:
             meta["transimpedance_V_per_A"] = self.integrator.transimpedance
         return meta
 
-    def _check_detectors(self):
+    def check_detectors(self, apart: bool = True) -> None:
+        """Refuse a detector system no render can use: a disc through the build plane or facing
+        away from the field (:func:`~elo_mitsuba.scene_files.check_detector_placement`) and, with
+        ``apart``, two discs that intersect (:func:`~elo_mitsuba.scene_files.check_detectors_apart`).
+        Called on loading, by :meth:`set_detector` (each disc; detectors moved one by one may cross
+        on their way) and by :meth:`render` (all of them, before any work)."""
         geometry = self.detector_geometry()
         for name, geo in geometry.items():
             check_detector_placement(name, geo["center"], geo["normal"], geo["radius"], where=str(self.path))
-        check_detectors_apart(geometry, where=str(self.path))
+        if apart:
+            check_detectors_apart(geometry, where=str(self.path))
 
     # -- changing parameters without reloading --
     @property
@@ -394,7 +400,7 @@ class EloScene:
         self.mi_params[key] = mi.Transform4f(xf)
         self.mi_params.update()
         try:
-            self._check_detectors()
+            self.check_detectors(apart=False)
         except EloError:  # a refused move is not kept
             self.mi_params[key] = mi.Transform4f(mi.ScalarTransform4f(previous))
             self.mi_params.update()
@@ -553,6 +559,7 @@ class EloScene:
         progress = flag("progress", progress, none=True)
         if quality is not None:
             _check_quality(quality)
+        self.check_detectors()
         before = (self.integrator.events, self.quality)  # what a refused render leaves as it was
         try:
             if events is not None:

@@ -299,7 +299,7 @@ API_CASES = [
     ("set_detector radius text", lambda: _scene().set_detector("right", radius="big"), "radius 'big'"),
     ("set_detector below", lambda: _scene().set_detector("right", center=(127, 0, -5)), "below the build plane"),
     ("set_detector cuts the plate", lambda: _scene().set_detector("right", center=(127, 0, 5)), "reaches down"),
-    ("set_detector onto another", lambda: _scene().set_detector("right", center=(0, 127, 272)),
+    ("render with a detector moved onto another", lambda: _moved_onto_back().render(quality="draft", progress=False),
      "detectors 'right' and 'back' intersect (centres 0 mm apart"),
     ("set_material unknown material", lambda: _scene().set_material("plate", "Unobtainium"), "Unobtainium"),
     ("set_material unknown shape", lambda: _scene().set_material("lid", "Cu"), "no shape with id 'lid'"),
@@ -363,3 +363,9 @@ def test_a_measured_composition_is_normalised_with_a_note():
     assert get_material("Ti:0.9,Al:0.06,V:0.04").note == ""
     scene = em.load_scene("flat_plate", res=2, material="Ti:0.9,Al:0.06,V:0.0395")
     assert any("normalised to 1" in n for n in scene.metadata(1, 0)["notes"])
+
+
+def _moved_onto_back():
+    scene = _scene()
+    scene.set_detector("right", center=(0, 127, 272))
+    return scene

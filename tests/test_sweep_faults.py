@@ -82,6 +82,8 @@ BAD_POINTS = {
                       "right.center = [127.0, 0.0, -10.0]", "at or below the build plane"),
     "normal_second": (FLAT + "[vary]\nright.normal = [[-1, 0, -1], [1, 0, 1]]\n" + SMALL,
                       "right.normal = [1.0, 0.0, 1.0]", "faces away"),
+    "centre_onto_another": (FLAT + "[vary]\nright.center = [[127, 0, 272], [0, 127, 272]]\n" + SMALL,
+                            "right.center = [0.0, 127.0, 272.0]", "detectors 'right' and 'back' intersect"),
     "radius_through_plate": (FLAT + "[vary]\nright.center = [[127, 0, 272], [300, 0, 30]]\nright.radius = [20, 60]\n"
                              + SMALL, "right.radius = 60", "through the build plane"),
     "events_nan": (FLAT + "[vary]\ndh = [200]\n[render]\nevents = nan\n", "render.events = nan", "whole number"),

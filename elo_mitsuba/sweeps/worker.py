@@ -95,6 +95,7 @@ class LoadedScene:
             for name in (self.scene.detector_names if det == ALL_DETECTORS else [det]):
                 self.scene.set_detector(name, center=m.get("center"), radius=m.get("radius"), normal=m.get("normal"))
         self.moved = names
+        self.scene.check_detectors()  # the moved system as a whole (discs that intersect), as the spec's check sees it
 
 
 def _scene(path, load: dict, integrator: dict, moves: dict | None = None) -> LoadedScene:
