@@ -48,6 +48,8 @@ def detectors_in_beam(detectors, sensor, probe):
     """[(name, share)] of the ``detectors`` ([(name, shape)]) that the beam of ``sensor`` meets
     before any surface, with the share of the scan field where it does (:func:`beam_probe`'s grid,
     its margin left out). There the beam ends on the detector: no electron reaches the plate."""
+    if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):  # not the elo_beam sensor: no beam
+        return []
     margin = 3.0 * float(np.ravel(getattr(sensor, "sigma", 0.0))[0])
     wd, fx, fy = float(sensor.wd), 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
     orthographic = getattr(sensor, "projection", "perspective") == "orthographic"
