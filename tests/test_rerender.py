@@ -138,14 +138,15 @@ def test_a_detector_moved_to_where_the_scene_put_it_renders_as_the_scene_does():
     set_detector orienting it otherwise than parts/detectors.xml (look-at up +z against the
     azimuthal direction), a detector "moved" to its own place rendered another Monte Carlo
     realisation, 2 % of the signal apart at 4 spp. In the scene's frame only float32 rounding of
-    the transform remains (below 1e-6 of the signal; 1e-5 for the 2nd event's longer paths)."""
+    the transform remains: at most 1.0e-6 of the mean (1.2e-5 for the 2nd event's longer paths)
+    over seeds 0-7; the bounds leave 10x for other CPUs' rounding."""
     scene = em.load_scene("athene_flat", res=8)
     before = scene.render(spp=4, events=2, progress=False).channels
     for name, geometry in scene.detector_geometry().items():
         scene.set_detector(name, center=geometry["center"])
     after = scene.render(spp=4, events=2, progress=False).channels
     for key, image in before.items():
-        bound = 1e-5 if key.endswith(".e2") else 2e-6
+        bound = 1e-4 if key.endswith(".e2") else 1e-5
         assert np.abs(after[key] - image).max() <= bound * image.mean(), key
 
 
