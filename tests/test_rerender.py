@@ -160,4 +160,4 @@ def test_detectors_swapped_one_by_one_render_as_placed_there():
     scene.set_detector("back", center=(127, 0, 272))
     after = scene.render(quality="draft", progress=False).channels
     for a, b in (("right", "back"), ("back", "right")):
-        assert np.abs(after[a] - before[b]).max() <= 2e-6 * before[b].mean(), a
+        assert np.abs(after[a] - before[b]).max() <= 1e-5 * before[b].mean(), a  # 4.7e-7 here: float32
