@@ -337,7 +337,7 @@ API_CASES = [
     ("invert_heights force='no'", lambda: _invert(force="no"), "force='no'; must be True or False"),
     ("invert_heights scales 0", lambda: _invert(scales=0), "scales=0; must be a whole number >= 1"),
     ("invert_heights time budget 0", lambda: _invert(time_budget_s=0), "time_budget_s=0: must be a number of seconds"),
-    ("invert_heights border past the middle", lambda: _invert(fixed_border=100), "fixed_border=100; must be a whole"),
+    ("invert_heights border of 1.5 px", lambda: _invert(fixed_border=1.5), "fixed_border=1.5; must be a whole"),
     ("invert_heights start text", lambda: _invert(start="flat"), "start heights: an array of text"),
     ("integrate mask of 2s", lambda: _integrate_with(mask=np.full((8, 8), 2.0)), "mask: holds values other than 0 and 1"),
     ("integrate min_component_size -1", lambda: _integrate_with(min_component_size=-1),

@@ -661,9 +661,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         raise EloInputError(f"geometry={shown(geometry)}: must be a ScanGeometry (analysis.scan_geometry)")
     for name, v, lo in (("iterations", iterations, 0), ("cg_iterations", cg_iterations, 1),
                         ("uncertainty_probes", uncertainty_probes, 0), ("scales", scales, 1),
-                        ("super_resolution", super_resolution, 1)):
-        whole_number(name, v, lo, None)
-    whole_number("fixed_border", fixed_border, 0, max((min(geometry.shape) - 1) // 2, 0))
+                        ("super_resolution", super_resolution, 1), ("fixed_border", fixed_border, 0)):
+        whole_number(name, v, lo, None)  # a border wider than half the image holds every height: the start
     shadows, local, force = flag("shadows", shadows), flag("local", local), flag("force", force)
     if time_budget_s is not None and not (isinstance(time_budget_s, (int, float)) and not isinstance(time_budget_s, bool)
                                           and np.isfinite(time_budget_s) and time_budget_s > 0):
