@@ -128,8 +128,11 @@ def vector3(what: str, value, limit: float | None = None):
     """
     import numpy as np
 
-    try:
-        v = np.asarray(value, dtype=float).reshape(-1)
+    try:  # True is not 1 mm, nor "127" 127 mm
+        raw = np.asarray(value)
+        words = raw.dtype.kind in "bUS" or (isinstance(value, (list, tuple))
+                                            and any(isinstance(x, (bool, np.bool_, str)) for x in value))
+        v = np.array([np.nan]) if words else raw.astype(float).reshape(-1)
     except (TypeError, ValueError, OverflowError):
         v = np.array([np.nan])
     if v.shape != (3,) or not np.all(np.isfinite(v)):

@@ -363,6 +363,8 @@ API_CASES = [
     ("configure an array of numbers", lambda: _scene().configure(detector_samples=np.array([4, 5])),
      "detector_samples=array([4, 5]); must be one number"),
     ("restore_detectors 5", lambda: _scene().restore_detectors(5), "no placed detector 5"),
+    ("set_detector centre with a bool", lambda: _scene().set_detector("right", center=(True, 0, 250)),
+     "centre (True, 0, 250); need 3 finite numbers"),
     ("set_detector radius True", lambda: _scene().set_detector("right", radius=True), "radius True; need a finite"),
     ("set_detector centre beyond float32", lambda: _scene().set_detector("right", center=(1e300, 0, 1e300)),
      "within +-1e+06 mm"),
