@@ -198,7 +198,9 @@ class EloIntegrator(mi.SamplingIntegrator):
 
         self.relief = relief_under_beam(scene, beam, surfaces, probe) if self.bounce_possible and beam is not None else []
         self.notes = []
-        for name, share in (detectors_in_beam(detectors, beam, probe) if beam is not None else []):
+        #: [(detector, share of the field)] of the detectors the beam meets before the surface
+        self.in_beam = detectors_in_beam(detectors, beam, probe) if beam is not None else []
+        for name, share in self.in_beam:
             self.notes.append(
                 f"detector {name!r} lies in the beam's path over about {100 * share:.3g} % of the scan field: "
                 "there the beam lands on it, not on the build surface, and those pixels show no surface (move "

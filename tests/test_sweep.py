@@ -391,3 +391,24 @@ def test_workers_reuse_freed_memory(mode):
         assert faults < 100, faults  # the pages stay mapped
     else:
         assert faults > 3 * 60, faults  # 3 x 128 MB fresh: >= 64 faults each even with 2 MB pages
+
+
+def test_a_detector_in_the_beams_path_fails_its_point(tmp_path):
+    """A point whose detector stands between the gun and the field was stored as done with zero
+    signal and NaN spread; it fails with the render's note, and the other points go on."""
+    spec = _write(tmp_path / "b.toml", """
+scene = "flat_plate"
+[vary]
+right.center = [[127, 0, 272], [0, 0, 200]]
+right.normal = [[-127, 0, -272], [0, 0, -1]]
+[render]
+resolution = 8
+quality = "draft"
+""")
+    out = tmp_path / "b.zarr"
+    assert _cli("sweep", spec, "-o", out, "--workers", "0", "--no-progress") == 1  # one failed
+    ds = xr.open_zarr(out)
+    status = ds["status"].values
+    assert (status == 1).sum() >= 1 and (status == 2).sum() >= 1, status
+    errors = [str(e) for e in np.ravel(ds["error"].values) if "beam's path" in str(e)]
+    assert errors and all("detector 'right' lies in the beam's path over about" in e for e in errors)

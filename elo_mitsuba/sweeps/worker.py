@@ -123,6 +123,11 @@ def render_point(spec: SweepSpec, point) -> tuple:
     scene.prepare(point.moves)
     r = point.render
     result = scene.scene.render(spp=r["spp"], seed=r["seed"], events=r["events"], quality=r["quality"], progress=False)
+    if scene.scene.integrator.in_beam:  # a geometry no design can have: the point fails with the render's note
+        from ..errors import EloInputError
+
+        name = scene.scene.integrator.in_beam[0][0]
+        raise EloInputError(next(n for n in result.metadata["notes"] if n.startswith(f"detector {name!r} lies in")))
     flat = None
     if spec.surface is not None:
         flat = _flat(spec, point, scene)
