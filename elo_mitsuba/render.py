@@ -121,11 +121,13 @@ class EloScene:
         except Exception as exc:  # Mitsuba wraps everything in RuntimeError
             raise EloInputError(explain_mitsuba_error(exc, self.path, values)) from None
         self.integrator = self.scene.integrator()
-        self.sensor = self.scene.sensors()[0]
+        sensors = self.scene.sensors()  # a second one would be ignored without a word
+        self.sensor = sensors[0] if len(sensors) == 1 else None
         if not hasattr(self.integrator, "prepare_scene"):
             raise EloInputError(f"{self.path}: the integrator must be <integrator type=\"elo\"/>")
         if not hasattr(self.sensor, "beam_target"):
-            raise EloInputError(f"{self.path}: the sensor must be <sensor type=\"elo_beam\">")
+            raise EloInputError(f"{self.path}: the scene needs one sensor, <sensor type=\"elo_beam\"> (the gun); it has "
+                                f"{', '.join(type(x).__name__ for x in sensors) or 'none'}")
         self.integrator.prepare_scene(self.scene)
         # the scene file's spp, read once: Mitsuba's render(spp=n) sets the sensor's sampler to n,
         # so the sampler cannot be asked again after a render (each render would halve it)

@@ -59,10 +59,19 @@ class EloBeam(mi.Sensor):
             raise EloInputError(
                 f"elo_beam: projection={self.projection!r}; allowed: {', '.join(PROJECTIONS)}"
             )
+        if "to_world" in props:  # the gun stands on the z-axis at wd, aiming down
+            raise EloInputError("elo_beam: a to_world transform would be ignored; the gun stands on the z-axis, "
+                                "wd mm above the plate (move the scene instead, or set wd / field)")
         res = self.film().size()
         self.resolution = (int(res[0]), int(res[1]))
         if min(self.resolution) < 1:
             raise EloInputError(f"elo_beam: film resolution {self.resolution}; must be >= 1 x 1")
+        crop, offset = self.film().crop_size(), self.film().crop_offset()
+        if (int(crop[0]), int(crop[1])) != self.resolution or int(offset[0]) or int(offset[1]):
+            # the scan would be squeezed into the crop, and headers would describe the whole field
+            raise EloInputError(f"elo_beam: the film crops {int(crop[0])}x{int(crop[1])} px at ({int(offset[0])}, "
+                                f"{int(offset[1])}) of {self.resolution[0]}x{self.resolution[1]}; a crop is not "
+                                "supported: set the scan field (field) and the resolution instead")
         if self.film().rfilter().radius() > 0.5 + 1e-6:
             raise EloInputError(
                 "elo_beam: the film needs <rfilter type=\"box\"/> so that each beam position "

@@ -95,17 +95,22 @@ def d(tmp_path_factory):
            'target="0, 0, 0" up="0, 1, 0"/></transform><emitter type="area"{e}</emitter></shape>'
     origins = {"right": "127, 0, 272", "left": "-127, 0, 272", "back": "0, 127, 272", "front": "0, -127, 272"}
 
-    def plate_scene(name, radius="25", emitter=">"):
-        discs = "".join(disc.format(n=n, o=o, r=radius if n == "right" else "25", e=emitter if n == "right" else ">")
-                        for n, o in origins.items())
+    def plate_scene(name, radius="25", emitter=">", sensor="", film="", shapes="", ids=None):
+        discs = "".join(disc.format(n=(ids or {}).get(n, n), o=o, r=radius if n == "right" else "25",
+                                    e=emitter if n == "right" else ">") for n, o in origins.items())
         (d / name).write_text(
             '<scene version="3.0.0"><integrator type="elo"/><sensor type="elo_beam"><float name="field" value="80"/>'
-            '<film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/>'
-            '<rfilter type="box"/></film></sensor><shape type="rectangle" id="plate"><transform name="to_world">'
-            '<scale x="100" y="100"/></transform><bsdf type="elo_bse"/></shape>' + discs + "</scene>")
+            + sensor + '<film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/>'
+            + film + '<rfilter type="box"/></film></sensor><shape type="rectangle" id="plate"><transform '
+            'name="to_world"><scale x="100" y="100"/></transform><bsdf type="elo_bse"/></shape>' + discs + shapes
+            + "</scene>")
 
     plate_scene("radiance.xml", emitter='><rgb name="radiance" value="5"/>')
     plate_scene("huge_detector.xml", radius="1e30")
+    # the XML sweep (2026-12-05): settings the renderer would not apply, names it would collide on
+    plate_scene("gun_moved.xml", sensor='<transform name="to_world"><translate x="5"/></transform>')
+    plate_scene("film_crop.xml", film='<integer name="crop_width" value="2"/><integer name="crop_height" value="2"/>')
+    (d / "no_sensor.xml").write_text('<scene version="3.0.0"><integrator type="elo"/></scene>')
     shutil.copy(Path(__file__).parents[1] / "examples" / "optimize_athene.toml", d / "design.toml")
     return d
 
@@ -170,6 +175,12 @@ CLI_CASES = [
     ("calibrate --second-event of a 1st-event render", ["calibrate", "{d}/flat.exr", "--second-event", "{d}/flat.exr",
                                                          "-o", "{d}/c.json"],
      "flat.exr: rendered with events=1; later events need --events >= 2"),
+    ("render a gun with a to_world transform", ["render", "{d}/gun_moved.xml", "-o", "{d}/new.exr"],
+     "elo_beam: a to_world transform would be ignored"),
+    ("render a cropped film", ["render", "{d}/film_crop.xml", "-o", "{d}/new.exr"],
+     "elo_beam: the film crops 2x2 px at (0, 0) of 4x4; a crop is not supported"),
+    ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
+     "the scene needs one sensor, <sensor type=\"elo_beam\"> (the gun); it has none"),
     ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
      "the sampler's sample_count is 0 (-D spp=0)"),
     # -- 8: contradictions refused
