@@ -35,9 +35,10 @@ from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS,
 from .progress import RenderProgress
 from .arguments import flag, length, shown, vector3, whole_number
 from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # noqa: F401 -- part of this module's API
+from . import surfaces
 from .runtime import ensure_variant
-from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, UNITS, WORK_DISTANCE, grid_header,
-                     signal_units)
+from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, SCATTERING, UNITS, WORK_DISTANCE,
+                     grid_header, signal_units)
 from .scene_files import (check_detector_placement, check_detectors_apart, declared_parameters, detector_up,
                           explain_mitsuba_error, resolve_scene_path, scene_values)
 
@@ -190,22 +191,7 @@ class EloScene:
 
     def materials(self) -> dict[str, str]:
         """``{shape id: material}`` of the shapes with an ``elo_bse`` BSDF."""
-        out = {}
-        for shape in self.scene.shapes():
-            bsdf = shape.bsdf()
-            mat = getattr(bsdf, "material", None)
-            if mat is not None:
-                out[shape.id() or f"shape{len(out)}"] = mat.describe()
-        return out
-
-    def _material_notes(self) -> list[str]:
-        """What was done to a user's material (a measured composition normalised), per shape."""
-        notes = []
-        for shape in self.scene.shapes():
-            note = getattr(getattr(shape.bsdf(), "material", None), "note", "")
-            if note:
-                notes.append(f"material of {shape.id() or 'a shape'!r}: {note}")
-        return notes
+        return surfaces.materials(self.scene)
 
     def metadata(self, spp: int, seed: int) -> dict:
         s = self.sensor
@@ -228,11 +214,12 @@ class EloScene:
             "detector_samples": self.integrator.detector_samples,
             "quality": self.quality,
             "integrator_options": self.integrator.options.as_dict(),
-            "notes": list(getattr(self.integrator, "notes", [])) + self._material_notes(),
+            "notes": list(getattr(self.integrator, "notes", [])) + surfaces.material_notes(self.scene),
             "spp": int(spp),
             "seed": int(seed),
             DETECTORS: geometry,
             MATERIALS: self.materials(),
+            SCATTERING: surfaces.scattering(self.scene),
             "orientation": ORIENTATION,
             "variant": self.mi.variant(),
         }

@@ -63,7 +63,10 @@ class EloBSE(mi.BSDF):
     def __init__(self, props):
         mi.BSDF.__init__(self, props)
         material = props.get("material", DEFAULT_MATERIAL)
-        self.lobe = bool(props.get("lobe", True))
+        lobe = props.get("lobe", True)
+        if isinstance(lobe, str) or not (isinstance(lobe, bool) or lobe in (0, 1)):  # bool("false") is True
+            raise EloInputError(f"elo_bse: lobe={lobe!r}; must be true or false (<boolean name=\"lobe\" value=\"false\"/>)")
+        self.lobe = bool(lobe)
         width = float(props.get("lobe_width", LOBE_WIDTH_DEG))
         if not (np.isfinite(width) and width > 0):
             raise EloInputError(f"elo_bse: lobe_width={width!r} deg; must be a positive number")

@@ -95,14 +95,14 @@ def d(tmp_path_factory):
            'target="0, 0, 0" up="0, 1, 0"/></transform><emitter type="area"{e}</emitter></shape>'
     origins = {"right": "127, 0, 272", "left": "-127, 0, 272", "back": "0, 127, 272", "front": "0, -127, 272"}
 
-    def plate_scene(name, radius="25", emitter=">", sensor="", film="", shapes="", ids=None):
+    def plate_scene(name, radius="25", emitter=">", sensor="", film="", shapes="", ids=None, bsdf="/>"):
         discs = "".join(disc.format(n=(ids or {}).get(n, n), o=o, r=radius if n == "right" else "25",
                                     e=emitter if n == "right" else ">") for n, o in origins.items())
         (d / name).write_text(
             '<scene version="3.0.0"><integrator type="elo"/><sensor type="elo_beam"><float name="field" value="80"/>'
             + sensor + '<film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/>'
             + film + '<rfilter type="box"/></film></sensor><shape type="rectangle" id="plate"><transform '
-            'name="to_world"><scale x="100" y="100"/></transform><bsdf type="elo_bse"/></shape>' + discs + shapes
+            'name="to_world"><scale x="100" y="100"/></transform><bsdf type="elo_bse"' + bsdf + '</shape>' + discs + shapes
             + "</scene>")
 
     plate_scene("radiance.xml", emitter='><rgb name="radiance" value="5"/>')
@@ -110,6 +110,8 @@ def d(tmp_path_factory):
     # the XML sweep (2026-12-05): settings the renderer would not apply, names it would collide on
     plate_scene("gun_moved.xml", sensor='<transform name="to_world"><translate x="5"/></transform>')
     plate_scene("film_crop.xml", film='<integer name="crop_width" value="2"/><integer name="crop_height" value="2"/>')
+    plate_scene("lobe_text.xml", bsdf='><string name="lobe" value="false"/></bsdf>')
+    plate_scene("lobe_25.xml", bsdf='><float name="lobe_width" value="25"/></bsdf>')
     (d / "no_sensor.xml").write_text('<scene version="3.0.0"><integrator type="elo"/></scene>')
     shutil.copy(Path(__file__).parents[1] / "examples" / "optimize_athene.toml", d / "design.toml")
     return d
@@ -179,6 +181,8 @@ CLI_CASES = [
      "elo_beam: a to_world transform would be ignored"),
     ("render a cropped film", ["render", "{d}/film_crop.xml", "-o", "{d}/new.exr"],
      "elo_beam: the film crops 2x2 px at (0, 0) of 4x4; a crop is not supported"),
+    ("render a lobe given as text", ["render", "{d}/lobe_text.xml", "-o", "{d}/new.exr"],
+     "elo_bse: lobe='false'; must be true or false"),
     ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
      "the scene needs one sensor, <sensor type=\"elo_beam\"> (the gun); it has none"),
     ("render sample_count 0", [*R, "--resolution", "4", "--quality", "scene", "-D", "spp=0"],
@@ -611,3 +615,19 @@ def test_a_detector_in_the_beams_path_is_said_in_a_note():
     wd = plain["work_distance_mm"]
     expected = 100 * math.pi * (25 * wd / (wd - 30)) ** 2 / 80 ** 2
     assert abs(share - expected) < 2.0, (share, expected)  # the probe's 65 x 65 grid
+
+
+def test_images_of_another_lobe_than_the_models_get_a_note(d, capsys):
+    """The header records each surface's g_BSE lobe; gradient, invert and calibrate say when it is
+    not the paper's, which their models assume (a 25 deg lobe biased the corrugated sheet's median
+    slope to 1.072 for a true 1.000 without a word)."""
+    assert main(["render", str(d / "lobe_25.xml"), "-o", str(d / "lobe25.exr"), "--quality", "draft", "--quiet"]) == 0
+    _, meta = read_exr(d / "lobe25.exr")
+    assert meta["scattering"] == {"plate": {"lobe": True, "lobe_width_deg": 25.0}}
+    capsys.readouterr()
+    for args in (["gradient", str(d / "lobe25.exr"), "--flat", str(d / "lobe25.exr"), "-o", str(d / "g25.exr")],
+                 ["calibrate", str(d / "lobe25.exr"), "-o", str(d / "c25.json"), "--max-misfit", "1"]):
+        main(args)
+        assert "another g_BSE than the analysis models" in capsys.readouterr().err, args[0]
+    main(["gradient", str(d / "flat.exr"), "--flat", str(d / "flat.exr"), "-o", str(d / "g13.exr")])
+    assert "another g_BSE" not in capsys.readouterr().err

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
+from ..schema import scattering_note
 from ._args import field_arg, positive_float, positive_int
 
 DESCRIPTION = """\
@@ -95,6 +96,8 @@ def run(args) -> int:
     out = check_output(args.output, (".json",), overwrite=args.overwrite, what="calibration")
     flats, header, source = read_calibration_flats(args.flat, {n: getattr(args, n) for n in DETECTOR_NAMES},
                                                    args.event, second_event=args.second_event)
+    if scattering_note(header, source):  # images of another g_BSE than the models' (a lobe study)
+        print(f"note: {scattering_note(header, source)}", file=sys.stderr)
     if int(header.get("events", 1)) > 1 and args.event is None and args.second_event is None:
         print(f"note: {source} was rendered with events={header['events']}: the fit's model is the 1st event, and it "
               "moves the detectors to mimic the later events (athene_flat: 9.5-17.5 mm); use --event 1, or "

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import EloInputError
+from ..schema import scattering_note
 from ._args import add_scan_arguments, model_inputs, positive_float, scan_files, scan_inputs
 
 DESCRIPTION = """\
@@ -127,6 +129,8 @@ def run(args) -> int:
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=read)
     scan = chain.read_scan(**scan_inputs(args), model_discs=args.method == "model")
+    if scattering_note(scan.header, scan.source):  # images of another g_BSE than the models' (a lobe study)
+        print(f"note: {scattering_note(scan.header, scan.source)}", file=sys.stderr)
     geo = scan.geo
     model = chain.model_geometry(scan, **model_inputs(args)) if args.method == "model" else None
     res, thresholds = chain.gradient(scan, method=args.method, geometry=model, iterations=args.iterations,

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..budget import check_inversion
-from ..schema import BEAM_FWHM
+from ..schema import BEAM_FWHM, scattering_note
 from ._args import add_scan_arguments, add_yes, model_inputs, positive_float, scan_files, scan_inputs
 
 DESCRIPTION = """\
@@ -147,6 +147,8 @@ def run(args) -> int:
     from ..analysis.io import write_inversion
 
     scan = chain.read_scan(**scan_inputs(args), model_discs=True)
+    if scattering_note(scan.header, scan.source):  # images of another g_BSE than the models' (a lobe study)
+        print(f"note: {scattering_note(scan.header, scan.source)}", file=sys.stderr)
     check_inversion(scan.shape, inversion.ITERATIONS if args.iterations is None else args.iterations,
                     inversion.SCALES if args.scales is None else args.scales,
                     inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes,
