@@ -129,7 +129,10 @@ class EloScene:
         if not hasattr(self.sensor, "beam_target"):
             raise EloInputError(f"{self.path}: the scene needs one sensor, <sensor type=\"elo_beam\"> (the gun); it has "
                                 f"{', '.join(type(x).__name__ for x in sensors) or 'none'}")
-        self.integrator.prepare_scene(self.scene)
+        try:
+            self.integrator.prepare_scene(self.scene)
+        except EloInputError as exc:  # the scene file is what holds the fault
+            raise EloInputError(f"{self.path}: {exc}") from None
         # the scene file's spp, read once: Mitsuba's render(spp=n) sets the sensor's sampler to n,
         # so the sampler cannot be asked again after a render (each render would halve it)
         self.scene_spp = int(self.sensor.sampler().sample_count())

@@ -30,6 +30,9 @@ def find_detectors(scene):
                 raise EloInputError("a detector shape (one with an emitter) has no id; give it id=\"...\"")
             if name in found:
                 raise EloInputError(f"two detector shapes share the id {name!r}")
+            if "." in name or name.startswith("_") or name == "Y":  # the film's and outputs' own channel names
+                raise EloInputError(f"detector id {name!r}: an id names the detector's image channels (<id>, <id>.e2, "
+                                    "<id>.err) and may not contain '.', start with '_' or be 'Y'")
             found[name] = shape
     order = [n for n in DETECTOR_NAMES if n in found] + sorted(n for n in found if n not in DETECTOR_NAMES)
     return [(n, found[n]) for n in order]

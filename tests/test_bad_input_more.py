@@ -110,6 +110,7 @@ def d(tmp_path_factory):
     # the XML sweep (2026-12-05): settings the renderer would not apply, names it would collide on
     plate_scene("gun_moved.xml", sensor='<transform name="to_world"><translate x="5"/></transform>')
     plate_scene("film_crop.xml", film='<integer name="crop_width" value="2"/><integer name="crop_height" value="2"/>')
+    plate_scene("id_collides.xml", ids={"back": "right.err"})
     plate_scene("lobe_text.xml", bsdf='><string name="lobe" value="false"/></bsdf>')
     plate_scene("lobe_25.xml", bsdf='><float name="lobe_width" value="25"/></bsdf>')
     (d / "no_sensor.xml").write_text('<scene version="3.0.0"><integrator type="elo"/></scene>')
@@ -181,6 +182,9 @@ CLI_CASES = [
      "elo_beam: a to_world transform would be ignored"),
     ("render a cropped film", ["render", "{d}/film_crop.xml", "-o", "{d}/new.exr"],
      "elo_beam: the film crops 2x2 px at (0, 0) of 4x4; a crop is not supported"),
+    ("render a detector id that names a channel", ["render", "{d}/id_collides.xml", "-o", "{d}/new.exr",
+                                                   "--error-channels"],
+     "id_collides.xml: detector id 'right.err': an id names the detector's image channels"),
     ("render a lobe given as text", ["render", "{d}/lobe_text.xml", "-o", "{d}/new.exr"],
      "elo_bse: lobe='false'; must be true or false"),
     ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
