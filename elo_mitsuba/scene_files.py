@@ -19,7 +19,7 @@ from typing import Mapping
 from .constants import DEFAULT_MATERIAL, TABLE1_LAYOUTS
 from .errors import EloInputError
 from .files import atomic_write, check_output
-from .mesh import check_ply_indices, write_mesh
+from .mesh import check_ply_indices, ply_header, write_mesh
 
 
 def scenes_dir() -> Path:
@@ -107,8 +107,12 @@ def _check_ply(path: Path, node, known: Mapping) -> None:
                 raise EloInputError(f"{path}: mesh file {name!r} not found (relative to {path.parent})")
             try:
                 check_ply_indices(mesh)
+                counts = ply_header(mesh)
             except EloInputError as e:
                 raise EloInputError(f"{path}: {e}") from None
+            if not counts["vertices"] or not counts["faces"]:  # Mitsuba's loader fails on it with a JIT error
+                raise EloInputError(f"{path}: mesh file {name!r} has {counts['vertices']} vertices and "
+                                    f"{counts['faces']} triangles; a surface needs triangles")
 
 
 def _check_sample_count(path: Path, node, known: Mapping) -> None:

@@ -174,6 +174,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self.detectors = detectors
         for name, shape in detectors:
             _check_collector(name, shape)
+            if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
+                _check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]
@@ -184,6 +186,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
         for shape in scatterers:
             _check_scatterer(shape)
+            _check_mesh(shape)
         surfaces = scatterers + plate_shapes  # where an electron can scatter
         self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
         # relief under the beam can scatter onto itself, so events >= 2 vary on the scale of its
@@ -1106,6 +1109,21 @@ def _check_scatterer(shape):
         f"surface {shape.id() or '(no id)'!r} has a {kind} BSDF, which does not describe electron "
         "backscatter; give it <bsdf type=\"elo_bse\"> (with its material), or make it an absorber: "
         "<bsdf type=\"diffuse\"><float name=\"reflectance\" value=\"0\"/></bsdf>")
+
+
+def _check_mesh(shape):
+    """A mesh an electron can meet has triangles whose indices name its vertices (an empty PLY, or
+    one whose faces point past its vertex list, failed deep in the set-up with an IndexError)."""
+    if not shape.is_mesh():
+        return
+    name = shape.id() or "(no id)"
+    if shape.vertex_count() == 0 or shape.face_count() == 0:
+        raise EloInputError(f"mesh {name!r} has {shape.vertex_count()} vertices and {shape.face_count()} triangles; "
+                            "a surface needs triangles")
+    top = int(dr.max(shape.faces_buffer())[0] if dr.width(shape.faces_buffer()) else 0)
+    if top >= shape.vertex_count():
+        raise EloInputError(f"mesh {name!r}: a triangle names vertex {top}, but the mesh has {shape.vertex_count()} "
+                            "(indices 0 to n-1): the file is damaged")
 
 
 def _option_property(name):

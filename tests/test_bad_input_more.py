@@ -111,6 +111,18 @@ def d(tmp_path_factory):
     plate_scene("gun_moved.xml", sensor='<transform name="to_world"><translate x="5"/></transform>')
     plate_scene("film_crop.xml", film='<integer name="crop_width" value="2"/><integer name="crop_height" value="2"/>')
     plate_scene("id_collides.xml", ids={"back": "right.err"})
+    (d / "no_faces.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                    "property float z\nelement face 0\nproperty list uchar int vertex_indices\n"
+                                    "end_header\n0 0 1\n1 0 1\n0 1 1\n")
+    (d / "bad_index.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                     "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+                                     "end_header\n0 0 1\n1 0 1\n0 1 1\n3 0 1 7\n")
+    for name in ("no_faces", "bad_index"):
+        plate_scene(f"{name}.xml", shapes=f'<shape type="ply" id="bump"><string name="filename" value="{name}.ply"/>'
+                                          '<bsdf type="elo_bse"/></shape>')
+    plate_scene("conductor_plates.xml")
+    (d / "conductor_plates.xml").write_text((d / "conductor_plates.xml").read_text().replace(
+        '<emitter type="area">', '<bsdf type="conductor"/><emitter type="area">', 1))
     plate_scene("lobe_text.xml", bsdf='><string name="lobe" value="false"/></bsdf>')
     plate_scene("lobe_25.xml", bsdf='><float name="lobe_width" value="25"/></bsdf>')
     (d / "no_sensor.xml").write_text('<scene version="3.0.0"><integrator type="elo"/></scene>')
@@ -185,6 +197,12 @@ CLI_CASES = [
     ("render a detector id that names a channel", ["render", "{d}/id_collides.xml", "-o", "{d}/new.exr",
                                                    "--error-channels"],
      "id_collides.xml: detector id 'right.err': an id names the detector's image channels"),
+    ("render a mesh without triangles", ["render", "{d}/no_faces.xml", "-o", "{d}/new.exr"],
+     "no_faces.xml: mesh file 'no_faces.ply' has 3 vertices and 0 triangles"),
+    ("render a mesh whose triangle names a missing vertex", ["render", "{d}/bad_index.xml", "-o", "{d}/new.exr"],
+     "mesh 'bump': a triangle names vertex 7, but the mesh has 3"),
+    ("render a detector with a conductor BSDF", ["render", "{d}/conductor_plates.xml", "-o", "{d}/new.exr"],
+     "surface 'right' has a SmoothConductor BSDF"),
     ("render a lobe given as text", ["render", "{d}/lobe_text.xml", "-o", "{d}/new.exr"],
      "elo_bse: lobe='false'; must be true or false"),
     ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
