@@ -152,6 +152,9 @@ def unoccluded_regions(scene, sensor, detectors):
     out = []
     for _, det in detectors:
         free = []
+        if not is_planar(det):  # a curved detector hides its own far side: its shadow rays are needed
+            out.append(free)
+            continue
         dk = shape_key(det)
         for k, sh, (z0, x0, x1, y0, y1) in regions:
             pts = np.vstack([[[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0]], covers[dk].reshape(-1, 3)])
