@@ -370,7 +370,8 @@ class EloScene:
         key = f"{name}.to_world"
         if name not in self.detector_names:
             raise EloInputError(f"no detector {name!r} (detectors: {', '.join(self.detector_names)})")
-        if key not in self.mi_params:
+        shape = dict(self.integrator.detectors)[name]  # a rectangle or sphere has a to_world too
+        if key not in self.mi_params or shape.shape_type() != self.mi.ShapeType.Disk:
             raise EloInputError(f"detector {name!r} is not a disk; move it by editing the scene")
         # where it is: as last set (float64), not as read back from the float32 transform, so that a
         # move's result does not depend on the moves before it

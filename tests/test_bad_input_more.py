@@ -653,3 +653,15 @@ def test_images_of_another_lobe_than_the_models_get_a_note(d, capsys):
         assert "another g_BSE than the analysis models" in capsys.readouterr().err, args[0]
     main(["gradient", str(d / "flat.exr"), "--flat", str(d / "flat.exr"), "-o", str(d / "g13.exr")])
     assert "another g_BSE" not in capsys.readouterr().err
+
+
+def test_set_detector_moves_discs_only(d):
+    """A rectangle detector has a to_world transform too, and set_detector(radius=20) turned a
+    50 mm square into a 40 mm one (a sweep over detectors.radius did so without a word)."""
+    text = (d / "radiance.xml").read_text().replace('<rgb name="radiance" value="5"/>', "")
+    square = text.replace('<shape type="disk" id="right">', '<shape type="rectangle" id="right">', 1)
+    (d / "square_detector.xml").write_text(square)
+    scene = em.load_scene(str(d / "square_detector.xml"))
+    message = one_line_error(lambda: scene.set_detector("right", radius=20))
+    assert "detector 'right' is not a disk; move it by editing the scene" in message
+    scene.set_detector("back", radius=20)  # the discs still move
