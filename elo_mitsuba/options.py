@@ -145,7 +145,9 @@ class EloOptions:
         for f in dataclasses.fields(cls):
             if f.metadata["xml"] and f.name in props:
                 given[f.name] = props.get(f.name)
-        return cls(**given)
+        options = cls(**given)
+        check_combination(given, base=options, prefix="elo: ")  # the scene's own settings (presets: at render)
+        return options
 
     def replace(self, **changes) -> "EloOptions":
         """A copy with ``changes`` applied and validated; unknown names are refused."""

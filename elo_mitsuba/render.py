@@ -560,6 +560,10 @@ class EloScene:
             # the quality is applied at every render, so that the result depends on the scene's state
             # (events, resolution, beam) and the arguments, never on what was rendered before
             quality = quality if quality is not None else self.quality
+            own = [f"{k}={v!r}" for k, v in self.integrator.scene_options.items() if k in PRESET_FIELDS + SAMPLE_OPTIONS]
+            if quality in QUALITY_PRESETS and own:  # the scene file's sampling, which the preset would override
+                raise EloInputError(f"{self.path} sets {', '.join(own)}, which quality {quality!r} would override "
+                                    "or not use; render with quality 'scene' (--quality scene) to use the file's")
             if quality in QUALITY_PRESETS:  # sample counts configured earlier that the preset would not use
                 check_combination({k: v for k, v in self._configured.items() if k in SAMPLE_OPTIONS},
                                   base=self.integrator.options, qualities=[quality],

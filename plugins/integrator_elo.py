@@ -131,6 +131,8 @@ class EloIntegrator(mi.SamplingIntegrator):
     def __init__(self, props):
         mi.SamplingIntegrator.__init__(self, props)
         self.options = EloOptions.from_props(props)
+        #: the options the scene file sets, which a quality preset must not override unseen
+        self.scene_options = {k: v for k, v in self.options.as_dict().items() if k in props}
         self.detectors = []  # [(id, shape)], resolved from the scene at render time
         self.bounce_possible = True  # False: the scene cannot scatter an electron twice
         self.relief = []  # ids of scattering surfaces that are not one plane (can scatter onto themselves)

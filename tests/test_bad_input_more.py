@@ -111,6 +111,12 @@ def d(tmp_path_factory):
     plate_scene("gun_moved.xml", sensor='<transform name="to_world"><translate x="5"/></transform>')
     plate_scene("film_crop.xml", film='<integer name="crop_width" value="2"/><integer name="crop_height" value="2"/>')
     plate_scene("id_collides.xml", ids={"back": "right.err"})
+    for name, options in (("own_sampling", '<string name="detector_sampling" value="stratified"/>'
+                                           '<integer name="detector_samples" value="16"/>'),
+                          ("volts_unused", '<float name="beam_current" value="0.01"/>')):
+        plate_scene(f"{name}.xml")
+        (d / f"{name}.xml").write_text((d / f"{name}.xml").read_text().replace(
+            '<integrator type="elo"/>', f'<integrator type="elo">{options}</integrator>'))
     (d / "no_faces.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                                     "property float z\nelement face 0\nproperty list uchar int vertex_indices\n"
                                     "end_header\n0 0 1\n1 0 1\n0 1 1\n")
@@ -203,6 +209,11 @@ CLI_CASES = [
      "mesh 'bump': a triangle names vertex 7, but the mesh has 3"),
     ("render a detector with a conductor BSDF", ["render", "{d}/conductor_plates.xml", "-o", "{d}/new.exr"],
      "surface 'right' has a SmoothConductor BSDF"),
+    ("render a scene's own sampling under a preset", ["render", "{d}/own_sampling.xml", "-o", "{d}/new.exr"],
+     "own_sampling.xml sets detector_sampling='stratified', detector_samples=16, which quality 'default' would "
+     "override or not use"),
+    ("render a scene's beam current without volts", ["render", "{d}/volts_unused.xml", "-o", "{d}/new.exr"],
+     "elo: beam_current=0.01 scales volts only"),
     ("render a lobe given as text", ["render", "{d}/lobe_text.xml", "-o", "{d}/new.exr"],
      "elo_bse: lobe='false'; must be true or false"),
     ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
@@ -665,3 +676,12 @@ def test_set_detector_moves_discs_only(d):
     message = one_line_error(lambda: scene.set_detector("right", radius=20))
     assert "detector 'right' is not a disk; move it by editing the scene" in message
     scene.set_detector("back", radius=20)  # the discs still move
+
+
+def test_a_scenes_own_sampling_renders_with_quality_scene(d):
+    """The refusal under a preset names the way that works: the scene file's sampling as set."""
+    assert main(["render", str(d / "own_sampling.xml"), "-o", str(d / "own.exr"), "--quality", "scene",
+                 "--quiet", "--overwrite"]) == 0
+    _, meta = read_exr(d / "own.exr")
+    assert meta["integrator_options"]["detector_sampling"] == "stratified"
+    assert meta["integrator_options"]["detector_samples"] == 16
