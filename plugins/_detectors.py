@@ -174,6 +174,50 @@ def detector_geometry(shape, to_world=None) -> dict:
     return _placed_geometry(to_world, shape)
 
 
+def surfaces_through_detectors(scene, detectors, segments: int = 16):
+    """[(detector, shape id)] of the scene's surfaces that pass through a detector disc: rays along
+    the disc's rim polygon and its diameters (``segments`` points on the rim), just in front of its
+    face, that meet another shape before their end (a detector moved through a chamber wall)."""
+    starts, ends, owner = [], [], []
+    for d, (_, shape) in enumerate(detectors):
+        if shape.shape_type() != mi.ShapeType.Disk:
+            continue
+        g = _placed_geometry(mi.traverse(shape)["to_world"], shape)
+        c, n, r = np.array(g["center"]), np.array(g["normal"]), float(g["radius"])
+        if not (r > 0 and np.all(np.isfinite(n))):
+            continue
+        a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        phi = 2.0 * np.pi * np.arange(segments) / segments
+        rim = c + 1e-4 * r * n + 0.999 * r * (np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * b)
+        pairs = [(k, (k + 1) % segments) for k in range(segments)] + [(k, k + segments // 2)
+                                                                      for k in range(segments // 2)]
+        for i, j in pairs:
+            starts.append(rim[i])
+            ends.append(rim[j])
+            owner.append(d)
+    if not starts:
+        return []
+    o, e = np.array(starts), np.array(ends)
+    length = np.linalg.norm(e - o, axis=1)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k]) for k in range(3)]),
+                   mi.Vector3f(*[mi.Float((e - o)[:, k] / length) for k in range(3)]))
+    ray.maxt = mi.Float(length)
+    si = scene.ray_intersect(ray)
+    hit = np.asarray(si.is_valid(), dtype=bool)
+    keys = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.uint32)
+    unnamed = "a surface of the scene (without an id: Mitsuba merges shapes of one material)"
+    names = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): repr(sh.id()) if sh.id() else unnamed
+             for sh in scene.shapes()}
+    found = []
+    for k in np.flatnonzero(hit):
+        pair = (detectors[owner[k]][0], names.get(int(keys[k]), unnamed))
+        if pair not in found:
+            found.append(pair)
+    return found
+
+
 def _placed_geometry(to_world, shape) -> dict:
     """Centre, front normal and equivalent radius of a unit shape placed by ``to_world``."""
     m = np.array(to_world.matrix, dtype=float).reshape(4, 4) if hasattr(to_world, "matrix") else None

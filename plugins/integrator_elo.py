@@ -108,7 +108,8 @@ from ._geometry_classes import GeometryClasses
 from ._geometry_classes import geometry_key as classes_key
 from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, build_rays, geometry_key,
                          near_share, reduce_table)
-from ._detectors import find_detectors, is_planar, parse_detector_list, quadrature_geometry
+from ._detectors import (find_detectors, is_planar, parse_detector_list, quadrature_geometry,
+                         surfaces_through_detectors)
 from ._occlusion import shape_key, unblockable, unblockable_regions
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
@@ -178,6 +179,9 @@ class EloIntegrator(mi.SamplingIntegrator):
             _check_collector(name, shape)
             if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
                 _check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
+        for name, through in surfaces_through_detectors(scene, detectors)[:1]:
+            raise EloInputError(f"detector {name!r} is cut by {through}: it passes through the disc (a detector "
+                                "moved through a wall or a shield?); move it clear of the scene's surfaces")
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]

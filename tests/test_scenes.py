@@ -330,3 +330,27 @@ def test_discs_that_share_points_are_found_as_a_dense_sampling_finds_them():
             assert _discs_intersect(c1, n1, r1, c2, n2, r2) == clearly_in, (c1, n1, r1, c2, n2, r2)
             verdicts[clearly_in] += 1
     assert verdicts[True] >= 30 and verdicts[False] >= 30, verdicts
+
+
+@pytest.mark.parametrize("gap_mm, refused", [(1.0, False), (-1.0, True)])
+def test_a_detector_through_the_chamber_wall_is_refused(gap_mm, refused):
+    """The right detector of athene_flat moved out along x until its outer rim point, at
+    x = dw + r dh / |c| (the disc faces the origin), is 1 mm inside the wall at x = 350 mm, or
+    1 mm through it: only the second is refused (the rays along the disc's rim and diameters)."""
+    import elo_mitsuba as em
+    from elo_mitsuba.constants import CHAMBER_INTERIOR_MM
+    from elo_mitsuba.errors import EloInputError
+
+    dh, r, wall = 272.0, 25.0, CHAMBER_INTERIOR_MM[0][1]
+    lo, hi = 100.0, wall  # bisect dw: dw + r dh / sqrt(dw^2 + dh^2) = wall - gap
+    for _ in range(60):
+        dw = 0.5 * (lo + hi)
+        lo, hi = (dw, hi) if dw + r * dh / math.hypot(dw, dh) < wall - gap_mm else (lo, dw)
+    scene = em.load_scene("athene_flat", res=4)
+    if refused:
+        with pytest.raises(EloInputError, match="detector 'right' is cut by a surface of the scene"):
+            scene.set_detector("right", center=(dw, 0.0, dh))
+            scene.render(quality="draft", progress=False)
+    else:
+        scene.set_detector("right", center=(dw, 0.0, dh))
+        scene.render(quality="draft", progress=False)
