@@ -148,6 +148,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
+        self._smoothed = {}  # (shape key, vertices) -> whether its vertex normals smooth it (_smoothed)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -209,6 +210,15 @@ class EloIntegrator(mi.SamplingIntegrator):
         self.notes = []
         #: [(detector, share of the field)] of the detectors the beam meets before the surface
         self.in_beam = detectors_in_beam(detectors, beam, probe) if beam is not None else []
+        for shape in scatterers:
+            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
+            if key not in self._smoothed:  # once per mesh: its buffers are copied to the host
+                self._smoothed[key] = _smoothed(shape)
+            if self._smoothed[key]:
+                self.notes.append(
+                    f"mesh {shape.id() or '(no id)'!r} has vertex normals: g_BSE sees them interpolated across its "
+                    "triangles, a surface smoothed over its edges (a sharp relief loses its slopes); for facets add "
+                    "<boolean name=\"face_normals\" value=\"true\"/> to its <shape>")
         for name, share in self.in_beam:
             self.notes.append(
                 f"detector {name!r} lies in the beam's path over about {100 * share:.3g} % of the scan field: "
@@ -1115,6 +1125,20 @@ def _check_scatterer(shape):
         f"surface {shape.id() or '(no id)'!r} has a {kind} BSDF, which does not describe electron "
         "backscatter; give it <bsdf type=\"elo_bse\"> (with its material), or make it an absorber: "
         "<bsdf type=\"diffuse\"><float name=\"reflectance\" value=\"0\"/></bsdf>")
+
+
+def _smoothed(shape, degrees: float = 1.0) -> bool:
+    """Whether a mesh's vertex normals depart from its triangles' own by more than ``degrees``
+    somewhere (a flat shape turned into a mesh has them too, all equal to its face normal)."""
+    if not (shape.is_mesh() and shape.has_vertex_normals()):
+        return False
+    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+    vn = np.array(shape.vertex_normals_buffer(), dtype=np.float64).reshape(-1, 3)
+    f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    cosines = np.einsum("fk,fjk->fj", fn, vn[f]) / np.maximum(np.linalg.norm(vn[f], axis=2), 1e-300)
+    return bool(np.any(cosines < np.cos(np.radians(degrees))))
 
 
 def _check_mesh(shape):
