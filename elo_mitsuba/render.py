@@ -18,7 +18,6 @@ alone (only when ``events > 1``). Values are N_d/N_0 (or volts with ``units="vol
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 
@@ -58,9 +57,10 @@ MAX_SEED = (1 << 32) - 1
 
 # ---- the scene ----------------------------------------------------------------------------------------
 def _not_finite(value) -> bool:
-    """True for a value that reads as a number but is not finite (``inf``, ``-inf``, ``nan``)."""
+    """True for a value that reads as a number but is not finite (``inf``, ``-inf``, ``nan``), also in
+    Mitsuba's float32 (beyond 3.4e38: -D dh=1e40 made the detectors' geometry inf)."""
     try:
-        return not math.isfinite(float(str(value)))
+        return not abs(float(str(value))) <= float(np.finfo(np.float32).max)
     except ValueError:
         return False  # text (a material's name, a file): not a number at all
 

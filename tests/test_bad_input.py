@@ -135,6 +135,8 @@ CLI_CASES = [
     # -- render: -D
     ("render -D no =", [*R, *OUT, "-D", "dh"], "is not NAME=VALUE"),
     ("render -D =5", [*R, *OUT, "-D", "=5"], "is not NAME=VALUE"),
+    ("render -D dh=", [*R, *OUT, "-D", "dh="], "'dh=' gives dh no value"),
+    ("render -D dh=1e40", [*R, *OUT, "-D", "dh=1e40"], "parameter dh='1e40' is not a finite number"),
     ("render -D unknown", [*R, *OUT, "-D", "colour=red"], "parameter 'colour' is not declared"),
     ("render -D dh=abc", [*R, *OUT, "-D", "dh=abc"], "parameter dh='abc' is not a valid"),
     ("render -D dh=inf", [*R, *OUT, "-D", "dh=inf"], "parameter dh='inf' is not a finite number"),

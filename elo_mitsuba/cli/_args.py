@@ -70,6 +70,8 @@ def define(text: str) -> tuple[str, str]:
     if "=" not in text or not text.split("=", 1)[0].strip():
         raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE (e.g. -D dh=250)")
     name, value = text.split("=", 1)
+    if not value.strip():  # Mitsuba would read an empty length as a vector of the wrong size
+        raise argparse.ArgumentTypeError(f"{text!r} gives {name.strip()} no value (e.g. -D {name.strip()}=250)")
     return name.strip(), value.strip()
 
 
