@@ -61,7 +61,8 @@ def declared_parameters(path: Path, values: Mapping[str, str] | None = None) -> 
     return declared
 
 
-def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> None:
+def _collect_defaults(path: Path, values: dict, declared: dict, depth: int, chain: tuple = ()) -> None:
+    chain = (*chain, path.resolve())
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
@@ -72,21 +73,29 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int) -> N
         raise EloInputError(f"{path}: root element is <{root.tag}>, expected <scene>")
     for node in root.iter():
         if node.tag == "default" and node.get("name"):
+            if not (node.get("value") or "").strip() and node.get("name") not in values:
+                raise EloInputError(f"{path}: <default name={node.get('name')!r}> has no value (Mitsuba would read "
+                                    f"it as 0); give it one, or pass -D {node.get('name')}=...")
             declared.setdefault(node.get("name"), node.get("value"))
         elif node.tag == "include" and node.get("filename") and depth < 8:
             pattern = node.get("filename")
             known = {**declared, **values}
             name = re.sub(r"\$(\w+)", lambda m: str(known.get(m.group(1), m.group(0))), pattern)
             inc = (path.parent / name)
+            if inc.is_file() and inc.resolve() in chain:
+                raise EloInputError(f"{path}: includes {name!r}, which includes it again "
+                                    f"({' -> '.join(p.name for p in (*chain, inc.resolve()))}): an include cycle")
             if inc.is_file():
-                _collect_defaults(inc, values, declared, depth + 1)
+                _collect_defaults(inc, values, declared, depth + 1, chain)
             else:
                 _refuse_value_without_file(path, pattern, values)
                 if "$" not in name:  # Mitsuba would fail on it; say why before "not declared" errors
-                    raise EloInputError(
-                        f"{path}: included file {name!r} not found (an include is relative to the scene's "
-                        f"folder {path.parent}); a copied scene needs its {Path(name).parts[0]}/ folder too, "
-                        "or write a self-contained copy: elo-mitsuba new-scene NAME.xml --from SCENE")
+                    where = ("" if Path(name).is_absolute() else
+                             f" (an include is relative to the scene's folder {path.parent})")
+                    hint = (f"a copied scene needs its {Path(name).parts[0]}/ folder too, or write a self-contained "
+                            "copy: elo-mitsuba new-scene NAME.xml --from SCENE"
+                            if len(Path(name).parts) > 1 and not Path(name).is_absolute() else "check its name")
+                    raise EloInputError(f"{path}: included file {name!r} not found{where}; {hint}")
         elif node.tag == "shape" and node.get("type") == "ply" and depth < 8:
             _check_ply(path, node, {**declared, **values})
         elif node.tag == "sampler":

@@ -113,8 +113,9 @@ def detector_triangles(shape, n_tri, name="detector"):
         f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
         return v[f]
     raise EloInputError(
-        f"detector {name!r}: detector_sampling=quadrature supports disk, rectangle and mesh "
-        "detectors; use stratified for this shape")
+        f"detector {name!r}: detector_sampling=quadrature (what every quality preset uses) supports disk, "
+        "rectangle and mesh detectors; render this shape with quality 'scene' (--quality scene) and "
+        "detector_sampling='stratified' in the scene's <integrator>")
 
 
 def is_planar(shape):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -25,7 +26,7 @@ from conftest import one_line_error
 from elo_mitsuba.cli import main
 from elo_mitsuba.exr import read_exr, write_exr
 from elo_mitsuba.options import EloOptions, check_combination
-from elo_mitsuba.scene_files import scene_values, scenes_dir
+from elo_mitsuba.scene_files import portable_scene_text, scene_values, scenes_dir
 
 SENTINEL = b"written by the user"
 
@@ -111,6 +112,13 @@ def d(tmp_path_factory):
     plate_scene("gun_moved.xml", sensor='<transform name="to_world"><translate x="5"/></transform>')
     plate_scene("film_crop.xml", film='<integer name="crop_width" value="2"/><integer name="crop_height" value="2"/>')
     plate_scene("id_collides.xml", ids={"back": "right.err"})
+    (d / "cycle_a.xml").write_text('<scene version="3.0.0"><include filename="cycle_b.xml"/></scene>')
+    (d / "cycle_b.xml").write_text('<scene version="3.0.0"><include filename="cycle_a.xml"/></scene>')
+    (d / "cycle.xml").write_text('<scene version="3.0.0"><include filename="cycle_a.xml"/></scene>')
+    (d / "missing_include.xml").write_text('<scene version="3.0.0"><include filename="nothere.xml"/></scene>')
+    portable = portable_scene_text(scenes_dir() / "flat_plate.xml")
+    (d / "empty_default.xml").write_text(re.sub(r'<default name="wd" value="[^"]*"/>', '<default name="wd" value=""/>',
+                                                portable))
     for name, options in (("own_sampling", '<string name="detector_sampling" value="stratified"/>'
                                            '<integer name="detector_samples" value="16"/>'),
                           ("volts_unused", '<float name="beam_current" value="0.01"/>')):
@@ -219,6 +227,13 @@ CLI_CASES = [
      "detector 'right' is cut by a surface of the scene"),
     ("render the heat shield through the detectors", ["render", "shield_chamber", "-o", "{d}/new.exr", "--resolution",
                                                       "4", "--layout", "zeta75"], "detector 'right' is cut by"),
+    ("render an include cycle", ["render", "{d}/cycle.xml", "-o", "{d}/new.exr"],
+     "cycle_b.xml: includes 'cycle_a.xml', which includes it again (cycle.xml -> cycle_a.xml -> cycle_b.xml -> "
+     "cycle_a.xml): an include cycle"),
+    ("render a missing include", ["render", "{d}/missing_include.xml", "-o", "{d}/new.exr"],
+     "included file 'nothere.xml' not found (an include is relative to the scene's folder"),
+    ("render an empty default", ["render", "{d}/empty_default.xml", "-o", "{d}/new.exr"],
+     "<default name='wd'> has no value (Mitsuba would read it as 0)"),
     ("render a lobe given as text", ["render", "{d}/lobe_text.xml", "-o", "{d}/new.exr"],
      "elo_bse: lobe='false'; must be true or false"),
     ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
