@@ -1144,9 +1144,12 @@ def _smoothed(shape, degrees: float = 1.0) -> bool:
 def _check_mesh(shape):
     """A mesh an electron can meet has triangles whose indices name its vertices (an empty PLY, or
     one whose faces point past its vertex list, failed deep in the set-up with an IndexError)."""
+    name = shape.id() or "(no id)"
+    area = float(np.ravel(np.array(shape.surface_area(), dtype=float))[0])
+    if not (area > 0 and np.isfinite(area)):  # a scale of 0 (or beyond float32): no surface to meet
+        raise EloInputError(f"surface {name!r} has an area of {area:g} mm^2 (a scale of 0, or beyond float32?)")
     if not shape.is_mesh():
         return
-    name = shape.id() or "(no id)"
     if shape.vertex_count() == 0 or shape.face_count() == 0:
         raise EloInputError(f"mesh {name!r} has {shape.vertex_count()} vertices and {shape.face_count()} triangles; "
                             "a surface needs triangles")

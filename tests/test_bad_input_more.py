@@ -131,7 +131,10 @@ def d(tmp_path_factory):
     (d / "bad_index.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                                      "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                                      "end_header\n0 0 1\n1 0 1\n0 1 1\n3 0 1 7\n")
-    for name in ("no_faces", "bad_index"):
+    (d / "flat_zero.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                     "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+                                     "end_header\n0 0 1\n0 0 1\n0 0 1\n3 0 1 2\n")
+    for name in ("no_faces", "bad_index", "flat_zero"):
         plate_scene(f"{name}.xml", shapes=f'<shape type="ply" id="bump"><string name="filename" value="{name}.ply"/>'
                                           '<bsdf type="elo_bse"/></shape>')
     plate_scene("conductor_plates.xml")
@@ -215,6 +218,8 @@ CLI_CASES = [
      "no_faces.xml: mesh file 'no_faces.ply' has 3 vertices and 0 triangles"),
     ("render a mesh whose triangle names a missing vertex", ["render", "{d}/bad_index.xml", "-o", "{d}/new.exr"],
      "mesh 'bump': a triangle names vertex 7, but the mesh has 3"),
+    ("render a mesh of no area", ["render", "{d}/flat_zero.xml", "-o", "{d}/new.exr"],
+     "surface 'bump' has an area of 0 mm^2 (a scale of 0, or beyond float32?)"),
     ("render a detector with a conductor BSDF", ["render", "{d}/conductor_plates.xml", "-o", "{d}/new.exr"],
      "surface 'right' has a SmoothConductor BSDF"),
     ("render a scene's own sampling under a preset", ["render", "{d}/own_sampling.xml", "-o", "{d}/new.exr"],
