@@ -149,6 +149,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
         self._smoothed = {}  # (shape key, vertices) -> whether its vertex normals smooth it (_smoothed)
+        self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -180,7 +181,11 @@ class EloIntegrator(mi.SamplingIntegrator):
             _check_collector(name, shape)
             if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
                 _check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
-        for name, through in surfaces_through_detectors(scene, detectors)[:1]:
+        # the rays along the discs, once per geometry: every shape's bounds (a moved wall) and transform
+        key = (id(scene), tuple((s.id(), tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.shapes()))
+        if self._cut_key != key:
+            self._cut, self._cut_key = surfaces_through_detectors(scene, detectors), key
+        for name, through in self._cut[:1]:
             raise EloInputError(f"detector {name!r} is cut by {through}: it passes through the disc (a detector "
                                 "moved through a wall or a shield?); move it clear of the scene's surfaces")
         names = [name for name, _ in detectors]
