@@ -148,7 +148,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
-        self._smoothed = {}  # (shape key, vertices) -> whether its vertex normals smooth it (_smoothed)
+        self._smoothed = {}  # (shape key, vertices) of the checked meshes -> whether their normals smooth them
         self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
@@ -198,7 +198,9 @@ class EloIntegrator(mi.SamplingIntegrator):
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
         for shape in scatterers:
             _check_scatterer(shape)
-            _check_mesh(shape)
+            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
+            if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)
+                _check_mesh(shape)
         surfaces = scatterers + plate_shapes  # where an electron can scatter
         self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
         # relief under the beam can scatter onto itself, so events >= 2 vary on the scale of its
@@ -217,7 +219,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self.in_beam = detectors_in_beam(detectors, beam, probe) if beam is not None else []
         for shape in scatterers:
             key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
-            if key not in self._smoothed:  # once per mesh: its buffers are copied to the host
+            if key not in self._smoothed:  # once per mesh: its buffers are copied to the host (checked above)
                 self._smoothed[key] = _smoothed(shape)
             if self._smoothed[key]:
                 self.notes.append(
