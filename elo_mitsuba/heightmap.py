@@ -317,6 +317,13 @@ def read_heightmap(path, units: str | None = None, *, allow_nan: bool = False) -
             if not path.read_text(errors="replace").strip():  # numpy would warn and return shape (0, 1)
                 raise EloInputError(f"height map {str(path)!r} is empty (no numbers)")
             data = np.loadtxt(path, delimiter=",", dtype=float, ndmin=2)
+            # 3 columns and at least 16 rows is taken for an x, y, z point list (a common profilometer
+            # export): as a height grid it would be a strip 3 px wide and over 5 times longer, which
+            # a surface scan hardly gives, while meshing a point list as one is silently wrong
+            if data.shape[1] == 3 and data.shape[0] >= 16:
+                raise EloInputError(f"height map {str(path)!r} has 3 columns and {data.shape[0]} rows: it looks like "
+                                    "an x, y, z point list, not a height grid; mesh needs a grid of heights (rows = "
+                                    "y, columns = x): resample the points onto one (a grid 3 px wide: save it as .npy)")
     except EloInputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file for the user

@@ -127,3 +127,20 @@ def test_mesh_refuses_what_it_cannot_know(tmp_path, capsys):
     write_height(tmp_path / "masked.exr", _height(), _mask(), META)  # no height at 8 pixels
     assert main(["mesh", str(tmp_path / "masked.exr"), "-o", str(tmp_path / "m.ply")]) == 2
     assert "8 non-finite height(s)" in capsys.readouterr().err
+
+
+def test_an_xyz_point_list_csv_is_not_meshed_as_a_grid(tmp_path, capsys):
+    """A profilometer's x, y, z export (3 columns, one row per point) is refused in one line; grids
+    of 3 columns and fewer than 16 rows, and of 16 rows and other widths, are still heights."""
+    y, x = np.mgrid[0:4, 0:4]
+    points = np.stack([x.ravel(), y.ravel(), 0.01 * x.ravel()], axis=-1)  # 16 points of a 4 x 4 grid
+    np.savetxt(tmp_path / "xyz.csv", points, delimiter=",")
+    out = tmp_path / "m.ply"
+    assert main(["mesh", str(tmp_path / "xyz.csv"), "-o", str(out), "--pixel-size", "0.2"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "3 columns and 16 rows" in err and "x, y, z point list" in err, err
+    assert "rows = y, columns = x" in err and not out.exists()
+    np.savetxt(tmp_path / "narrow.csv", points[:15], delimiter=",")
+    assert read_heightmap(tmp_path / "narrow.csv").height.shape == (15, 3)
+    np.savetxt(tmp_path / "tall.csv", np.zeros((16, 4)), delimiter=",")
+    assert read_heightmap(tmp_path / "tall.csv").height.shape == (16, 4)

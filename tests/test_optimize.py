@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,85 @@ def test_impossible_or_bad_specs_are_refused_in_one_line_before_any_work(tmp_pat
     line = _one_error_line(capsys)
     assert words in line and str(spec) in line
     assert not out.exists()  # nothing was started
+
+
+@pytest.mark.parametrize("extra, words", [
+    ("[render]\nresolution = 2\nspp = 16\n", "[render] sets the chamber render of the objective e2_share"),
+    ("grid_points = 5\n", 'optimizer.grid_points = 5 sets the grid of sampler = "grid" only'),
+], ids=["render_without_e2_share", "grid_points_without_grid"])
+def test_settings_that_would_not_be_applied_are_refused(tmp_path, capsys, extra, words):
+    spec = _spec(tmp_path, trials=2, batch=2, extra=extra)
+    out = tmp_path / "out.zarr"
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--quiet"]) == 2
+    line = _one_error_line(capsys)
+    assert words in line and str(spec) in line and "recorded but not applied" in line, line
+    assert not out.exists()
+
+
+def test_render_settings_apply_with_their_uses():
+    from elo_mitsuba.design.spec import load_spec
+
+    text = SMALL.format(sampler="random", trials=2, batch=2) + "[render]\nresolution = 2\n"
+    assert load_spec(tomllib.loads(text), second_event=True).render["resolution"] == 2  # optimize --second-event
+    e2 = text.replace('"masked_share"]', '"e2_share"]')
+    assert load_spec(tomllib.loads(e2)).render["resolution"] == 2
+
+
+def _no_memory_limit(monkeypatch):
+    import elo_mitsuba.budget as budget
+
+    monkeypatch.setattr(budget, "memory_limit", lambda: (10**15, "available on this machine"))
+
+
+def _no_store(monkeypatch):
+    """Fail the test if the run gets as far as creating its store."""
+    def fail(*a, **k):
+        pytest.fail("the store was created")
+
+    monkeypatch.setattr(store, "check_store", fail)
+
+
+def test_a_run_estimated_above_the_limit_is_refused_with_its_estimate(tmp_path, capsys, monkeypatch):
+    _no_memory_limit(monkeypatch)
+    _no_store(monkeypatch)
+    spec = _spec(tmp_path, trials=100_000, batch=8)
+    out = tmp_path / "out.zarr"
+    t0 = time.perf_counter()
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0"]) == 2
+    line = _one_error_line(capsys)
+    assert str(spec) in line and "100000 designs (random, count 4, 2x2 field points" in line, line
+    assert "would take about" in line and "days" in line and "--yes" in line and "optimizer.trials" in line, line
+    assert not out.exists() and time.perf_counter() - t0 < 30
+
+
+def test_memory_beyond_what_is_available_is_refused_even_when_forced(tmp_path, monkeypatch):
+    import elo_mitsuba.budget as budget
+    from elo_mitsuba import EloInputError
+
+    monkeypatch.setattr(budget, "memory_limit", lambda: (2 * 10**9, "available on this machine"))
+    _no_store(monkeypatch)
+    with pytest.raises(EloInputError, match=r"100000 designs .* needs about 40.2 GB of memory, 2 GB is available"):
+        optimize(_spec(tmp_path, trials=100_000), tmp_path / "out.zarr", workers=0, progress=False, force=True)
+    assert not (tmp_path / "out.zarr").exists()
+
+
+def test_force_runs_a_long_estimate_and_a_long_run_gets_its_estimate(tmp_path, capsys, monkeypatch):
+    import elo_mitsuba.design.optimize as opt
+    from elo_mitsuba import EloInputError
+
+    _no_memory_limit(monkeypatch)
+    monkeypatch.setattr(opt, "EVAL_SECONDS_PER_DETECTOR", 3600.0)  # 4 h per design
+    spec = _spec(tmp_path, trials=2, batch=2)
+    with pytest.raises(EloInputError, match="would take about"):
+        optimize(spec, tmp_path / "a.zarr", workers=0, progress=False)
+    assert not (tmp_path / "a.zarr").exists()
+    s = optimize(spec, tmp_path / "a.zarr", workers=0, progress=False, force=True)
+    assert s.evaluated == 2
+    assert "note" not in capsys.readouterr().err  # progress=False: no notes either
+    monkeypatch.setattr(opt, "EVAL_SECONDS_PER_DETECTOR", 10.0)  # 80 s: over a minute, under the limit
+    optimize(spec, tmp_path / "b.zarr", workers=0, progress=True)
+    err = capsys.readouterr().err
+    assert "elo-mitsuba: note: " in err and "2 designs (random" in err and re.search(r"take about \d+ s ", err), err
 
 
 def test_a_store_of_another_spec_is_not_replaced(tmp_path, capsys):
@@ -147,8 +227,11 @@ def test_results_plot_scene_and_table1(tmp_path, capsys):
         assert z in text
     assert png.read_bytes()[:4] == b"\x89PNG" and "<shape type=\"disk\"" in xml.read_text()
     # an existing plot is not replaced without --overwrite, and nothing runs
-    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--plot", str(png)]) == 2
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0", "--plot", str(png), "--second-event"]) == 2
     assert str(png) in _one_error_line(capsys)
+    # without --second-event (or the objective e2_share) the spec's [render] would not be used
+    assert main(["optimize", str(spec), "-o", str(out), "--workers", "0"]) == 2
+    assert "[render] sets the chamber render" in _one_error_line(capsys)
 
 
 def test_the_chamber_constants_are_the_scene_files():

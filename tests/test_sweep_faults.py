@@ -108,6 +108,21 @@ BAD_POINTS = {
                                    "beam_current", "add units='voltage'"),
     "detector_samples_with_preset": (FLAT + "[vary]\ndh = [200]\n" + SMALL + "[integrator]\ndetector_samples = 4\n",
                                      "integrator.detector_samples=4 would change nothing", "quadrature"),
+    # options a quality preset sets: the preset is applied over them at every point
+    "detector_sampling_with_preset": (FLAT + "[vary]\ndh = [200]\n" + SMALL + 'quality = "draft"\n[integrator]\n'
+                                      'detector_sampling = "stratified"\n',
+                                      "integrator.detector_sampling='stratified' would change nothing",
+                                      "render.quality 'draft' sets detector_sampling itself"),
+    "quadrature_triangles_with_default_preset": (FLAT + "[vary]\ndh = [200]\n" + SMALL
+                                                 + "[integrator]\nquadrature_triangles = 64\n",
+                                                 "integrator.quadrature_triangles=64 would change nothing",
+                                                 "render.quality 'default' (the default) sets quadrature_triangles"),
+    "bounce_filter_with_swept_preset": (FLAT + '[vary]\nquality = ["scene", "reference"]\n' + SMALL
+                                        + "[integrator]\nbounce_filter = 0.5\n",
+                                        "integrator.bounce_filter=0.5 would change nothing",
+                                        "the swept quality 'reference' sets bounce_filter"),
+    "events_in_integrator": (FLAT + "[vary]\ndh = [200]\n" + SMALL + 'quality = "scene"\n[integrator]\nevents = 2\n',
+                             "integrator.events=2 would change nothing", "set [render] events = 2"),
 }
 
 
@@ -124,6 +139,16 @@ def test_every_point_is_checked_before_the_store_exists(case, tmp_path, capsys, 
     assert str(spec) in err and where in err and what in err, err
     assert not out.exists() and not list(tmp_path.glob(".out.zarr*"))
     assert time.perf_counter() - t0 < 30
+
+
+def test_integrator_options_apply_with_the_scene_quality():
+    """Under render.quality = "scene" no preset is applied over [integrator]: its sampling
+    options are accepted (and each point renders with them)."""
+    from elo_mitsuba.sweeps import load_spec
+
+    spec = load_spec(FLAT + "[vary]\ndh = [200]\n" + SMALL + 'quality = "scene"\n[integrator]\n'
+                     'detector_sampling = "stratified"\nquadrature_triangles = 64\n')
+    assert spec.integrator == {"detector_sampling": "stratified", "quadrature_triangles": 64}
 
 
 def test_valid_values_in_every_position_pass(tmp_path):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._args import non_negative_int, positive_int
+from ._args import add_yes, non_negative_int, positive_int
 
 HELP = "design a detector system: a Pareto front of gradient precision, masking, signal (TOML spec) into a Zarr store"
 
@@ -20,8 +20,10 @@ radiation sheet and each other. Optuna (multi-objective TPE or NSGA-II) asks for
 evaluated as a task on a Dask cluster (as 'sweep'); every evaluated design is stored
 (xarray.open_zarr(OUT.zarr)). Re-running the same command resumes a killed run without evaluating
 a stored design again. Bounds that hold no feasible design are refused in one line (exit 2) before
-any work. Afterwards: Table 1's layouts under the same metric, the chosen design (the front's
-knee) and how it compares, optionally the front as a plot and the chosen design as a scene XML.
+any work, and so is a run estimated above 4 h on this machine unless --yes (a run estimated above a
+minute prints its estimate). Afterwards: Table 1's layouts under the same metric, the chosen design
+(the front's knee) and how it compares, optionally the front as a plot and the chosen design as a
+scene XML.
 Spec format: examples/optimize_athene.toml and README ("Designing a detector system").
 """
 
@@ -55,6 +57,7 @@ def add_parser(subparsers):
     p.add_argument("--overwrite", action="store_true",
                    help="replace a store of another spec, and existing --plot/--scene files")
     p.add_argument("--quiet", "--no-progress", dest="no_progress", action="store_true", help="no progress line")
+    add_yes(p)
     p.set_defaults(run=run)
     return p
 
@@ -74,7 +77,7 @@ def run(args) -> int:
     from ..errors import EloInputError
     from ..files import check_output
 
-    spec = load_spec(args.spec)
+    spec = load_spec(args.spec, second_event=args.second_event)  # --second-event renders with [render]
     # the files asked for, and the design asked for, are checked before any work: the store holds the
     # designs 0 .. trials - 1 once the run is done (a resumed store counts towards the same trials)
     if args.design is not None:
@@ -92,7 +95,8 @@ def run(args) -> int:
     if args.scene:
         check_output(args.scene, (".xml",), overwrite=args.overwrite, what="--scene")
     s = optimize(spec, args.output, workers=args.workers, scheduler=args.scheduler, threads_per_worker=args.threads,
-                 overwrite=args.overwrite, progress=not args.no_progress, max_evaluations=args.stop_after)
+                 overwrite=args.overwrite, progress=not args.no_progress, max_evaluations=args.stop_after,
+                 force=args.yes)
     print(f"{s.path}: {s.trials} designs stored ({s.state}); {s.evaluated} evaluated in {s.seconds:.1f} s"
           + (f", {s.recovered} told from a killed run's log" if s.recovered else "") + f"; {s.front} on the Pareto front")
     ds = read_designs(args.output)

@@ -16,7 +16,10 @@ The dataset (every evaluated design, :mod:`.store`) is rewritten from the log at
 :data:`WRITE_EVERY_S` seconds and at the end.
 
 Before any work: the spec is checked (:func:`~.spec.load_spec`), and so is the design space
-(:func:`check_design_space`): bounds no feasible design lies in are refused with one line.
+(:func:`check_design_space`): bounds no feasible design lies in are refused with one line. Then the
+run's cost is estimated (:func:`estimate`) and checked by :func:`elo_mitsuba.budget.check_work`, the
+rule of render and sweep: above its ``REFUSE_SECONDS`` (4 h) refused unless ``force`` (CLI
+``--yes``), memory beyond what is available always; above ``NOTE_SECONDS`` the estimate is printed.
 """
 
 from __future__ import annotations
@@ -43,6 +46,36 @@ WRITE_EVERY_S = 5.0
 STUDY = "elo-optimize"
 #: Modules the optimiser needs (the ``sweep`` extra).
 MODULES = ("dask", "distributed", "xarray", "zarr", "optuna")
+
+# ---- the cost of a run (:func:`estimate`) ----------------------------------------------------------
+# Measured on this project's 2-core machine (llvm_ad_mono, another process busy on the cores at
+# times), by timing small runs: optimize(workers=0) of 400 designs, count 4, 3 x 3 field points,
+# batch 8, took 0.128 s (random), 0.128 s (tpe), 0.116 s (nsga2) per design, of which
+# evaluate_design 0.11-0.13 s; evaluate_design alone (CPU time, mean of 40 random designs) at
+# count 3/4/8/16 and 1 x 1 field points 0.11/0.11/0.23/0.42 s, at count 4 with 32^2/64^2 points
+# 0.20/0.27 s, count 8 with 32^2 points 0.31 s (most of it Dr.Jit tracing each design's kernel).
+#: evaluate_design: seconds per detector, and per detector and field point (grid^2).
+EVAL_SECONDS_PER_DETECTOR = 0.03
+EVAL_SECONDS_PER_DETECTOR_POINT = 1e-5
+#: The objective e2_share: seconds per design besides its samples (moving the four discs, the
+#: render's set-up; 0.054-0.065 s at 8^2-32^2 px and 64-1024 spp), and samples (px x spp x 2
+#: events) per second on 2 cores (128^2 px at 256 spp: 0.77 s; 64^2 at 1024: 0.62 s).
+E2_SECONDS_PER_DESIGN = 0.06
+E2_SAMPLES_PER_SECOND_2_CORES = 1.2e7
+#: Asking and telling the optimiser, per design: Optuna's samplers with this journal storage and
+#: no evaluation (3000 designs, batch 8): random 0.002 s, NSGA-II 0.004 s; the TPE's grows with
+#: the designs before it, 0.002 s + TPE_SECONDS_PER_EARLIER_DESIGN x n (n = 600/3000/6000: 0.008/
+#: 0.029/0.076 s), with 3 free parameters, and (P + 4) / 7 times that with P free parameters
+#: (24: 3.7 times in all for 1500 designs).
+SAMPLER_SECONDS = {"random": 0.002, "grid": 0.002, "nsga2": 0.004, "tpe": 0.002}
+TPE_SECONDS_PER_EARLIER_DESIGN = 1.2e-5
+#: store.write_dataset, every WRITE_EVERY_S and at the end: WRITE_SECONDS (Zarr, 0.7 s at 1000
+#: designs) plus its Pareto front, which compares every pair of n designs: PARETO_SECONDS_PER_PAIR
+#: x n^2 (0.68 s at 4000, 2.7 s at 8000) and (objectives + 2) x n^2 bytes at its peak (4.0 n^2
+#: measured with 2 objectives). The whole model against runs whose evaluation was a 0.01 s sleep
+#: (random, batch 8): 2000 designs 30 s (estimate 29 s), 10000 designs 193 s (175 s).
+WRITE_SECONDS = 0.7
+PARETO_SECONDS_PER_PAIR = 4.2e-8
 
 
 @dataclass
@@ -101,6 +134,74 @@ def check_design_space(spec: OptimizeSpec, n: int = PROBE_DESIGNS, seed: int = 0
                         f"or lower constraints.clearance ({spec.clearance:g} mm)")
 
 
+def estimate(spec: OptimizeSpec, designs: int, *, done: int = 0, parallel: int = 1) -> dict:
+    """The estimated cost of evaluating ``designs`` designs after ``done`` stored ones, with
+    ``parallel`` evaluations at a time (the constants above: measured, meant to be right within a
+    factor of two): ``seconds`` (the run on this machine), ``memory_bytes`` (its peak) and
+    ``per_design`` (seconds of one evaluation).
+
+    Examples
+    --------
+    >>> e = estimate(load_spec({"metric": {"grid": 3}, "optimizer": {"sampler": "random"}}), 1000)
+    >>> round(e["per_design"], 3), 100 < e["seconds"] < 300
+    (0.12, True)
+    """
+    import os
+
+    from ..budget import BASE_BYTES
+
+    m, opt = spec.metric, spec.optimizer
+    count = max(spec.counts)
+    per_design = count * (EVAL_SECONDS_PER_DETECTOR + EVAL_SECONDS_PER_DETECTOR_POINT * m["grid"] ** 2)
+    if "e2_share" in spec.objectives:
+        cores = max(1, os.cpu_count() or 1)
+        samples = spec.render["resolution"] ** 2 * spec.render["spp"] * 2
+        per_design += E2_SECONDS_PER_DESIGN + samples / (E2_SAMPLES_PER_SECOND_2_CORES * cores / 2)
+    n0, n1 = int(done), int(done) + int(designs)
+    ask = SAMPLER_SECONDS[opt["sampler"]] * designs
+    if opt["sampler"] == "tpe":
+        free = max(len(spec.free_parameters(c)) for c in spec.counts)
+        ask = (ask + TPE_SECONDS_PER_EARLIER_DESIGN * (n1 ** 2 - n0 ** 2) / 2) * (free + 4) / 7
+    loop = designs * per_design / max(1, int(parallel)) + ask
+    # a rewrite every WRITE_EVERY_S of the loop, of the designs stored by then (the mean of n^2
+    # over n0..n1), and one at the end
+    mean_pairs = (n1 ** 2 + n1 * n0 + n0 ** 2) / 3
+    writes = loop / WRITE_EVERY_S * (WRITE_SECONDS + PARETO_SECONDS_PER_PAIR * mean_pairs)
+    last = WRITE_SECONDS + PARETO_SECONDS_PER_PAIR * n1 ** 2
+    memory = BASE_BYTES + (len(spec.objectives) + 2) * n1 ** 2
+    return {"seconds": loop + writes + last, "memory_bytes": memory, "per_design": per_design}
+
+
+def _check_cost(spec: OptimizeSpec, path: Path, target: int, *, overwrite: bool, parallel: int | None,
+                max_evaluations: int | None, force: bool, progress: bool | None) -> None:
+    """Refuse a run whose estimate is out of bounds (:func:`elo_mitsuba.budget.check_work`), before
+    the store is created; print the estimate of a long one (unless ``progress`` is False).
+    ``parallel``: local workers (0: in this process), None for a scheduler's (then the batch)."""
+    from ..budget import NOTE_SECONDS, check_work, human_seconds
+
+    done = 0
+    if not overwrite and (store.state_dir(path) / store.LOG).is_file():  # resumed: what is stored is not redone
+        done = len(store.read_records(path))
+    designs = max(0, target - done)
+    if max_evaluations is not None:
+        designs = min(designs, max_evaluations)
+    batch = spec.optimizer["batch"]
+    at_once = batch if parallel is None else max(1, min(parallel, batch))
+    est = estimate(spec, designs, done=done, parallel=at_once)
+    m = spec.metric
+    renders = (f", e2_share rendering {spec.render['resolution']}^2 px at {spec.render['spp']} spp"
+               if "e2_share" in spec.objectives else "")
+    what = (f"{spec.source}: {designs} designs ({spec.optimizer['sampler']}, count "
+            f"{'/'.join(str(c) for c in spec.counts)}, {m['grid']}x{m['grid']} field points{renders}; about "
+            f"{est['per_design']:.2g} s each, {at_once} at a time{' at most' if parallel is None else ''})")
+    check_work(est["seconds"], est["memory_bytes"], force, what=what,
+               hint="lower optimizer.trials, or run them in parts with --stop-after (time and memory grow with "
+                    "the square of the designs: the optimiser and the store's Pareto front compare them)")
+    if est["seconds"] > NOTE_SECONDS and progress is not False:
+        print(f"elo-mitsuba: note: {what} take about {human_seconds(est['seconds'])} on this machine (estimate; "
+              "Ctrl-C stops, re-running resumes)", file=sys.stderr, flush=True)
+
+
 def _sampler(spec: OptimizeSpec):
     import warnings
 
@@ -140,7 +241,7 @@ def grid_space(spec: OptimizeSpec) -> dict:
 
     Examples
     --------
-    >>> g = grid_space(load_spec({"parameters": {"radius": 25.0}, "optimizer": {"grid_points": 3}}))
+    >>> g = grid_space(load_spec({"parameters": {"radius": 25.0}, "optimizer": {"sampler": "grid", "grid_points": 3}}))
     >>> {k: [float(x) for x in v] for k, v in g.items()}
     {'dh': [60.0, 290.0, 520.0], 'dw': [60.0, 195.0, 330.0]}
     """
@@ -185,7 +286,7 @@ def _connect(workers, address):
 
 def optimize(spec, output, *, workers: int | None = None, scheduler: str | None = None,
              threads_per_worker: int | None = None, overwrite: bool = False, progress: bool | None = None,
-             max_evaluations: int | None = None) -> OptimizeSummary:
+             max_evaluations: int | None = None, force: bool = False) -> OptimizeSummary:
     """Search the spec's design space for the Pareto front of its objectives.
 
     Parameters
@@ -206,6 +307,10 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
         A progress line on stderr (default: when stderr is a terminal).
     max_evaluations : int, optional
         Stop (resumably) after this many evaluations in this run.
+    force : bool
+        Start a run estimated (:func:`estimate`) to take longer than
+        :data:`~elo_mitsuba.budget.REFUSE_SECONDS` (CLI ``--yes``); memory beyond what is
+        available is refused regardless.
 
     Returns
     -------
@@ -234,23 +339,30 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
     if max_evaluations is not None and (isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int)
                                         or max_evaluations < 1):
         raise EloInputError(f"max_evaluations={max_evaluations!r}; must be a whole number >= 1")
+    from ..arguments import flag
+    from ..sweeps.store import zarr_path
+
+    force = flag("force", force)
+    path = zarr_path(output, "the optimiser")
+    target = spec.trials
+    if spec.optimizer["sampler"] == "grid":
+        target = min(target, math.prod(len(v) for v in grid_space(spec).values()))
+    _check_cost(spec, path, target, overwrite=overwrite, parallel=workers if address is None else None,
+                max_evaluations=max_evaluations, force=force, progress=progress)
     import optuna
     from optuna.storages import JournalStorage
     from optuna.storages.journal import JournalFileBackend
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    path = Path(output)
     state = store.check_store(path, spec, overwrite=overwrite)
     storage = JournalStorage(JournalFileBackend(str(store.state_dir(path) / "journal.log")))
     study = optuna.create_study(study_name=STUDY, storage=storage, directions=spec.directions,
                                 sampler=_sampler(spec), load_if_exists=True)
-    target = spec.trials
     if spec.optimizer["sampler"] == "grid":
         import itertools
 
         space = grid_space(spec)
         points = list(itertools.product(*space.values()))
-        target = min(target, len(points))
         if not study.trials:  # a new study: the grid in a fixed order (resumed: its waiting trials)
             for values in points[:target]:
                 study.enqueue_trial(dict(zip(space, values)))

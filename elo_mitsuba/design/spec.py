@@ -144,13 +144,16 @@ def _table(where, doc, key, defaults):
     return {**defaults, **t}
 
 
-def load_spec(spec) -> OptimizeSpec:
+def load_spec(spec, *, second_event: bool = False) -> OptimizeSpec:
     """Parse and check an optimiser spec.
 
     Parameters
     ----------
     spec : str, Path, dict or OptimizeSpec
         A TOML file, or the parsed table.
+    second_event : bool
+        The chamber render of ``[render]`` is also used after the run (``optimize --second-event``);
+        without it, or the objective ``e2_share``, a ``[render]`` section would be unused and is refused.
 
     Returns
     -------
@@ -243,10 +246,18 @@ def load_spec(spec) -> OptimizeSpec:
     opt["batch"] = _number(where, "optimizer.batch", opt["batch"], 1, 1024, integer=True)
     opt["seed"] = _number(where, "optimizer.seed", opt["seed"], 0, integer=True)
     opt["grid_points"] = _number(where, "optimizer.grid_points", opt["grid_points"], 2, 1000, integer=True)
+    if "grid_points" in doc.get("optimizer", {}) and opt["sampler"] != "grid":
+        raise EloInputError(f"{where}: optimizer.grid_points = {opt['grid_points']} sets the grid of sampler = \"grid\" "
+                            f"only; with sampler = {opt['sampler']!r} it would be recorded but not applied: drop it, "
+                            "or set sampler = \"grid\"")
     if opt["sampler"] == "grid" and not symmetric:
         raise EloInputError(f"{where}: optimizer.sampler = 'grid' needs symmetric = true (a grid per detector "
                             "would hold grid_points^(5 x count) designs)")
     render = _table(where, doc, "render", RENDER_DEFAULTS)
+    if "render" in doc and "e2_share" not in objectives and not second_event:
+        raise EloInputError(f"{where}: [render] sets the chamber render of the objective e2_share (and of "
+                            "optimize --second-event), which this run does not use: it would be recorded but not "
+                            "applied; add e2_share to objectives, or drop [render]")
     render["resolution"] = _number(where, "render.resolution", render["resolution"], 1, 256, integer=True)
     render["spp"] = _number(where, "render.spp", render["spp"], 1, 4096, integer=True)
     out = OptimizeSpec(counts=counts, symmetric=symmetric, objectives=tuple(objectives), bounds=bounds,

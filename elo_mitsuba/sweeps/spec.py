@@ -365,6 +365,7 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
             EloOptions().replace(**integrator)
         except (EloInputError, TypeError, ValueError) as exc:
             _fail(source, f"[integrator]: {exc}")
+        _check_integrator_applies(source, integrator, render, axes)
 
     keep = t.get("keep", {})
     bad = [k for k in keep if k not in ("channels", "downsample", "metrics")]
@@ -394,6 +395,36 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
     if resolution is not None and resolution % downsample:
         _fail(source, f"keep.downsample = {downsample} does not divide render.resolution = {resolution}")
     return spec
+
+
+def _check_integrator_applies(source, integrator: dict, render: dict, axes) -> None:
+    """Refuse ``[integrator]`` options a point would record but not apply: ``events`` (every
+    point renders with [render]'s or the swept events) and, under a quality preset, the options
+    it sets (:data:`~elo_mitsuba.options.PRESET_FIELDS`: each render applies its preset over
+    them). Worded as :func:`~elo_mitsuba.options.check_combination`, the render command's rule,
+    whose sample counts need the scene and are checked in :mod:`.validate`."""
+    from ..options import PRESET_FIELDS, QUALITY_PRESETS
+
+    if "events" in integrator:
+        events = integrator["events"]
+        _fail(source, f"integrator.events={events!r} would change nothing: every point renders with render.events "
+              f"(default 1) or the swept events; set [render] events = {events!r} instead")
+    overridden = [k for k in PRESET_FIELDS if k in integrator]
+    if not overridden:
+        return
+    swept = [v for a in axes for m in a.members if m.key == "quality" for v in m.values]
+    if swept:  # then render.quality is not used
+        presets = [q for q in swept if q in QUALITY_PRESETS]
+        where = f"the swept quality {presets[0]!r}" if presets else None
+    else:
+        quality = render.get("quality", "default")
+        presets = [quality] if quality in QUALITY_PRESETS else []
+        where = f"render.quality {quality!r}" + ("" if "quality" in render else " (the default)")
+    if presets:
+        name = overridden[0]
+        _fail(source, f"integrator.{name}={integrator[name]!r} would change nothing: {where} sets {name} itself "
+              f"(a preset sets {', '.join(PRESET_FIELDS)}); use render.quality = \"scene\" for [integrator]'s "
+              "settings, or drop it")
 
 
 def _store_names(axes) -> list[tuple[str, str]]:
