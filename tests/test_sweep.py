@@ -238,6 +238,7 @@ def test_no_memory_growth_over_a_long_sweep(tmp_path):
     import elo_mitsuba.sweeps.worker as worker
     from elo_mitsuba import sweep
 
+    worker._STATE["scenes"].clear()  # a test before this one may have loaded the same scene
     loads = worker._STATE["loads"]
     spec = {"scene": "flat_plate", "vary": {"right": {"radius": [10.0 + k for k in range(48)]}},
             "render": {"resolution": 32, "spp": 2}, "keep": {"channels": ["right"]}}

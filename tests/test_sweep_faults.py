@@ -511,3 +511,24 @@ def test_a_scheduler_without_workers_is_one_line(tmp_path, capsys):
         assert time.perf_counter() - t0 < 30
     finally:
         _stop(procs)
+
+
+def test_detectors_the_presets_cannot_integrate_are_refused_with_the_spec(tmp_path, capsys, no_render):
+    """A sphere detector under a quality preset (whose triangle quadrature takes discs, rectangles
+    and meshes): the spec passed, the store was created and every point failed (exit 1)."""
+    disc = ('<shape type="{t}" id="{n}"><transform name="to_world"><scale value="25"/><rotate x="1" angle="180"/><translate x="{x}" y="{y}" '
+            'z="$dh"/></transform><emitter type="area"/></shape>')
+    shapes = "".join(disc.format(t="sphere" if n == "right" else "disk", n=n, x=x, y=y)
+                     for n, x, y in (("right", 127, 0), ("left", -127, 0), ("back", 0, 127), ("front", 0, -127)))
+    (tmp_path / "sphere.xml").write_text(
+        '<scene version="3.0.0"><default name="dh" value="272"/><default name="res" value="4"/><integrator type="elo"/>'
+        '<sensor type="elo_beam"><float name="field" value="80"/><film type="hdrfilm"><integer name="width" '
+        'value="$res"/><integer name="height" value="$res"/><rfilter type="box"/></film></sensor>'
+        '<shape type="rectangle" id="plate">'
+        '<transform name="to_world"><scale x="100" y="100"/></transform><bsdf type="elo_bse"/></shape>'
+        + shapes + "</scene>")
+    spec = _spec(tmp_path, 'scene = "sphere.xml"\n[vary]\ndh = [200]\n[render]\nresolution = 4\nquality = "draft"\n')
+    out = tmp_path / "out.zarr"
+    assert _cli("sweep", spec, "-o", out, "--workers", "0") == 2
+    assert "detector 'right': detector_sampling=quadrature (what every quality preset uses)" in _one_line_error(capsys)
+    assert not out.exists()
