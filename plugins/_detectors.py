@@ -175,12 +175,28 @@ def detector_geometry(shape, to_world=None) -> dict:
     return _placed_geometry(to_world, shape)
 
 
-def surfaces_through_detectors(scene, detectors, segments: int = 16):
-    """[(detector, shape id)] of the scene's surfaces that pass through a detector disc: rays along
-    the disc's rim polygon and its diameters (``segments`` points on the rim), just in front of its
-    face, that meet another shape before their end (a detector moved through a chamber wall)."""
-    starts, ends, owner = [], [], []
-    for d, (_, shape) in enumerate(detectors):
+def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None):
+    """[(detector, what)] of the scene's surfaces (meshes and rectangles) that pass through a
+    detector disc: segments along the disc's rim polygon and its diameters (``segments`` points on
+    the rim), just in front of its face, that cross one of their triangles (a detector moved
+    through a chamber wall). On the host, against the triangles near each disc: no kernel, so a
+    re-render after a move compiles nothing. ``cache`` (a dict): each mesh's triangles, kept by
+    shape and vertex count (a merged mesh's bbox() is empty, so its bounds come from them)."""
+    from ._occlusion import cover_triangles, shape_key
+
+    cache = {} if cache is None else cache
+    others, boxes = [], []
+    for sh in scene.shapes():
+        if sh.is_emitter() or sh.shape_type() not in (mi.ShapeType.Mesh, mi.ShapeType.Rectangle):
+            continue
+        key = (shape_key(sh), sh.vertex_count() if sh.is_mesh() else -1, tuple(sh.bbox().min), tuple(sh.bbox().max))
+        if key not in cache:
+            tris = cover_triangles(sh)
+            cache[key] = (tris, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
+        others.append((sh, cache[key][0]))
+        boxes.append(cache[key][1:])
+    found = []
+    for name, shape in detectors:
         if shape.shape_type() != mi.ShapeType.Disk:
             continue
         g = _placed_geometry(mi.traverse(shape)["to_world"], shape)
@@ -192,31 +208,35 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16):
         b = np.cross(n, a)
         phi = 2.0 * np.pi * np.arange(segments) / segments
         rim = c + 1e-4 * r * n + 0.999 * r * (np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * b)
-        pairs = [(k, (k + 1) % segments) for k in range(segments)] + [(k, k + segments // 2)
-                                                                      for k in range(segments // 2)]
-        for i, j in pairs:
-            starts.append(rim[i])
-            ends.append(rim[j])
-            owner.append(d)
-    if not starts:
-        return []
-    o, e = np.array(starts), np.array(ends)
-    length = np.linalg.norm(e - o, axis=1)
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k]) for k in range(3)]),
-                   mi.Vector3f(*[mi.Float((e - o)[:, k] / length) for k in range(3)]))
-    ray.maxt = mi.Float(length)
-    si = scene.ray_intersect(ray)
-    hit = np.asarray(si.is_valid(), dtype=bool)
-    keys = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.uint32)
-    unnamed = "a surface of the scene (without an id: Mitsuba merges shapes of one material)"
-    names = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): repr(sh.id()) if sh.id() else unnamed
-             for sh in scene.shapes()}
-    found = []
-    for k in np.flatnonzero(hit):
-        pair = (detectors[owner[k]][0], names.get(int(keys[k]), unnamed))
-        if pair not in found:
-            found.append(pair)
+        i = np.r_[np.arange(segments), np.arange(segments // 2)]
+        j = np.r_[(np.arange(segments) + 1) % segments, np.arange(segments // 2) + segments // 2]
+        p0, p1 = rim[i], rim[j]
+        lo, hi = c - r, c + r
+        for (sh, tris), (blo, bhi) in zip(others, boxes):
+            if np.any(bhi < lo) or np.any(blo > hi):
+                continue
+            near = np.all(tris.max(axis=1) >= lo, axis=1) & np.all(tris.min(axis=1) <= hi, axis=1)
+            if np.any(near) and _segments_cross(p0, p1, tris[near]):
+                found.append((name, repr(sh.id()) if sh.id() else
+                              "a surface of the scene (without an id: Mitsuba merges shapes of one material)"))
+                break
     return found
+
+
+def _segments_cross(p0, p1, tris) -> bool:
+    """Whether any segment p0[k] -> p1[k] crosses any triangle (Moeller-Trumbore, all pairs)."""
+    d = (p1 - p0)[:, None, :]
+    e1, e2 = (tris[:, 1] - tris[:, 0])[None], (tris[:, 2] - tris[:, 0])[None]
+    h = np.cross(d, e2)
+    det = np.einsum("stk,stk->st", e1, h)
+    ok = np.abs(det) > 1e-12 * np.linalg.norm(e1, axis=-1) * np.linalg.norm(e2, axis=-1) * np.linalg.norm(d, axis=-1)
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    sv = p0[:, None, :] - tris[None, :, 0]
+    u = np.einsum("stk,stk->st", sv, h) * inv
+    q = np.cross(sv, e1)
+    v = np.einsum("stk,stk->st", d, q) * inv
+    t = np.einsum("stk,stk->st", e2, q) * inv
+    return bool(np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)))
 
 
 def _placed_geometry(to_world, shape) -> dict:

@@ -150,6 +150,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._in_render = False
         self._smoothed = {}  # (shape key, vertices) of the checked meshes -> whether their normals smooth them
         self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
+        self._triangles = {}  # the scene's triangles for surfaces_through_detectors, by shape
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -181,13 +182,6 @@ class EloIntegrator(mi.SamplingIntegrator):
             _check_collector(name, shape)
             if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
                 _check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
-        # the rays along the discs, once per geometry: every shape's bounds (a moved wall) and transform
-        key = (id(scene), tuple((s.id(), tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.shapes()))
-        if self._cut_key != key:
-            self._cut, self._cut_key = surfaces_through_detectors(scene, detectors), key
-        for name, through in self._cut[:1]:
-            raise EloInputError(f"detector {name!r} is cut by {through}: it passes through the disc (a detector "
-                                "moved through a wall or a shield?); move it clear of the scene's surfaces")
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]
@@ -201,6 +195,13 @@ class EloIntegrator(mi.SamplingIntegrator):
             key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
             if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)
                 _check_mesh(shape)
+        # segments along the discs against the (checked) meshes, once per geometry: every shape's bounds
+        geometry = (id(scene), tuple((s.id(), tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.shapes()))
+        if self._cut_key != geometry:
+            self._cut, self._cut_key = surfaces_through_detectors(scene, detectors, cache=self._triangles), geometry
+        for name, through in self._cut[:1]:
+            raise EloInputError(f"detector {name!r} is cut by {through}: it passes through the disc (a detector "
+                                "moved through a wall or a shield?); move it clear of the scene's surfaces")
         surfaces = scatterers + plate_shapes  # where an electron can scatter
         self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
         # relief under the beam can scatter onto itself, so events >= 2 vary on the scale of its

@@ -451,7 +451,7 @@ def test_detector_shapes_for_quadrature():
     sphere["right"] = {"type": "sphere", "center": [127, 0, 272], "radius": 20.0, "emitter": {"type": "area"}}
     loaded = mi.load_dict(sphere)
     loaded.integrator().configure(loaded.integrator().options.replace(detector_sampling="quadrature"))
-    with pytest.raises(em.EloInputError, match="quadrature supports disk, rectangle and mesh"):
+    with pytest.raises(em.EloInputError, match=r"quadrature \(what every quality preset uses\) supports disk, rectangle and mesh"):
         loaded.integrator().prepare_scene(loaded)
 
 
