@@ -271,8 +271,8 @@ def read_heightmap(path, units: str | None = None, *, allow_nan: bool = False) -
         if ext == ".npy":
             with open(path, "rb") as f:  # numpy reads a file without its magic as a pickle, and says so
                 if f.read(6) != b"\x93NUMPY":
-                    raise EloInputError(f"height map {str(path)!r} is not a NumPy .npy file (it does not start with "
-                                        "the .npy magic number); save heights with numpy.save")
+                    raise EloInputError(f"height map {str(path)!r} could not be read: not a NumPy .npy file (it does "
+                                        "not start with the .npy magic number); save heights with numpy.save")
             data = np.load(path, allow_pickle=False)
         elif ext == ".exr":
             from .exr import read_exr

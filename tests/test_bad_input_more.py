@@ -286,7 +286,7 @@ CLI_CASES = [
     ("gradient PNG named .exr", ["gradient", "--flat", "{d}/png.exr", "{d}/corr.exr", "-o", "{d}/g.exr"],
      "png.exr: not a readable EXR file (it does not start with the EXR magic number)"),
     ("mesh empty csv", ["mesh", "{d}/empty.csv", *MESH], "is empty (no numbers)"),
-    ("mesh a file that is not .npy", ["mesh", "{d}/garbage.npy", *MESH], "garbage.npy' is not a NumPy .npy file"),
+    ("mesh a file that is not .npy", ["mesh", "{d}/garbage.npy", *MESH], "garbage.npy' could not be read: not a NumPy .npy file"),
     ("mesh blank csv", ["mesh", "{d}/blank.csv", *MESH], "is empty (no numbers)"),
     ("gradient --min-corrected nan", [*GRAD, "--min-corrected", "nan"], "--min-corrected nan: must be a finite number"),
     ("gradient --min-sum inf", [*GRAD, "--min-sum", "inf"], "--min-sum inf: must be a finite number"),
