@@ -308,6 +308,24 @@ def check_combination(given: Mapping[str, Any], *, base: EloOptions | None = Non
                             f"{advice}")
 
 
+def check_scene_options(scene_options: Mapping[str, Any], qualities, where: str) -> None:
+    """Refuse to render under a quality preset a scene file that sets the sampling the preset
+    sets or makes unused (``scene_options``: what its ``<integrator>`` gives; ``where``: the file):
+    the file would say one thing and the render do another.
+
+    >>> check_scene_options({"events": 2}, ["default"], "a.xml")
+    >>> check_scene_options({"detector_samples": 16}, ["scene", "draft"], "a.xml")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: a.xml sets detector_samples=16, which quality 'draft' would override or not use; render with quality 'scene' (--quality scene) to use the file's
+    """
+    own = [f"{k}={v!r}" for k, v in scene_options.items() if k in PRESET_FIELDS + SAMPLE_OPTIONS]
+    for quality in qualities:
+        if quality in QUALITY_PRESETS and own:
+            raise EloInputError(f"{where} sets {', '.join(own)}, which quality {quality!r} would override or not "
+                                "use; render with quality 'scene' (--quality scene) to use the file's")
+
+
 def parameter_table() -> str:
     """The integrator's XML parameters as a text table (name, type, default, meaning)."""
     rows = []

@@ -29,7 +29,7 @@ from .budget import check_render, detector_points
 from .grid import ORIENTATION
 from .error_estimate import METHOD, combine_channels, split_render
 from .sample_counts import each_pass, pass_count, pass_sizes
-from .options import (PRESET_FIELDS, QUALITIES, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
+from .options import (PRESET_FIELDS, QUALITIES, check_scene_options, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
 from .arguments import flag, length, shown, vector3, whole_number
@@ -560,10 +560,7 @@ class EloScene:
             # the quality is applied at every render, so that the result depends on the scene's state
             # (events, resolution, beam) and the arguments, never on what was rendered before
             quality = quality if quality is not None else self.quality
-            own = [f"{k}={v!r}" for k, v in self.integrator.scene_options.items() if k in PRESET_FIELDS + SAMPLE_OPTIONS]
-            if quality in QUALITY_PRESETS and own:  # the scene file's sampling, which the preset would override
-                raise EloInputError(f"{self.path} sets {', '.join(own)}, which quality {quality!r} would override "
-                                    "or not use; render with quality 'scene' (--quality scene) to use the file's")
+            check_scene_options(self.integrator.scene_options, [quality], where=str(self.path))
             if quality in QUALITY_PRESETS:  # sample counts configured earlier that the preset would not use
                 check_combination({k: v for k, v in self._configured.items() if k in SAMPLE_OPTIONS},
                                   base=self.integrator.options, qualities=[quality],

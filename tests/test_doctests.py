@@ -13,7 +13,7 @@ import pytest
 #: module is here (an Examples section that no test runs would rot).
 MODULES = [
     "elo_mitsuba.schema", "elo_mitsuba.analysis.chain", "elo_mitsuba.analysis.noise",
-    "elo_mitsuba.render", "elo_mitsuba.result", "elo_mitsuba.arguments", "elo_mitsuba.errors", "elo_mitsuba.runtime", "elo_mitsuba.grid",
+    "elo_mitsuba.render", "elo_mitsuba.options", "elo_mitsuba.result", "elo_mitsuba.arguments", "elo_mitsuba.errors", "elo_mitsuba.runtime", "elo_mitsuba.grid",
     "elo_mitsuba.heightmap", "elo_mitsuba.mesh", "elo_mitsuba.exr", "elo_mitsuba.budget",
     "elo_mitsuba.physics.backscatter", "elo_mitsuba.physics.scattering", "elo_mitsuba.physics.solid_angle",
     "elo_mitsuba.physics.materials",

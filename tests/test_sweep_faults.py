@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from elo_mitsuba.cli import main
+from elo_mitsuba.scene_files import portable_scene_text, scenes_dir
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("distributed")
@@ -511,6 +512,23 @@ def test_a_scheduler_without_workers_is_one_line(tmp_path, capsys):
         assert time.perf_counter() - t0 < 30
     finally:
         _stop(procs)
+
+
+def test_a_scenes_own_sampling_under_a_preset_is_refused_with_the_spec(tmp_path, capsys, no_render):
+    """The scene file sets detector_sampling and detector_samples, the sweep renders at a preset:
+    every point would have rendered the preset's quadrature instead (render refuses it; so does
+    the spec's check, before the store exists)."""
+    text = portable_scene_text(scenes_dir() / "flat_plate.xml").replace(
+        '<integer name="events" value="$events"/>', '<integer name="events" value="$events"/><string '
+        'name="detector_sampling" value="stratified"/><integer name="detector_samples" value="16"/>', 1)
+    assert 'name="detector_samples"' in text
+    (tmp_path / "own.xml").write_text(text)
+    spec = _spec(tmp_path, 'scene = "own.xml"\n[vary]\ndh = [200]\n[render]\nresolution = 4\nquality = "draft"\n')
+    out = tmp_path / "out.zarr"
+    assert _cli("sweep", spec, "-o", out, "--workers", "0") == 2
+    assert ("sets detector_sampling='stratified', detector_samples=16, which quality 'draft' would override"
+            in _one_line_error(capsys))
+    assert not out.exists()
 
 
 def test_detectors_the_presets_cannot_integrate_are_refused_with_the_spec(tmp_path, capsys, no_render):

@@ -141,11 +141,12 @@ def _check_integrator(spec: SweepSpec, probe) -> None:
             raise EloInputError(f"{src}: [integrator]: {exc}") from None
     qualities = {spec.quality} | {v for a in spec.axes for m in a.members if m.key == "quality" for v in m.values}
     events = [spec.events] + [v for a in spec.axes for m in a.members if m.key == "events" for v in m.values]
-    from ..options import QUALITY_PRESETS, check_combination  # the one rule of every entry point
+    from ..options import QUALITY_PRESETS, check_combination, check_scene_options  # the rules of every entry point
 
     try:
         check_combination(spec.integrator, base=probe.options, qualities=sorted(qualities), events=max(events),
                           bounce_possible=bool(probe.integrator.bounce_possible), prefix="integrator.")
+        check_scene_options(probe.integrator.scene_options, sorted(qualities), where=str(probe.path))
         if qualities & set(QUALITY_PRESETS):  # the presets' quadrature takes discs, rectangles and meshes only
             from ..plugins._detectors import quadrature_geometry
 
