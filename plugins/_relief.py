@@ -50,7 +50,6 @@ def detectors_in_beam(detectors, sensor, probe):
     its margin left out). There the beam ends on the detector: no electron reaches the plate."""
     if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):  # not the elo_beam sensor: no beam
         return []
-    margin = 3.0 * float(np.ravel(getattr(sensor, "sigma", 0.0))[0])
     wd, fx, fy = float(sensor.wd), 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
     orthographic = getattr(sensor, "projection", "perspective") == "orthographic"
 
@@ -67,10 +66,8 @@ def detectors_in_beam(detectors, sensor, probe):
     if not detectors:
         return []
     si = probe()
-    u = np.linspace(-0.5, 0.5, GRID)
-    inside_x = np.abs(u * (float(sensor.field) + 2 * margin)) <= 0.5 * float(sensor.field)
-    inside_y = np.abs(u * (float(sensor.field_y) + 2 * margin)) <= 0.5 * float(sensor.field_y)
-    inside = (inside_y[:, None] & inside_x[None, :]).ravel()
+    x, y = probe_points(sensor)
+    inside = (np.abs(x) <= fx) & (np.abs(y) <= fy)
     found = []
     for name, shape in detectors:
         mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))
@@ -80,13 +77,19 @@ def detectors_in_beam(detectors, sensor, probe):
     return found
 
 
-def beam_probe(scene, sensor, grid=GRID):
-    """Where the beam of ``sensor`` meets the scene on a ``grid`` x ``grid`` grid over its field
-    (plus a margin of 3 beam sigmas): the surface interactions (a Dr.Jit array of them)."""
+def probe_points(sensor, grid=GRID):
+    """The aim points (x, y) of :func:`beam_probe`, flat float32 arrays: a ``grid`` x ``grid``
+    grid over the field plus a margin of 3 beam sigmas."""
     margin = 3.0 * float(np.ravel(getattr(sensor, "sigma", 0.0))[0])
     u = np.linspace(-0.5, 0.5, grid)
     x, y = np.meshgrid(u * (float(sensor.field) + 2 * margin), u * (float(sensor.field_y) + 2 * margin))
-    x, y = x.ravel().astype(np.float32), y.ravel().astype(np.float32)
+    return x.ravel().astype(np.float32), y.ravel().astype(np.float32)
+
+
+def beam_probe(scene, sensor, grid=GRID):
+    """Where the beam of ``sensor`` meets the scene on a ``grid`` x ``grid`` grid over its field
+    (plus a margin of 3 beam sigmas): the surface interactions (a Dr.Jit array of them)."""
+    x, y = probe_points(sensor, grid)
     wd = float(sensor.wd)
     if getattr(sensor, "projection", "perspective") == "orthographic":
         o = mi.Point3f(mi.Float(x), mi.Float(y), wd)
