@@ -1,4 +1,4 @@
-"""Detectors of an ELO scene: discovery, geometry, triangulation for the quadrature, planarity (set-up time).
+"""Detectors of an ELO scene: discovery, geometry, triangulation for the quadrature, surfaces through a disc (set-up time).
 
 A detector is any shape carrying an emitter; its ``id`` is its channel name. For the triangle
 quadrature of Appendix A (Eq. A2) a detector is covered by triangles wound counter-clockwise about
@@ -15,6 +15,8 @@ import numpy as np
 from elo_mitsuba.constants import DETECTOR_NAMES
 from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.options import MAX_QUADRATURE_TRIANGLES
+
+from ._shapes import cover_triangles, shape_key
 
 
 def find_detectors(scene):
@@ -118,28 +120,6 @@ def detector_triangles(shape, n_tri, name="detector"):
         "detector_sampling='stratified' in the scene's <integrator>")
 
 
-def is_planar(shape):
-    """True for a rectangle, a disk, or a mesh whose vertices all lie in one plane."""
-    stype = shape.shape_type()
-    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
-        return True
-    if stype != mi.ShapeType.Mesh:
-        return False
-    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
-    if len(v) < 4:
-        return True
-    extent = max(float(np.ptp(v, axis=0).max()), 1e-30)
-    a = v[0]
-    b = v[np.argmax(np.sum((v - a) ** 2, axis=1))]
-    n = np.cross(b - a, v - a)
-    c = v[np.argmax(np.sum(n * n, axis=1))]
-    normal = np.cross(b - a, c - a)
-    length = np.linalg.norm(normal)
-    if not length > 0:
-        return True  # all vertices on one line
-    return bool(np.max(np.abs((v - a) @ (normal / length))) <= 1e-7 * extent)
-
-
 def quadrature_geometry(detectors, n_tri):
     """Per detector: (vertices as opaque Point3f, [((i, j, k), opaque 2 A n)]) of its triangles.
 
@@ -182,7 +162,6 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None)
     through a chamber wall). On the host, against the triangles near each disc: no kernel, so a
     re-render after a move compiles nothing. ``cache`` (a dict): each mesh's triangles, kept by
     shape and vertex count (a merged mesh's bbox() is empty, so its bounds come from them)."""
-    from ._occlusion import cover_triangles, shape_key
 
     cache = {} if cache is None else cache
     others, boxes = [], []

@@ -50,7 +50,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._occlusion import digest_geometry
+from ._shapes import digest_geometry
 
 #: Nodes per side of the grid over the field (looked up bilinearly). The table is rebuilt whenever
 #: a detector moves, so its build is part of every point of a detector sweep. Measured on athene_flat

@@ -44,7 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 from ._far_field import NEAR_MM
-from ._occlusion import digest_geometry, shape_key
+from ._shapes import digest_geometry, shape_key
 
 #: Probe directions per pixel (a power of two: the Hammersley set). Two points whose surroundings
 #: differ only between the probes share a class: on the sawtooth plate (valleys ending at the

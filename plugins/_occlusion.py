@@ -13,31 +13,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._detectors import is_planar
-
-
-def _to_world(shape):
-    return np.array(mi.traverse(shape)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
-
-
-def cover_triangles(shape):
-    """Triangles covering ``shape`` (a superset of its surface): a mesh's own, the square around
-    a disk or rectangle, else the 12 triangles of its bounding box."""
-    stype = shape.shape_type()
-    if stype == mi.ShapeType.Mesh:
-        v = np.array(shape.vertex_positions_buffer(), dtype=float).reshape(-1, 3)
-        f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
-        return v[f]
-    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
-        m = _to_world(shape)
-        sq = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) @ m[:3, :3].T + m[:3, 3]
-        return np.array([[sq[0], sq[1], sq[2]], [sq[0], sq[2], sq[3]]])
-    bb = shape.bbox()
-    lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()
-    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1),
-             (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]
-    return c[np.array(faces)]
+from ._shapes import cover_triangles, is_planar, shape_key
 
 
 #: Up to this many distinct points the hull's facet planes are found by trying every triple of
@@ -126,19 +102,6 @@ def _beam_region(shape, sensor):
     if box[0] >= box[1] or box[2] >= box[3]:
         return None
     return (z0,) + box
-
-
-def digest_geometry(digest, shape):
-    """Feed ``shape``'s id, bounds and (for a mesh) vertex positions to ``digest`` (hashlib): the
-    geometry part of the caches' keys (far-field table, geometry classes)."""
-    box = shape.bbox()
-    digest.update(repr((shape.id(), list(box.min), list(box.max))).encode())
-    if shape.is_mesh():
-        digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
-
-
-def shape_key(shape):
-    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
 
 
 def unoccluded_regions(scene, sensor, detectors):

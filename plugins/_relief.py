@@ -12,8 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._detectors import is_planar
-from ._occlusion import shape_key
+from ._shapes import is_planar, shape_key
 
 #: Beam rays per side of the coarse grid over the field (plus a margin of 3 beam sigmas).
 GRID = 65

@@ -108,9 +108,9 @@ from ._geometry_classes import GeometryClasses
 from ._geometry_classes import geometry_key as classes_key
 from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, build_rays, geometry_key,
                          near_share, reduce_table)
-from ._detectors import (find_detectors, is_planar, parse_detector_list, quadrature_geometry,
-                         surfaces_through_detectors)
-from ._occlusion import shape_key, unblockable, unblockable_regions
+from ._detectors import find_detectors, parse_detector_list, quadrature_geometry, surfaces_through_detectors
+from ._occlusion import unblockable, unblockable_regions
+from ._shapes import is_planar, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import beam_probe, detectors_in_beam, relief_under_beam

@@ -1,0 +1,70 @@
+"""Host-side facts about a scene's shapes (set-up time): identity, planarity, covering triangles
+and the geometry digest of the caches' keys. numpy; the detectors' quadrature (:mod:`._detectors`),
+the occlusion analysis (:mod:`._occlusion`), the relief probes (:mod:`._relief`), the far-field
+table and the geometry classes all ask these questions of the same shapes.
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+def shape_key(shape):
+    """The id by which a kernel tells ``shape`` from the others: its pointer as a UInt32 (the
+    value of ``SurfaceInteraction3f.shape`` reinterpreted), stable while the scene is loaded."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
+
+
+def is_planar(shape):
+    """True for a rectangle, a disk, or a mesh whose vertices all lie in one plane."""
+    stype = shape.shape_type()
+    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
+        return True
+    if stype != mi.ShapeType.Mesh:
+        return False
+    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+    if len(v) < 4:
+        return True
+    extent = max(float(np.ptp(v, axis=0).max()), 1e-30)
+    a = v[0]
+    b = v[np.argmax(np.sum((v - a) ** 2, axis=1))]
+    n = np.cross(b - a, v - a)
+    c = v[np.argmax(np.sum(n * n, axis=1))]
+    normal = np.cross(b - a, c - a)
+    length = np.linalg.norm(normal)
+    if not length > 0:
+        return True  # all vertices on one line
+    return bool(np.max(np.abs((v - a) @ (normal / length))) <= 1e-7 * extent)
+
+
+def _to_world(shape):
+    return np.array(mi.traverse(shape)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
+
+
+def cover_triangles(shape):
+    """Triangles covering ``shape`` (a superset of its surface): a mesh's own, the square around
+    a disk or rectangle, else the 12 triangles of its bounding box."""
+    stype = shape.shape_type()
+    if stype == mi.ShapeType.Mesh:
+        v = np.array(shape.vertex_positions_buffer(), dtype=float).reshape(-1, 3)
+        f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+        return v[f]
+    if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
+        m = _to_world(shape)
+        sq = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) @ m[:3, :3].T + m[:3, 3]
+        return np.array([[sq[0], sq[1], sq[2]], [sq[0], sq[2], sq[3]]])
+    bb = shape.bbox()
+    lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()
+    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1),
+             (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]
+    return c[np.array(faces)]
+
+
+def digest_geometry(digest, shape):
+    """Feed ``shape``'s id, bounds and (for a mesh) vertex positions to ``digest`` (hashlib): the
+    geometry part of the caches' keys (far-field table, geometry classes)."""
+    box = shape.bbox()
+    digest.update(repr((shape.id(), list(box.min), list(box.max))).encode())
+    if shape.is_mesh():
+        digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
