@@ -71,7 +71,7 @@ def run(b):
                          f"{r['steps']} ({r['stopped']})", fmt(r["maxrss_gb"]),
                          f"{r['model_um']:.1f} → {r['inv_um']:.1f}", f"{r['floor_um']:.1f}"])
             b.facts[f"inversion_{surface}_{res}_s"] = r["total_s"]
-    from elo_mitsuba.analysis.inversion import UNCERTAINTY_PROBES
+    from elo_mitsuba.analysis.height_solver import UNCERTAINTY_PROBES
 
     return ("Each in a fresh process (renders not timed): the model gradient (the start), then the inversion "
             f"(`invert_heights`, defaults: its time includes the local refinement, the step search and the "

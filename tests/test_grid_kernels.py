@@ -80,7 +80,7 @@ def test_gauss_newton_products_against_numpy(mi):
     """J^T W J v and J^T W r of the inversion, the scale s projected out per pixel (Kaufman's
     variable projection), against numpy's composition of the definitions. Ratios m, weights and
     scales far from 1: with m ~ 1 and W ~ 1 a product that squares m or drops W agrees anyway."""
-    from elo_mitsuba.analysis import inversion as inv
+    from elo_mitsuba.analysis import height_solver as inv
     from elo_mitsuba.analysis.height_model import HeightModel, corners_from_pixels
     from elo_mitsuba.analysis.scan_geometry import ScanGeometry
     from elo_mitsuba.grid import pixel_coordinates
@@ -94,7 +94,7 @@ def test_gauss_newton_products_against_numpy(mi):
     flat = HeightModel(geo, fwhm_mm=3.0, shadows=False).images(np.zeros(shape))
     rng = np.random.default_rng(4)
     images = {n: v * (1 + 0.05 * rng.standard_normal(shape)) for n, v in model.images(heights).items()}
-    data = inv._ScaleData(images, flat, None, None, None, None)
+    data = inv.ScaleData(images, flat, None, None, None, None)
     setup = inv._set_up(data, geo, fwhm_mm=3.0, alpha=None, noise=0.01, shadows=True, nodes=inv.NODES)
     problem = setup.problem
     g = corners_from_pixels(0.7 * heights)  # not the truth: residuals too

@@ -44,7 +44,7 @@ def test_linear_maps_and_their_transposes():
     corners from its pixel heights are the plane's."""
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(2, 9, 13))
-    from elo_mitsuba.analysis.inversion import _second_differences, _second_differences_t
+    from elo_mitsuba.analysis.height_solver import _second_differences, _second_differences_t
 
     c = rng.normal(size=(9, 13))
     lx, ly = _second_differences(a)  # the regulariser's maps
@@ -213,7 +213,7 @@ def test_monte_carlo_error_of_held_fixed_events_counts_in_the_discrepancy(mi, st
     start (the solver steps); with a later-event error of 2 % of the object's images, more than the
     noise left out, they do, and the truth is kept. The variance term itself against the formula
     C^2 (e / I)^2."""
-    from elo_mitsuba.analysis.inversion import _held_fixed_variance
+    from elo_mitsuba.analysis.height_solver import _held_fixed_variance
 
     geo, _, _, _, _, truth = steep_case
     exact = HeightModel(geo, nodes=NODES).images(truth)
@@ -254,7 +254,7 @@ def test_coarse_to_fine_pieces_and_where_it_is_not_needed(mi):
     """The scale factors, block means and interpolation of coarse to fine; at 128^2 (hills under
     15 deg detectors) full resolution alone fits to the noise already, and coarse to fine is not
     run (the same result)."""
-    from elo_mitsuba.analysis.inversion import block_mean, scale_factors, upsample
+    from elo_mitsuba.analysis.height_solver import block_mean, scale_factors, upsample
 
     assert scale_factors((256, 256), 4) == [8, 4, 2] and scale_factors((1500, 1500), 4) == [4, 2]
     assert scale_factors((96, 96), 4) == [2] and scale_factors((100, 60), 4) == []

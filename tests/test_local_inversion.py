@@ -10,7 +10,8 @@ import pytest
 
 from elo_mitsuba.analysis.height_model import HeightModel
 from elo_mitsuba.analysis.inversion import invert_heights
-from elo_mitsuba.analysis.local_inversion import find_regions, offset_errors, threshold
+from elo_mitsuba.analysis.local_inversion import find_regions, threshold
+from elo_mitsuba.analysis.step_offsets import offset_errors
 from elo_mitsuba.analysis.scan_geometry import ScanGeometry
 
 N = 128
@@ -217,12 +218,11 @@ def test_model_gain_term_covers_the_hills_scale_error(tmp_path):
 
 
 def test_a_window_of_the_scan_sees_the_shadows_the_whole_scan_sees():
-    """A refined region is a window of the scan with offset aim points (crop_geometry); the shadow
+    """A refined region is a window of the scan with offset aim points (ScanGeometry.cropped); the shadow
     march must look its heights up at the window's own aim points. Before that fix a window 9.6 mm
     off centre marched over the wrong pixels: the foot of a 1 mm cliff, in the right detector's
     full shadow, counted as seen."""
     from elo_mitsuba.analysis.height_model import visibility
-    from elo_mitsuba.analysis.local_inversion import crop_geometry
 
     geo = ScanGeometry.nominal((96, 96), 19.2, 100.0, 150.0)     # 0.2 mm pixels
     h = np.zeros((96, 96))
@@ -231,7 +231,7 @@ def test_a_window_of_the_scan_sees_the_shadows_the_whole_scan_sees():
     nodes = model.facets.node_positions()
     full = visibility(geo, h, model.landing_points(h), nodes)
     rows, cols = (10, 50), (44, 90)
-    sub = crop_geometry(geo, rows, cols)
+    sub = geo.cropped(rows, cols)
     hs = h[rows[0]:rows[1], cols[0]:cols[1]]
     window = visibility(sub, hs, HeightModel(sub).landing_points(hs), nodes)
     k = list(geo.detectors).index("right")

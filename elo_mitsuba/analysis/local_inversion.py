@@ -37,7 +37,7 @@ from typing import Mapping
 
 import numpy as np
 
-from ..grid import pixel_size
+from .height_solver import ITERATIONS, NODES, ScaleData, solve_field
 from .noise import CHI2_WINDOW_PX, local_chi2
 
 #: Threshold of a window's mean chi-square per datum, in standard deviations of pure noise's.
@@ -153,27 +153,6 @@ def find_regions(chi2, limit: float, *, margin: int = MARGIN_PX,
     return [((b[0], b[1]), (b[2], b[3]), b[4]) for b in boxes]
 
 
-def crop_geometry(geometry, rows, cols):
-    """The scan geometry of the window ``rows`` x ``cols`` (start, stop) of ``geometry``'s grid: the
-    same pixels (their aim points, beam and detectors), a smaller field, offset aim points.
-
-    Examples
-    --------
-    >>> from elo_mitsuba.analysis.scan_geometry import ScanGeometry
-    >>> geo = ScanGeometry.nominal((8, 8), 8.0, 100.0, 150.0)
-    >>> sub = crop_geometry(geo, (2, 5), (4, 8))
-    >>> bool(np.allclose(sub.aim_points()[0], geo.aim_points()[0][2:5, 4:8]))
-    True
-    """
-    dx, dy = pixel_size(geometry.shape, geometry.field_mm)
-    fx, fy = geometry.field_mm
-    (r0, r1), (c0, c1) = rows, cols
-    xc = -0.5 * fx + 0.5 * (c0 + c1) * dx + geometry.aim_offset_mm[0]
-    yc = 0.5 * fy - 0.5 * (r0 + r1) * dy + geometry.aim_offset_mm[1]
-    return dataclasses.replace(geometry, shape=(r1 - r0, c1 - c0), field_mm=((c1 - c0) * dx, (r1 - r0) * dy),
-                               aim_offset_mm=(xc, yc))
-
-
 def _rms(a, sel):
     return float(np.sqrt(np.mean(np.asarray(a)[sel] ** 2))) if np.any(sel) else 0.0
 
@@ -219,8 +198,6 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
     >>> all(r.misfit_end <= r.misfit_solve for r in regions)
     True
     """
-    from .inversion import ITERATIONS, NODES, invert_heights
-
     t0 = time.perf_counter()
     names = tuple(geometry.detectors)
     expected = result.expected_misfit or float(result.noise) * np.sqrt(1.0 - 1.0 / len(names))
@@ -255,7 +232,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
             region.misfit_end, region.status = m_solve, "not refined (time budget)"
             regions.append(region)
             continue
-        sub = crop_geometry(geometry, rows, cols)
+        sub = geometry.cropped(rows, cols)
         kw = {key: (None if d is None else {n: np.asarray(d[n])[sl] for n in names if n in d})
               for key, d in crop_later.items()}
         best, best_misfit, origin = None, min(m_solve, m_start), None
@@ -266,13 +243,12 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
             fixed = np.array(h0, float)
             # the window's edge joins the field's current heights
             fixed[~inner] = result.height[sl][~inner]
-            sol = invert_heights({n: np.asarray(images[n])[sl] for n in names},
-                                 {n: np.asarray(flats[n])[sl] for n in names}, sub, start=fixed,
-                                 fwhm_mm=fwhm_mm, alpha=result.alpha, noise=result.noise,
-                                 iterations=ITERATIONS if iterations is None else iterations, discrepancy=0.0,
-                                 scales=1, uncertainty_probes=0, shadows=shadows,
-                                 nodes=NODES if nodes is None else nodes, super_resolution=SUPER_RESOLUTION,
-                                 fixed_border=FIXED_BORDER_PX, local=False, force=True, **kw)
+            data = ScaleData({n: np.asarray(images[n])[sl] for n in names}, {n: np.asarray(flats[n])[sl] for n in names},
+                             **kw)
+            sol, _ = solve_field(data, sub, fixed, fwhm_mm=fwhm_mm, alpha=result.alpha, noise=result.noise,
+                                 shadows=shadows, nodes=NODES if nodes is None else nodes,
+                                 super_resolution=SUPER_RESOLUTION, fixed_border=FIXED_BORDER_PX, scales=1,
+                                 iterations=ITERATIONS if iterations is None else iterations, discrepancy=0.0)
             m = _rms(sol.misfit, inner) / expected
             if m < best_misfit:
                 best, best_misfit, origin = sol, m, origin_name
@@ -299,50 +275,3 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
         if progress:
             progress(region)
     return regions
-
-
-def offset_errors(height, chi2, limit: float, known=None) -> tuple[np.ndarray, np.ndarray]:
-    """Where the height map floats, and by how much: the parts of the field that bands of misfit
-    above the noise (``chi2`` > ``limit``, e.g. the cliff around a raised part) cut off from its
-    largest part, whose offset to it no trusted pixel measures.
-
-    A cliff's height comes from integrating slopes across it, and the slopes saturate at a wall:
-    on the stepped layer (400^2, 1 % noise) the Gauss-Newton steps recover 33-62 % of steps of
-    0.1-1 mm, so a plateau's pixels fit their images to the noise while their offset is wrong by up
-    to 0.66 mm (the shadows then give the larger steps back, :mod:`.step_offsets`).
-    Their error is taken as the offset as recovered (the median height inside less the median in a
-    ring of :data:`~.step_offsets.RING_PX` beyond the band), a 100 % uncertainty of the step: the images bound it
-    only from below; measured, it covers the true step's error within 1x on 5 of the 8 steps and
-    within 2x on all. The band's own pixels get the same.
-
-    ``known`` (H, W; NaN elsewhere): an offset uncertainty measured otherwise, e.g. a part whose
-    step was searched in its shadows (:func:`~.step_offsets.search_offsets`); a part whose pixels
-    mostly hold one takes it instead.
-
-    Returns
-    -------
-    floating : ndarray of bool (H, W)
-        Pixels cut off from the field's largest trusted part, and the bands around them.
-    error : ndarray (H, W)
-        The offset's uncertainty (mm), 0 elsewhere.
-
-    Examples
-    --------
-    >>> h = np.zeros((40, 40)); h[10:30, 10:30] = 0.3                  # a raised square
-    >>> chi2 = np.ones((40, 40)); chi2[8:32, 8:32] = 9.0; chi2[12:28, 12:28] = 1.0
-    >>> floating, error = offset_errors(h, chi2, 2.0)
-    >>> bool(floating[20, 20]), round(float(error[20, 20]), 3), bool(floating[2, 2])
-    (True, 0.3, False)
-    """
-    from .step_offsets import floating_parts
-
-    floating = np.zeros(np.shape(chi2), bool)
-    error = np.zeros(np.shape(chi2))
-    for comp, band, ring in floating_parts(chi2, limit):
-        step = abs(float(np.median(height[comp]) - np.median(height[ring])))
-        if known is not None and np.mean(np.isfinite(known[comp])) > 0.5:
-            step = float(np.nanmedian(known[comp]))
-        sel = comp | band
-        floating |= sel
-        error[sel] = np.maximum(error[sel], step)
-    return floating, error

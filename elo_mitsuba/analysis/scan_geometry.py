@@ -26,7 +26,7 @@ from ..constants import (
     WORK_DISTANCE_MM,
 )
 from ..errors import EloInputError
-from ..grid import field_xy, pixel_coordinates
+from ..grid import field_xy, pixel_coordinates, pixel_size
 from ..schema import PROJECTIONS, HeaderGeometry, geometry_header, read_geometry
 from .layout import check_detector_geometry
 
@@ -169,6 +169,26 @@ class ScanGeometry:
     def resized(self, shape) -> "ScanGeometry":
         """The same scan sampled on another grid (same field)."""
         return replace(self, shape=tuple(shape))
+
+    def cropped(self, rows, cols) -> "ScanGeometry":
+        """The scan geometry of the window ``rows`` x ``cols`` (start, stop) of this grid: the same
+        pixels (their aim points, beam and detectors), a smaller field, offset aim points (the local
+        refinement's and the step search's windows).
+
+        Examples
+        --------
+        >>> geo = ScanGeometry.nominal((8, 8), 8.0, 100.0, 150.0)
+        >>> sub = geo.cropped((2, 5), (4, 8))
+        >>> bool(np.allclose(sub.aim_points()[0], geo.aim_points()[0][2:5, 4:8]))
+        True
+        """
+        dx, dy = pixel_size(self.shape, self.field_mm)
+        fx, fy = self.field_mm
+        (r0, r1), (c0, c1) = rows, cols
+        xc = -0.5 * fx + 0.5 * (c0 + c1) * dx + self.aim_offset_mm[0]
+        yc = 0.5 * fy - 0.5 * (r0 + r1) * dy + self.aim_offset_mm[1]
+        return replace(self, shape=(r1 - r0, c1 - c0), field_mm=((c1 - c0) * dx, (r1 - r0) * dy),
+                       aim_offset_mm=(xc, yc))
 
     # -- the beam --
     def aim_points(self) -> tuple[np.ndarray, np.ndarray]:

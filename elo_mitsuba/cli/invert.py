@@ -143,15 +143,15 @@ def run(args) -> int:
     if args.no_flat:
         raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
 
-    from ..analysis import chain, inversion
+    from ..analysis import chain, height_solver as solver
     from ..analysis.io import write_inversion
 
     scan = chain.read_scan(**scan_inputs(args), model_discs=True)
     if scattering_note(scan.header, scan.source):  # images of another g_BSE than the models' (a lobe study)
         print(f"note: {scattering_note(scan.header, scan.source)}", file=sys.stderr)
-    check_inversion(scan.shape, inversion.ITERATIONS if args.iterations is None else args.iterations,
-                    inversion.SCALES if args.scales is None else args.scales,
-                    inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes,
+    check_inversion(scan.shape, solver.ITERATIONS if args.iterations is None else args.iterations,
+                    solver.SCALES if args.scales is None else args.scales,
+                    solver.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes,
                     force=args.yes)  # before the model gradient and any render
     geometry = chain.model_geometry(scan, **model_inputs(args))
     fwhm = scan.beam_fwhm(args.fwhm)
@@ -175,12 +175,12 @@ def run(args) -> int:
         scan, geometry, fwhm_mm=fwhm, start=start, second_event=args.second_event, chamber_later=args.chamber_later,
         notify=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True)),
         alpha=args.alpha,
-        scales=inversion.SCALES if args.scales is None else args.scales, noise=args.noise, shadows=not args.no_shadows,
-        iterations=inversion.ITERATIONS if args.iterations is None else args.iterations,
-        tol=inversion.TOL if args.tol is None else args.tol,
-        discrepancy=inversion.DISCREPANCY if args.discrepancy is None else args.discrepancy,
+        scales=solver.SCALES if args.scales is None else args.scales, noise=args.noise, shadows=not args.no_shadows,
+        iterations=solver.ITERATIONS if args.iterations is None else args.iterations,
+        tol=solver.TOL if args.tol is None else args.tol,
+        discrepancy=solver.DISCREPANCY if args.discrepancy is None else args.discrepancy,
         time_budget_s=args.time_budget, progress=progress, force=args.yes, local=not args.no_local,
-        uncertainty_probes=inversion.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
+        uncertainty_probes=solver.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes)
     shares, noise_line = scan.noise_shares()
     meta = {"method": "inversion", BEAM_FWHM: fwhm, "noise": res.noise, "alpha": res.alpha,
             "stopped": res.stopped, "history": res.history, "shadows": not args.no_shadows,
@@ -196,7 +196,7 @@ def run(args) -> int:
     print(f"wrote {out}: {scan.shape[1]}x{scan.shape[0]} px, {len(res.history) - 1} steps ({res.stopped}) in "
           f"{time.perf_counter() - t0:.1f} s; misfit rms {res.history[0]['rms']:.4g} -> {res.history[-1]['rms']:.4g} "
           f"(noise {res.noise:.3g}); height range {h.max() - h.min():.4g} mm; "
-          f"{100 * res.mask.mean():.2f} % untrusted (misfit > {inversion.MISFIT_SIGMAS:g} noise levels)"
+          f"{100 * res.mask.mean():.2f} % untrusted (misfit > {solver.MISFIT_SIGMAS:g} noise levels)"
           + scan.flat_note())
     if noise_line:
         print(noise_line)
