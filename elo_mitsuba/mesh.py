@@ -232,14 +232,104 @@ def ply_header(path) -> dict:
 
 def check_ply_indices(path) -> None:
     """Refuse, in one line, a PLY file whose face indices Mitsuba would read wrongly
-    (:data:`EXACT_SIGNED_INDICES`); :func:`write_mesh` (and so ``elo-mitsuba mesh``) stores them as
-    ``uint``: ``write_mesh(trimesh.load(path), new_path)`` re-saves such a file."""
+    (:data:`EXACT_SIGNED_INDICES`; :func:`write_mesh`, and so ``elo-mitsuba mesh``, stores them as
+    ``uint``: ``write_mesh(trimesh.load(path), new_path)`` re-saves such a file), or that name a
+    vertex the file does not have (:func:`ply_index_range`): Mitsuba reads past its vertex buffer
+    while building the scene, which gave a different surface area at each run and, with an index of
+    1e8, a segmentation fault."""
     h = ply_header(path)
     if h["vertices"] > EXACT_SIGNED_INDICES and h["index_type"] not in ("uint", "uint32"):
         raise EloInputError(
             f"mesh file {path}: {h['vertices']} vertices with face indices of type {h['index_type']!r}; Mitsuba "
             f"reads such indices through float32 and corrupts every one above {EXACT_SIGNED_INDICES} (2^24): "
             "store them as 'uint' (elo_mitsuba.mesh.write_mesh does) or use fewer vertices")
+    span = ply_index_range(path)
+    if span is not None and (span[0] < 0 or span[1] >= h["vertices"]):
+        bad = span[0] if span[0] < 0 else span[1]
+        raise EloInputError(f"mesh file {path}: a triangle names vertex {bad}, but the file has {h['vertices']} "
+                            "(indices 0 to n-1): the file is damaged")
+
+
+#: Bytes of the PLY scalar types.
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def ply_index_range(path) -> tuple[int, int] | None:
+    """The smallest and largest face index of a PLY file of triangles, read without loading it.
+
+    None where the layout is not one this reads (faces other than triangles, list properties
+    outside the face list, an unknown type, a truncated file): the check after loading
+    (``elo`` integrator) still refuses such a mesh, after Mitsuba has read it.
+
+    Examples
+    --------
+    >>> import tempfile, trimesh
+    >>> from pathlib import Path
+    >>> tri = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0]], faces=[[0, 2, 1]], process=False)
+    >>> ply_index_range(write_mesh(tri, Path(tempfile.mkdtemp()) / "t.ply"))
+    (0, 2)
+    """
+    with open(path, "rb") as f:
+        data = f.read()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        return None
+    body = data.index(b"\n", end) + 1
+    fmt, elements = None, []
+    for line in data[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "format":
+            fmt = words[1]
+        elif len(words) == 3 and words[0] == "element" and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif words[:1] == ["property"] and elements:
+            elements[-1][2].append(words[1:])
+    try:
+        if fmt == "ascii":
+            return _ascii_index_range(data[body:], elements)
+        if fmt in ("binary_little_endian", "binary_big_endian"):
+            return _binary_index_range(data, body, elements, "<" if fmt == "binary_little_endian" else ">")
+    except (ValueError, KeyError, IndexError):
+        return None
+    return None
+
+
+def _binary_index_range(data: bytes, offset: int, elements, order: str):
+    for name, count, props in elements:
+        fields = []
+        for k, p in enumerate(props):
+            if p[0] == "list":
+                if name != "face" or p[-1] != "vertex_indices":
+                    return None
+                fields += [("n", order + _PLY_TYPES[p[1]]), ("i", order + _PLY_TYPES[p[2]], (3,))]
+            else:
+                fields.append((f"p{k}", order + _PLY_TYPES[p[0]]))
+        dtype = np.dtype(fields)
+        if name == "face":
+            rows = np.frombuffer(data, dtype, count, offset)  # as triangles: valid only if every count is 3
+            if count == 0 or not np.all(rows["n"] == 3):
+                return None
+            return int(rows["i"].min()), int(rows["i"].max())
+        offset += dtype.itemsize * count
+    return None
+
+
+def _ascii_index_range(text: bytes, elements):
+    lines = text.split(b"\n")
+    at = 0
+    for name, count, props in elements:
+        if name == "face":
+            if [p[0] for p in props].count("list") != 1 or props[0][0] != "list" or count == 0:
+                return None
+            rows = [line.split() for line in lines[at:at + count]]
+            if len(rows) < count or any(len(r) < 4 or r[0] != b"3" for r in rows):
+                return None
+            idx = np.array([r[1:4] for r in rows], dtype=np.int64)
+            return int(idx.min()), int(idx.max())
+        at += count
+    return None
 
 
 def write_mesh(mesh, path, *, overwrite: bool = False) -> Path:

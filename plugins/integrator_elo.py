@@ -1153,18 +1153,18 @@ def _check_mesh(shape):
     """A mesh an electron can meet has triangles whose indices name its vertices (an empty PLY, or
     one whose faces point past its vertex list, failed deep in the set-up with an IndexError)."""
     name = shape.id() or "(no id)"
+    if shape.is_mesh():  # the indices first: the area of a triangle naming a missing vertex reads past the
+        # vertex buffer (its value, and so the message, changed from run to run)
+        if shape.vertex_count() == 0 or shape.face_count() == 0:
+            raise EloInputError(f"mesh {name!r} has {shape.vertex_count()} vertices and {shape.face_count()} "
+                                "triangles; a surface needs triangles")
+        top = int(dr.max(shape.faces_buffer())[0] if dr.width(shape.faces_buffer()) else 0)
+        if top >= shape.vertex_count():
+            raise EloInputError(f"mesh {name!r}: a triangle names vertex {top}, but the mesh has "
+                                f"{shape.vertex_count()} (indices 0 to n-1): the file is damaged")
     area = float(np.ravel(np.array(shape.surface_area(), dtype=float))[0])
     if not (area > 0 and np.isfinite(area)):  # a scale of 0 (or beyond float32): no surface to meet
         raise EloInputError(f"surface {name!r} has an area of {area:g} mm^2 (a scale of 0, or beyond float32?)")
-    if not shape.is_mesh():
-        return
-    if shape.vertex_count() == 0 or shape.face_count() == 0:
-        raise EloInputError(f"mesh {name!r} has {shape.vertex_count()} vertices and {shape.face_count()} triangles; "
-                            "a surface needs triangles")
-    top = int(dr.max(shape.faces_buffer())[0] if dr.width(shape.faces_buffer()) else 0)
-    if top >= shape.vertex_count():
-        raise EloInputError(f"mesh {name!r}: a triangle names vertex {top}, but the mesh has {shape.vertex_count()} "
-                            "(indices 0 to n-1): the file is damaged")
 
 
 def _option_property(name):

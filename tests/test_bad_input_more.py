@@ -134,7 +134,8 @@ def d(tmp_path_factory):
     (d / "flat_zero.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                                      "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                                      "end_header\n0 0 1\n0 0 1\n0 0 1\n3 0 1 2\n")
-    for name in ("no_faces", "bad_index", "flat_zero"):
+    (d / "far_index.ply").write_text((d / "bad_index.ply").read_text().replace("3 0 1 7", "3 0 1 100000000"))
+    for name in ("no_faces", "bad_index", "far_index", "flat_zero"):
         plate_scene(f"{name}.xml", shapes=f'<shape type="ply" id="bump"><string name="filename" value="{name}.ply"/>'
                                           '<bsdf type="elo_bse"/></shape>')
     plate_scene("conductor_plates.xml")
@@ -217,7 +218,9 @@ CLI_CASES = [
     ("render a mesh without triangles", ["render", "{d}/no_faces.xml", "-o", "{d}/new.exr"],
      "no_faces.xml: mesh file 'no_faces.ply' has 3 vertices and 0 triangles"),
     ("render a mesh whose triangle names a missing vertex", ["render", "{d}/bad_index.xml", "-o", "{d}/new.exr"],
-     "mesh 'bump': a triangle names vertex 7, but the mesh has 3"),
+     "bad_index.ply: a triangle names vertex 7, but the file has 3"),
+    ("render a mesh whose triangle names vertex 1e8 (a segmentation fault in Mitsuba's loader)",
+     ["render", "{d}/far_index.xml", "-o", "{d}/new.exr"], "far_index.ply: a triangle names vertex 100000000"),
     ("render a mesh of no area", ["render", "{d}/flat_zero.xml", "-o", "{d}/new.exr"],
      "surface 'bump' has an area of 0 mm^2 (a scale of 0, or beyond float32?)"),
     ("render a detector with a conductor BSDF", ["render", "{d}/conductor_plates.xml", "-o", "{d}/new.exr"],
