@@ -108,12 +108,13 @@ from ._geometry_classes import GeometryClasses
 from ._geometry_classes import geometry_key as classes_key
 from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, build_rays, geometry_key,
                          near_share, reduce_table)
-from ._detectors import find_detectors, parse_detector_list, quadrature_geometry, surfaces_through_detectors
+from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
 from ._shapes import is_planar, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import beam_probe, detectors_in_beam, relief_under_beam
+from ._scene_checks import SceneChecks
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
 __doc__ += parameter_table() + "\n"
@@ -148,9 +149,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
-        self._smoothed = {}  # (shape key, vertices) of the checked meshes -> whether their normals smooth them
-        self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
-        self._triangles = {}  # the scene's triangles for surfaces_through_detectors, by shape
+        self._checks = SceneChecks()  # what a scene must be, with the caches of its checks
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -178,10 +177,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                 "and give it an id (its channel name)"
             )
         self.detectors = detectors
-        for name, shape in detectors:
-            _check_collector(name, shape)
-            if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
-                _check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
+        mesh_notes = self._checks.refuse(scene, detectors)  # before any work: what no render may use
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]
@@ -190,18 +186,6 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._plate_keys = [(d, dr.opaque(mi.UInt32, shape_key(shape)))
                             for d, ((_, shape), plate) in enumerate(zip(detectors, self._plates)) if plate is not None]
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
-        for shape in scatterers:
-            _check_scatterer(shape)
-            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
-            if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)
-                _check_mesh(shape)
-        # segments along the discs against the (checked) meshes, once per geometry: every shape's bounds
-        geometry = (id(scene), tuple((s.id(), tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.shapes()))
-        if self._cut_key != geometry:
-            self._cut, self._cut_key = surfaces_through_detectors(scene, detectors, cache=self._triangles), geometry
-        for name, through in self._cut[:1]:
-            raise EloInputError(f"detector {name!r} is cut by {through}: it passes through the disc (a detector "
-                                "moved through a wall or a shield?); move it clear of the scene's surfaces")
         surfaces = scatterers + plate_shapes  # where an electron can scatter
         self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
         # relief under the beam can scatter onto itself, so events >= 2 vary on the scale of its
@@ -215,18 +199,9 @@ class EloIntegrator(mi.SamplingIntegrator):
             return probed[0]
 
         self.relief = relief_under_beam(scene, beam, surfaces, probe) if self.bounce_possible and beam is not None else []
-        self.notes = []
+        self.notes = mesh_notes
         #: [(detector, share of the field)] of the detectors the beam meets before the surface
         self.in_beam = detectors_in_beam(detectors, beam, probe) if beam is not None else []
-        for shape in scatterers:
-            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
-            if key not in self._smoothed:  # once per mesh: its buffers are copied to the host (checked above)
-                self._smoothed[key] = _smoothed(shape)
-            if self._smoothed[key]:
-                self.notes.append(
-                    f"mesh {shape.id() or '(no id)'!r} has vertex normals: g_BSE sees them interpolated across its "
-                    "triangles, a surface smoothed over its edges (a sharp relief loses its slopes); for facets add "
-                    "<boolean name=\"face_normals\" value=\"true\"/> to its <shape>")
         for name, share in self.in_beam:
             self.notes.append(
                 f"detector {name!r} lies in the beam's path over about {100 * share:.3g} % of the scan field: "
@@ -1105,66 +1080,6 @@ def _sample_direction(si, ray, ctx, u1, u2, alive):
     """g_BSE at ``si`` sampled with (u1, u2): the world direction and its weight S."""
     bs, weight = si.bsdf(ray).sample(ctx, si, u1, u2, alive)
     return si.to_world(bs.wo), weight[0]
-
-
-def _check_collector(name, shape):
-    """A detector counts the electrons that reach it (N_d/N_0): the radiance of the area emitter
-    that marks it is not read, so a radiance other than 1 would be a setting that is not applied."""
-    radiance = mi.traverse(shape.emitter()).get("radiance.value")
-    value = float(np.ravel(np.array(radiance, dtype=float))[0]) if radiance is not None else 1.0
-    if value != 1.0:
-        raise EloInputError(f"detector {name!r} has an emitter radiance of {value:g}, which the renderer does not use "
-                            "(a detector counts electrons: N_d/N_0); remove it, or scale the images (--units "
-                            "voltage for volts)")
-
-
-def _check_scatterer(shape):
-    """A surface electrons meet must carry ``elo_bse`` (g_BSE), or absorb them (a BSDF of zero
-    reflectance): any other BSDF would scatter by a law that is not the electrons'."""
-    bsdf = shape.bsdf()
-    if bsdf is None or is_elo_bse(bsdf):
-        return
-    values = [np.abs(np.array(v, dtype=float)).max() for k, v in mi.traverse(bsdf).items()
-              if "reflectance" in k or "specular" in k]
-    if values and max(values) == 0.0:
-        return  # an absorber: electrons that arrive end there
-    kind = str(bsdf).split("[")[0].strip() or "another BSDF"
-    raise EloInputError(
-        f"surface {shape.id() or '(no id)'!r} has a {kind} BSDF, which does not describe electron "
-        "backscatter; give it <bsdf type=\"elo_bse\"> (with its material), or make it an absorber: "
-        "<bsdf type=\"diffuse\"><float name=\"reflectance\" value=\"0\"/></bsdf>")
-
-
-def _smoothed(shape, degrees: float = 1.0) -> bool:
-    """Whether a mesh's vertex normals depart from its triangles' own by more than ``degrees``
-    somewhere (a flat shape turned into a mesh has them too, all equal to its face normal)."""
-    if not (shape.is_mesh() and shape.has_vertex_normals()):
-        return False
-    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
-    vn = np.array(shape.vertex_normals_buffer(), dtype=np.float64).reshape(-1, 3)
-    f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
-    cosines = np.einsum("fk,fjk->fj", fn, vn[f]) / np.maximum(np.linalg.norm(vn[f], axis=2), 1e-300)
-    return bool(np.any(cosines < np.cos(np.radians(degrees))))
-
-
-def _check_mesh(shape):
-    """A mesh an electron can meet has triangles whose indices name its vertices (an empty PLY, or
-    one whose faces point past its vertex list, failed deep in the set-up with an IndexError)."""
-    name = shape.id() or "(no id)"
-    if shape.is_mesh():  # the indices first: the area of a triangle naming a missing vertex reads past the
-        # vertex buffer (its value, and so the message, changed from run to run)
-        if shape.vertex_count() == 0 or shape.face_count() == 0:
-            raise EloInputError(f"mesh {name!r} has {shape.vertex_count()} vertices and {shape.face_count()} "
-                                "triangles; a surface needs triangles")
-        top = int(dr.max(shape.faces_buffer())[0] if dr.width(shape.faces_buffer()) else 0)
-        if top >= shape.vertex_count():
-            raise EloInputError(f"mesh {name!r}: a triangle names vertex {top}, but the mesh has "
-                                f"{shape.vertex_count()} (indices 0 to n-1): the file is damaged")
-    area = float(np.ravel(np.array(shape.surface_area(), dtype=float))[0])
-    if not (area > 0 and np.isfinite(area)):  # a scale of 0 (or beyond float32): no surface to meet
-        raise EloInputError(f"surface {name!r} has an area of {area:g} mm^2 (a scale of 0, or beyond float32?)")
 
 
 def _option_property(name):

@@ -1,0 +1,117 @@
+"""What a scene must be for the ``elo`` integrator, checked on the host before any kernel is built:
+detectors that count electrons, surfaces that scatter by g_BSE or absorb, meshes with triangles
+that name their vertices, detector discs clear of every surface; and the notes on what renders but
+may not be what the user meant (a mesh smoothed by its vertex normals). Each mesh is checked once
+and each geometry's discs once (:class:`SceneChecks` keeps the caches); a render's set-up runs
+:meth:`SceneChecks.refuse` every time, so that moved detectors are checked too.
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from elo_mitsuba.errors import EloInputError
+
+from ._detectors import surfaces_through_detectors
+from ._shapes import shape_key
+from .bsdf_elo_bse import is_elo_bse
+
+
+class SceneChecks:
+    """The checks of one integrator, with what they cache between renders."""
+
+    def __init__(self):
+        self._smoothed = {}  # (shape key, vertices) of the checked meshes -> whether their normals smooth them
+        self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
+        self._triangles = {}  # the scene's triangles for surfaces_through_detectors, by shape
+
+    def refuse(self, scene, detectors) -> list[str]:
+        """Raise :class:`EloInputError` on what no render may use; return the notes on the meshes."""
+        for name, shape in detectors:
+            check_collector(name, shape)
+            if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
+                check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
+        scatterers = [s for s in scene.shapes() if not s.is_emitter()]
+        for shape in scatterers:
+            check_scatterer(shape)
+            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
+            if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)
+                check_mesh(shape)
+        # segments along the discs against the (checked) meshes, once per geometry: every shape's bounds
+        geometry = (id(scene), tuple((s.id(), tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.shapes()))
+        if self._cut_key != geometry:
+            self._cut, self._cut_key = surfaces_through_detectors(scene, detectors, cache=self._triangles), geometry
+        for name, through in self._cut[:1]:
+            raise EloInputError(f"detector {name!r} is cut by {through}: it passes through the disc (a detector "
+                                "moved through a wall or a shield?); move it clear of the scene's surfaces")
+        notes = []
+        for shape in scatterers:
+            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
+            if key not in self._smoothed:  # once per mesh: its buffers are copied to the host (checked above)
+                self._smoothed[key] = smoothed(shape)
+            if self._smoothed[key]:
+                notes.append(
+                    f"mesh {shape.id() or '(no id)'!r} has vertex normals: g_BSE sees them interpolated across its "
+                    "triangles, a surface smoothed over its edges (a sharp relief loses its slopes); for facets add "
+                    "<boolean name=\"face_normals\" value=\"true\"/> to its <shape>")
+        return notes
+
+
+def check_collector(name, shape):
+    """A detector counts the electrons that reach it (N_d/N_0): the radiance of the area emitter
+    that marks it is not read, so a radiance other than 1 would be a setting that is not applied."""
+    radiance = mi.traverse(shape.emitter()).get("radiance.value")
+    value = float(np.ravel(np.array(radiance, dtype=float))[0]) if radiance is not None else 1.0
+    if value != 1.0:
+        raise EloInputError(f"detector {name!r} has an emitter radiance of {value:g}, which the renderer does not use "
+                            "(a detector counts electrons: N_d/N_0); remove it, or scale the images (--units "
+                            "voltage for volts)")
+
+
+def check_scatterer(shape):
+    """A surface electrons meet must carry ``elo_bse`` (g_BSE), or absorb them (a BSDF of zero
+    reflectance): any other BSDF would scatter by a law that is not the electrons'."""
+    bsdf = shape.bsdf()
+    if bsdf is None or is_elo_bse(bsdf):
+        return
+    values = [np.abs(np.array(v, dtype=float)).max() for k, v in mi.traverse(bsdf).items()
+              if "reflectance" in k or "specular" in k]
+    if values and max(values) == 0.0:
+        return  # an absorber: electrons that arrive end there
+    kind = str(bsdf).split("[")[0].strip() or "another BSDF"
+    raise EloInputError(
+        f"surface {shape.id() or '(no id)'!r} has a {kind} BSDF, which does not describe electron "
+        "backscatter; give it <bsdf type=\"elo_bse\"> (with its material), or make it an absorber: "
+        "<bsdf type=\"diffuse\"><float name=\"reflectance\" value=\"0\"/></bsdf>")
+
+
+def smoothed(shape, degrees: float = 1.0) -> bool:
+    """Whether a mesh's vertex normals depart from its triangles' own by more than ``degrees``
+    somewhere (a flat shape turned into a mesh has them too, all equal to its face normal)."""
+    if not (shape.is_mesh() and shape.has_vertex_normals()):
+        return False
+    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+    vn = np.array(shape.vertex_normals_buffer(), dtype=np.float64).reshape(-1, 3)
+    f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    cosines = np.einsum("fk,fjk->fj", fn, vn[f]) / np.maximum(np.linalg.norm(vn[f], axis=2), 1e-300)
+    return bool(np.any(cosines < np.cos(np.radians(degrees))))
+
+
+def check_mesh(shape):
+    """A mesh an electron can meet has triangles whose indices name its vertices (an empty PLY, or
+    one whose faces point past its vertex list, failed deep in the set-up with an IndexError)."""
+    name = shape.id() or "(no id)"
+    if shape.is_mesh():  # the indices first: the area of a triangle naming a missing vertex reads past the
+        # vertex buffer (its value, and so the message, changed from run to run)
+        if shape.vertex_count() == 0 or shape.face_count() == 0:
+            raise EloInputError(f"mesh {name!r} has {shape.vertex_count()} vertices and {shape.face_count()} "
+                                "triangles; a surface needs triangles")
+        top = int(dr.max(shape.faces_buffer())[0] if dr.width(shape.faces_buffer()) else 0)
+        if top >= shape.vertex_count():
+            raise EloInputError(f"mesh {name!r}: a triangle names vertex {top}, but the mesh has "
+                                f"{shape.vertex_count()} (indices 0 to n-1): the file is damaged")
+    area = float(np.ravel(np.array(shape.surface_area(), dtype=float))[0])
+    if not (area > 0 and np.isfinite(area)):  # a scale of 0 (or beyond float32): no surface to meet
+        raise EloInputError(f"surface {name!r} has an area of {area:g} mm^2 (a scale of 0, or beyond float32?)")
