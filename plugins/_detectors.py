@@ -156,22 +156,30 @@ def detector_geometry(shape, to_world=None) -> dict:
 
 
 def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None):
-    """[(detector, what)] of the scene's surfaces (meshes and rectangles) that pass through a
-    detector disc: segments along the disc's rim polygon and its diameters (``segments`` points on
-    the rim), just in front of its face, that cross one of their triangles (a detector moved
-    through a chamber wall). On the host, against the triangles near each disc: no kernel, so a
-    re-render after a move compiles nothing. ``cache`` (a dict): each mesh's triangles, kept by
-    shape and vertex count (a merged mesh's bbox() is empty, so its bounds come from them)."""
+    """[(detector, what)] of the scene's surfaces that pass through a detector disc: segments along
+    the disc's rim polygon and its diameters (``segments`` points on the rim), just in front of its
+    face, that cross a surface (a detector moved through a chamber wall): a mesh's or rectangle's
+    triangles near the disc, a sphere, cylinder or disk exactly, in its own frame. On the host: no
+    kernel, so a re-render after a move compiles nothing. ``cache`` (a dict): each shape's
+    triangles or frame, kept by shape and vertex count (a merged mesh's bbox() is empty, so its
+    bounds come from its triangles)."""
 
     cache = {} if cache is None else cache
     others, boxes = [], []
     for sh in scene.shapes():
-        if sh.is_emitter() or sh.shape_type() not in (mi.ShapeType.Mesh, mi.ShapeType.Rectangle):
+        kind = sh.shape_type()
+        if sh.is_emitter() or kind not in (mi.ShapeType.Mesh, mi.ShapeType.Rectangle) + tuple(_LOCAL_TESTS):
             continue
         key = (shape_key(sh), sh.vertex_count() if sh.is_mesh() else -1, tuple(sh.bbox().min), tuple(sh.bbox().max))
         if key not in cache:
-            tris = cover_triangles(sh)
-            cache[key] = (tris, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
+            if kind in _LOCAL_TESTS:  # the exact surface, in its own frame: the affine map keeps segments segments
+                to_world = np.array(mi.traverse(sh)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
+                box = sh.bbox()
+                cache[key] = ((_LOCAL_TESTS[kind], np.linalg.inv(to_world)), np.array(box.min, float).ravel(),
+                              np.array(box.max, float).ravel())
+            else:
+                tris = cover_triangles(sh)
+                cache[key] = (tris, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
         others.append((sh, cache[key][0]))
         boxes.append(cache[key][1:])
     found = []
@@ -194,12 +202,56 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None)
         for (sh, tris), (blo, bhi) in zip(others, boxes):
             if np.any(bhi < lo) or np.any(blo > hi):
                 continue
-            near = np.all(tris.max(axis=1) >= lo, axis=1) & np.all(tris.min(axis=1) <= hi, axis=1)
-            if np.any(near) and _segments_cross(p0, p1, tris[near]):
+            if isinstance(tris, tuple):
+                test, to_local = tris
+                crossed = test(p0 @ to_local[:3, :3].T + to_local[:3, 3], p1 @ to_local[:3, :3].T + to_local[:3, 3])
+            else:
+                near = np.all(tris.max(axis=1) >= lo, axis=1) & np.all(tris.min(axis=1) <= hi, axis=1)
+                crossed = np.any(near) and _segments_cross(p0, p1, tris[near])
+            if crossed:
                 found.append((name, repr(sh.id()) if sh.id() else
                               "a surface of the scene (without an id: Mitsuba merges shapes of one material)"))
                 break
     return found
+
+
+def _roots_in_segment(a, b, c):
+    """Per segment, the roots t in [0, 1] of a t^2 + b t + c = 0 (NaN where none): two columns."""
+    disc = b * b - 4.0 * a * c
+    ok = (disc >= 0) & (a > 0)
+    q = np.sqrt(np.where(ok, disc, 0.0))
+    t = np.stack([(-b - q), (-b + q)], axis=1) / np.where(ok, 2.0 * a, 1.0)[:, None]
+    return np.where(ok[:, None] & (t >= 0.0) & (t <= 1.0), t, np.nan)
+
+
+def _crosses_unit_sphere(p0, p1) -> bool:
+    """Whether a segment meets Mitsuba's ``sphere`` in its own frame (radius 1 about the origin)."""
+    d = p1 - p0
+    t = _roots_in_segment(np.sum(d * d, 1), 2.0 * np.sum(p0 * d, 1), np.sum(p0 * p0, 1) - 1.0)
+    return bool(np.any(np.isfinite(t)))
+
+
+def _crosses_unit_cylinder(p0, p1) -> bool:
+    """... Mitsuba's ``cylinder`` (an open tube of radius 1 about z, from z = 0 to 1)."""
+    d = p1 - p0
+    t = _roots_in_segment(d[:, 0] ** 2 + d[:, 1] ** 2, 2.0 * (p0[:, 0] * d[:, 0] + p0[:, 1] * d[:, 1]),
+                          p0[:, 0] ** 2 + p0[:, 1] ** 2 - 1.0)
+    z = p0[:, 2:3] + t * d[:, 2:3]
+    return bool(np.any(np.isfinite(t) & (z >= 0.0) & (z <= 1.0)))
+
+
+def _crosses_unit_disk(p0, p1) -> bool:
+    """... Mitsuba's ``disk`` (radius 1 about the origin in z = 0)."""
+    d = p1 - p0
+    with np.errstate(divide="ignore", invalid="ignore"):  # a segment parallel to the disk: no crossing
+        t = -p0[:, 2] / d[:, 2]
+        x, y = p0[:, 0] + t * d[:, 0], p0[:, 1] + t * d[:, 1]
+    return bool(np.any(np.isfinite(t) & (t >= 0.0) & (t <= 1.0) & (x * x + y * y <= 1.0)))
+
+
+#: The surfaces tested exactly, in their own frame, rather than by covering triangles.
+_LOCAL_TESTS = {mi.ShapeType.Sphere: _crosses_unit_sphere, mi.ShapeType.Cylinder: _crosses_unit_cylinder,
+                mi.ShapeType.Disk: _crosses_unit_disk}
 
 
 def _segments_cross(p0, p1, tris) -> bool:

@@ -356,6 +356,49 @@ def test_a_detector_through_the_chamber_wall_is_refused(gap_mm, refused):
         scene.render(quality="draft", progress=False)
 
 
+#: flat_plate's right detector: centre (dw, 0, dh), radius r, facing the origin. Each surface is placed
+#: 1 mm short of the disc, or 1 mm into it, by the disc's own geometry: a sphere about the origin
+#: meets it at radii |c| .. sqrt(|c|^2 + r^2) (its rim lies at the second); a cylinder about z at
+#: radii dw - r dh / |c| .. dw + r dh / |c|; a vertical disk in the plane x = dw at (dw, y0, dh)
+#: meets the disc's horizontal diameter (y in [-r, r], z = dh) where y0 - R <= r.
+_DW, _DH, _R = 127.0, 272.0, 25.0
+_C = math.hypot(_DW, _DH)
+_SHAPE_IDS = {"sphere": "dome", "cylinder": "wall", "disk": "baffle"}
+
+
+def _user_surface(kind, gap):
+    absorber = '<bsdf type="diffuse"><float name="reflectance" value="0"/></bsdf>'
+    if kind == "sphere":
+        return f'<shape type="sphere" id="dome"><float name="radius" value="{math.hypot(_C, _R) + gap}"/>{absorber}</shape>'
+    if kind == "cylinder":
+        return (f'<shape type="cylinder" id="wall"><point name="p0" x="0" y="0" z="0"/><point name="p1" x="0" y="0" '
+                f'z="500"/><float name="radius" value="{_DW + _R * _DH / _C + gap}"/>{absorber}</shape>')
+    y0 = _R + 10.0 + gap  # a vertical disk of radius 10 mm facing +x
+    return (f'<shape type="disk" id="baffle"><transform name="to_world"><scale value="10"/><rotate y="1" angle="90"/>'
+            f'<translate x="{_DW}" y="{y0}" z="{_DH}"/></transform>{absorber}</shape>')
+
+
+@pytest.mark.parametrize("kind", ["sphere", "cylinder", "disk"])
+@pytest.mark.parametrize("gap_mm, refused", [(1.0, False), (-1.0, True)])
+def test_a_detector_through_a_sphere_cylinder_or_disk_is_refused(tmp_path, kind, gap_mm, refused):
+    """A chamber or baffle a user builds of Mitsuba's own shapes (a cylinder wall, a spherical dome,
+    a round baffle) cuts a detector disc only where its exact surface does: 1 mm clear renders, 1 mm
+    into the disc is refused. Before, only meshes and rectangles were tested, and a detector
+    through a cylinder wall rendered without a word."""
+    import elo_mitsuba as em
+    from elo_mitsuba.errors import EloInputError
+    from elo_mitsuba.scene_files import portable_scene_text, scenes_dir
+
+    path = tmp_path / "user.xml"
+    path.write_text(portable_scene_text(scenes_dir() / "flat_plate.xml").replace(
+        "</scene>", _user_surface(kind, gap_mm) + "</scene>"))
+    if refused:
+        with pytest.raises(EloInputError, match=f"detector 'right' is cut by '{_SHAPE_IDS[kind]}'"):
+            em.load_scene(str(path), res=2)
+    else:
+        em.load_scene(str(path), res=2).render(quality="draft", progress=False)
+
+
 @pytest.mark.parametrize("name", ["flat_plate", "athene_flat", "corrugated_sheet", "corrugated_chamber", "melt_plate",
                                   "melt_chamber", "shield_chamber"])
 def test_every_shipped_scene_and_layout_passes_the_placement_checks(name):
