@@ -17,6 +17,10 @@ from ._shapes import shape_key
 from .bsdf_elo_bse import is_elo_bse
 
 
+#: Shape types that are not an instance (Mitsuba's Python API has no type for it).
+_PLAIN = (mi.ShapeType.Mesh, mi.ShapeType.Rectangle, mi.ShapeType.Disk, mi.ShapeType.Sphere, mi.ShapeType.Cylinder)
+
+
 class SceneChecks:
     """The checks of one integrator, with what they cache between renders."""
 
@@ -33,6 +37,11 @@ class SceneChecks:
                 check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
         for shape in scatterers:
+            if shape.shape_type() not in _PLAIN and str(shape).startswith("Instance["):  # its group is out of reach
+                raise EloInputError(
+                    f"surface {shape.id() or '(no id)'!r} is an instance of a shapegroup, whose shapes the renderer "
+                    "cannot check or tabulate (their BSDFs, their triangles, where they cut a detector); write each "
+                    "shape of the group out as a <shape> of its own")
             check_scatterer(shape)
             key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
             if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)

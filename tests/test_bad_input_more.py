@@ -138,6 +138,9 @@ def d(tmp_path_factory):
     for name in ("no_faces", "bad_index", "far_index", "flat_zero"):
         plate_scene(f"{name}.xml", shapes=f'<shape type="ply" id="bump"><string name="filename" value="{name}.ply"/>'
                                           '<bsdf type="elo_bse"/></shape>')
+    plate_scene("instance.xml", shapes='<shape type="shapegroup" id="grp"><shape type="rectangle"><bsdf type="elo_bse"/>'
+                                       '</shape></shape><shape type="instance" id="baffle"><ref id="grp"/><transform '
+                                       'name="to_world"><translate x="500"/></transform></shape>')
     plate_scene("conductor_plates.xml")
     (d / "conductor_plates.xml").write_text((d / "conductor_plates.xml").read_text().replace(
         '<emitter type="area">', '<bsdf type="conductor"/><emitter type="area">', 1))
@@ -223,6 +226,8 @@ CLI_CASES = [
      ["render", "{d}/far_index.xml", "-o", "{d}/new.exr"], "far_index.ply: a triangle names vertex 100000000"),
     ("render a mesh of no area", ["render", "{d}/flat_zero.xml", "-o", "{d}/new.exr"],
      "surface 'bump' has an area of 0 mm^2 (a scale of 0, or beyond float32?)"),
+    ("render an instance of a shapegroup (its shapes out of the checks' reach; refused as a wrong BSDF before)",
+     ["render", "{d}/instance.xml", "-o", "{d}/new.exr"], "surface 'baffle' is an instance of a shapegroup"),
     ("render a detector with a conductor BSDF", ["render", "{d}/conductor_plates.xml", "-o", "{d}/new.exr"],
      "surface 'right' has a SmoothConductor BSDF"),
     ("render a scene's own sampling under a preset", ["render", "{d}/own_sampling.xml", "-o", "{d}/new.exr"],
