@@ -160,9 +160,9 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None)
     the disc's rim polygon and its diameters (``segments`` points on the rim), just in front of its
     face, that cross a surface (a detector moved through a chamber wall): a mesh's or rectangle's
     triangles near the disc, a sphere, cylinder or disk exactly, in its own frame. On the host: no
-    kernel, so a re-render after a move compiles nothing. ``cache`` (a dict): each shape's
-    triangles or frame, kept by shape and vertex count (a merged mesh's bbox() is empty, so its
-    bounds come from its triangles)."""
+    kernel, so a re-render after a move compiles nothing. ``cache`` (a dict): each mesh's triangles,
+    kept by shape, vertex buffer and bounds (a merged mesh's bbox() is empty, so its bounds come
+    from its triangles)."""
 
     cache = {} if cache is None else cache
     others, boxes = [], []
@@ -170,18 +170,24 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None)
         kind = sh.shape_type()
         if sh.is_emitter() or kind not in (mi.ShapeType.Mesh, mi.ShapeType.Rectangle) + tuple(_LOCAL_TESTS):
             continue
-        key = (shape_key(sh), sh.vertex_count() if sh.is_mesh() else -1, tuple(sh.bbox().min), tuple(sh.bbox().max))
-        if key not in cache:
-            if kind in _LOCAL_TESTS:  # the exact surface, in its own frame: the affine map keeps segments segments
-                to_world = np.array(mi.traverse(sh)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
-                box = sh.bbox()
-                cache[key] = ((_LOCAL_TESTS[kind], np.linalg.inv(to_world)), np.array(box.min, float).ravel(),
-                              np.array(box.max, float).ravel())
-            else:
+        if kind in _LOCAL_TESTS:  # the exact surface, in its own frame: the affine map keeps segments segments
+            to_world = np.array(mi.traverse(sh)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
+            box = sh.bbox()
+            entry = ((_LOCAL_TESTS[kind], np.linalg.inv(to_world)), np.array(box.min, float).ravel(),
+                     np.array(box.max, float).ravel())
+        else:
+            # a mesh's triangles are kept (a rectangle's two are read again: its bounds do not tell
+            # a plate tilted +10 deg from one tilted -10 deg)
+            key = (shape_key(sh), sh.vertex_count(), sh.vertex_positions_buffer().index, tuple(sh.bbox().min),
+                   tuple(sh.bbox().max)) if sh.is_mesh() else None
+            entry = cache.get(key) if key is not None else None
+            if entry is None:
                 tris = cover_triangles(sh)
-                cache[key] = (tris, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
-        others.append((sh, cache[key][0]))
-        boxes.append(cache[key][1:])
+                entry = (tris, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
+                if key is not None:
+                    cache[key] = entry
+        others.append((sh, entry[0]))
+        boxes.append(entry[1:])
     found = []
     for name, shape in detectors:
         if shape.shape_type() != mi.ShapeType.Disk:

@@ -29,8 +29,10 @@ class SceneChecks:
         self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
         self._triangles = {}  # the scene's triangles for surfaces_through_detectors, by shape
 
-    def refuse(self, scene, detectors) -> list[str]:
-        """Raise :class:`EloInputError` on what no render may use; return the notes on the meshes."""
+    def refuse(self, scene, detectors, geometry) -> list[str]:
+        """Raise :class:`EloInputError` on what no render may use; return the notes on the meshes.
+        ``geometry``: where the scene's shapes are (:class:`~._shapes.GeometryKey`), the key of the
+        discs' test against the surfaces."""
         for name, shape in detectors:
             check_collector(name, shape)
             if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
@@ -46,8 +48,7 @@ class SceneChecks:
             key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
             if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)
                 check_mesh(shape)
-        # segments along the discs against the (checked) meshes, once per geometry: every shape's bounds
-        geometry = (id(scene), tuple((s.id(), tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.shapes()))
+        # segments along the discs against the (checked) meshes, once per geometry
         if self._cut_key != geometry:
             self._cut, self._cut_key = surfaces_through_detectors(scene, detectors, cache=self._triangles), geometry
         for name, through in self._cut[:1]:

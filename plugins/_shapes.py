@@ -68,3 +68,37 @@ def digest_geometry(digest, shape):
     digest.update(repr((shape.id(), list(box.min), list(box.max))).encode())
     if shape.is_mesh():
         digest.update(np.ascontiguousarray(np.array(shape.vertex_positions_buffer())).tobytes())
+
+
+class GeometryKey:
+    """A key of where the scene's shapes are, cheap enough to read at every render: per shape its
+    kernel id, its bounds, and for a shape placed by a transform its ``to_world`` (read through a
+    parameter handle kept per shape: bounds alone do not tell a plate tilted +10 deg from one tilted
+    -10 deg), for a mesh its vertex count and the Dr.Jit variable of its vertex buffer (a new one
+    after ``params.update()``). What it cannot see: a mesh's vertices changed in place in their
+    buffer (a scatter into it) without a change of the mesh's bounds.
+    """
+
+    def __init__(self):
+        # shape key -> (shape, mi.traverse(shape)), whose entries read the current values; the shape
+        # is held so that no other shape can take its address (the key) while the handle lives
+        self._handles, self._scene = {}, None
+
+    def __call__(self, scene) -> tuple:
+        if self._scene != id(scene):
+            self._handles, self._scene = {}, id(scene)
+        key = [id(scene)]
+        for sh in scene.shapes():
+            k = shape_key(sh)
+            box = sh.bbox()
+            entry = (k, int(sh.shape_type()), tuple(box.min), tuple(box.max))
+            if sh.is_mesh():
+                entry += (sh.vertex_count(), sh.face_count(), sh.vertex_positions_buffer().index)
+            else:
+                if k not in self._handles:
+                    self._handles[k] = (sh, mi.traverse(sh))
+                to_world = self._handles[k][1].get("to_world")
+                if to_world is not None:
+                    entry += (np.array(to_world.matrix, dtype=float).tobytes(),)
+            key.append(entry)
+        return tuple(key)

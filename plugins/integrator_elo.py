@@ -110,7 +110,7 @@ from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, bu
                          near_share, reduce_table)
 from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
-from ._shapes import is_planar, shape_key
+from ._shapes import GeometryKey, is_planar, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import beam_probe, detectors_in_beam, relief_under_beam
@@ -150,6 +150,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
         self._checks = SceneChecks()  # what a scene must be, with the caches of its checks
+        self._geometry_key = GeometryKey()
+        self._occlusion = (None, None)  # (geometry and beam, unblockable_regions) of the last set-up
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -177,7 +179,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                 "and give it an id (its channel name)"
             )
         self.detectors = detectors
-        mesh_notes = self._checks.refuse(scene, detectors)  # before any work: what no render may use
+        geometry = self._geometry_key(scene)  # where every shape is: the key of the set-up's caches
+        mesh_notes = self._checks.refuse(scene, detectors, geometry)  # before any work: what no render may use
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]
@@ -216,10 +219,13 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._quadrature_geometry = quadrature_geometry(detectors, self.quadrature_triangles)
         self._g_tables = scene_tables(surfaces)
         self._unblockable_regions = [[] for _ in detectors]
-        if self.occlusion_analysis:
-            sensor = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
-            if sensor is not None:
-                self._unblockable_regions = unblockable_regions(scene, sensor, detectors)
+        if self.occlusion_analysis and beam is not None:
+            # once per geometry and beam (the two halves of a render, a sweep over anything else)
+            key = (geometry, tuple(name for name, _ in detectors),
+                   tuple(getattr(beam, a, None) for a in ("wd", "field", "field_y", "projection", "fwhm")))
+            if self._occlusion[0] != key:
+                self._occlusion = (key, unblockable_regions(scene, beam, detectors))
+            self._unblockable_regions = self._occlusion[1]
         if self._far_on() and self.traced_events() > 1 and beam is not None:
             self._update_far_field(scene, beam)
             if self.far_table:

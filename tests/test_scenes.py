@@ -399,6 +399,60 @@ def test_a_detector_through_a_sphere_cylinder_or_disk_is_refused(tmp_path, kind,
         em.load_scene(str(path), res=2).render(quality="draft", progress=False)
 
 
+def test_the_set_up_caches_see_a_surface_turned_within_its_bounds(tmp_path):
+    """The set-up's caches (the discs' test against the surfaces, the occlusion analysis) are kept
+    per geometry. A round baffle (a disk of 20 mm radius) 10 mm above the right detector's centre,
+    parallel to the disc (both tilted 25 deg), turned to the other side keeps its bounds but then
+    cuts the disc (at 11.8 mm from its centre): refused, as on a fresh load; keyed on the shapes'
+    bounds alone, the turned baffle rendered. Far away the baffle leaves the right detector unblockable from the
+    plate; in front of it (40 mm towards the field) it does not, as on a fresh load."""
+    import mitsuba as mi
+
+    import elo_mitsuba as em
+    from elo_mitsuba.errors import EloInputError
+    from elo_mitsuba.scene_files import portable_scene_text, scenes_dir
+
+    def placed(tilt_deg, center):
+        return (f'<transform name="to_world"><scale value="20"/><rotate y="1" angle="{-tilt_deg}"/>'
+                f'<translate x="{center[0]}" y="{center[1]}" z="{center[2]}"/></transform>')
+
+    def write(name, tilt_deg, center):
+        path = tmp_path / name
+        path.write_text(portable_scene_text(scenes_dir() / "flat_plate.xml").replace(
+            "</scene>", f'<shape type="disk" id="baffle">{placed(tilt_deg, center)}<bsdf type="diffuse"><float '
+            'name="reflectance" value="0"/></bsdf></shape></scene>'))
+        return str(path)
+
+    def move(scene, tilt_deg, center):
+        params = mi.traverse(scene.scene)
+        params["baffle.to_world"] = (mi.ScalarTransform4f().translate(list(center)).rotate([0, 1, 0], -tilt_deg)
+                                     .scale([20.0, 20.0, 20.0]))
+        params.update()
+
+    tilt = math.degrees(math.atan2(_DW, _DH))           # the disc's own tilt, 25 deg: parallel to it
+    above, far = (_DW, 0.0, _DH + 10.0), (500.0, 0.0, _DH)
+    scene = em.load_scene(write("parallel.xml", -tilt, above), res=4)
+    move(scene, -tilt, above)  # both turns built alike: their bounds agree to the bit
+    scene.render(quality="draft", progress=False)
+    with pytest.raises(EloInputError, match="detector 'right' is cut by 'baffle'"):
+        em.load_scene(write("turned.xml", tilt, above), res=4)
+    box = [(tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.scene.shapes() if s.id() == "baffle"]
+    move(scene, tilt, above)
+    assert box == [(tuple(s.bbox().min), tuple(s.bbox().max)) for s in scene.scene.shapes() if s.id() == "baffle"]
+    with pytest.raises(EloInputError, match="detector 'right' is cut by 'baffle'"):
+        scene.render(quality="draft", progress=False)
+    move(scene, -tilt, far)
+    scene.render(quality="draft", progress=False)
+    assert "right" in scene.integrator.unblockable_detectors()
+    front = tuple(np.array([_DW, 0.0, _DH]) * (1.0 - 40.0 / _C))
+    move(scene, -tilt, front)
+    scene.render(quality="draft", progress=False)
+    fresh = em.load_scene(write("front.xml", -tilt, front), res=4)
+    fresh.render(quality="draft", progress=False)
+    assert "right" not in fresh.integrator.unblockable_detectors()
+    assert scene.integrator.unblockable_detectors() == fresh.integrator.unblockable_detectors()
+
+
 @pytest.mark.parametrize("name", ["flat_plate", "athene_flat", "corrugated_sheet", "corrugated_chamber", "melt_plate",
                                   "melt_chamber", "shield_chamber"])
 def test_every_shipped_scene_and_layout_passes_the_placement_checks(name):
