@@ -18,7 +18,7 @@ from ._shapes import is_planar, shape_key
 GRID = 65
 
 
-def relief_under_beam(scene, sensor, surfaces, probe=None):
+def relief_under_beam(scene, sensor, surfaces, probe=None, planar=is_planar):
     """Ids (or ``"a shape"``) of the ``surfaces`` that the beam of ``sensor`` hits on a
     :data:`GRID` x :data:`GRID` grid over its field and that are not one plane.
 
@@ -30,8 +30,10 @@ def relief_under_beam(scene, sensor, surfaces, probe=None):
         The scattering surfaces (objects, walls, backscattering detector plates).
     probe : callable, optional
         Returns :func:`beam_probe`'s hits (shared with other users of the same probe).
+    planar : callable, optional
+        :func:`~._shapes.is_planar`, or a memo of it (:meth:`~._shapes.GeometryKey.planar`).
     """
-    candidates = [s for s in surfaces if not is_planar(s)]
+    candidates = [s for s in surfaces if not planar(s)]
     if not candidates:
         return []
     si = probe() if probe is not None else beam_probe(scene, sensor)

@@ -110,7 +110,7 @@ from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, bu
                          near_share, reduce_table)
 from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
-from ._shapes import GeometryKey, is_planar, shape_key
+from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import beam_probe, detectors_in_beam, relief_under_beam
@@ -190,7 +190,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                             for d, ((_, shape), plate) in enumerate(zip(detectors, self._plates)) if plate is not None]
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
         surfaces = scatterers + plate_shapes  # where an electron can scatter
-        self.bounce_possible = not (len(surfaces) <= 1 and all(is_planar(s) for s in surfaces))
+        self.bounce_possible = not (len(surfaces) <= 1 and all(self._geometry_key.planar(s) for s in surfaces))
         # relief under the beam can scatter onto itself, so events >= 2 vary on the scale of its
         # relief, also along a flank whose normals agree (where the bounce filter is biased)
         beam = sensor if sensor is not None else (scene.sensors()[0] if scene.sensors() else None)
@@ -201,7 +201,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                 probed.append(beam_probe(scene, beam))
             return probed[0]
 
-        self.relief = relief_under_beam(scene, beam, surfaces, probe) if self.bounce_possible and beam is not None else []
+        self.relief = (relief_under_beam(scene, beam, surfaces, probe, self._geometry_key.planar)
+                       if self.bounce_possible and beam is not None else [])
         self.notes = mesh_notes
         #: [(detector, share of the field)] of the detectors the beam meets before the surface
         self.in_beam = detectors_in_beam(detectors, beam, probe) if beam is not None else []

@@ -161,3 +161,28 @@ def test_detectors_swapped_one_by_one_render_as_placed_there():
     after = scene.render(quality="draft", progress=False).channels
     for a, b in (("right", "back"), ("back", "right")):
         assert np.abs(after[a] - before[b]).max() <= 1e-5 * before[b].mean(), a  # 4.7e-7 here: float32
+
+
+def test_a_mesh_given_new_vertices_is_analysed_again():
+    """What the set-up learns of a mesh (whether it is one plane, so whether the relief can scatter
+    onto itself) is kept per placement: the corrugated sheet's vertices moved, through Mitsuba's
+    parameters (a new vertex buffer), onto a tilted plane within the same bounds are one plane at
+    the next render, and bent back they are relief again."""
+    import mitsuba as mi
+
+    scene = em.load_scene("corrugated_sheet", res=8)
+    scene.render(quality="draft", progress=False, events=2)
+    assert scene.integrator.relief == ["corrugated_sheet"]
+    params = mi.traverse(scene.scene)
+    bent = np.array(params["corrugated_sheet.vertex_positions"]).reshape(-1, 3)
+    tilted = bent.copy()
+    x, z = bent[:, 0].astype(float), bent[:, 2].astype(float)
+    tilted[:, 2] = z.min() + (z.max() - z.min()) * (x - x.min()) / (x.max() - x.min())  # the same bounds
+    box = scene.scene.shapes()[[s.id() for s in scene.scene.shapes()].index("corrugated_sheet")].bbox
+    for vertices, relief in ((tilted, []), (bent, ["corrugated_sheet"])):
+        before = (tuple(box().min), tuple(box().max))
+        params["corrugated_sheet.vertex_positions"] = mi.Float(vertices.ravel())
+        params.update()
+        assert (tuple(box().min), tuple(box().max)) == before
+        scene.render(quality="draft", progress=False, events=2)
+        assert scene.integrator.relief == relief
