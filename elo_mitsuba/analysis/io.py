@@ -341,7 +341,7 @@ INVERSION_CHANNELS = ("height", "mask", "misfit", "start_height", "scale")
 
 def write_inversion(path, result, geometry, *, untrusted, metadata: Mapping | None = None,
                     overwrite: bool = False) -> Path:
-    """Write an :class:`~.inversion.InversionResult`: ``.exr`` with channels height (mm), mask
+    """Write an :class:`~.height_solver.InversionResult`: ``.exr`` with channels height (mm), mask
     (1 = untrusted: the model does not reproduce the pixel's images), misfit, start_height, scale,
     height_error (mm, the standard error of each height, when computed: noise, misfit, regulariser
     bias, the model's slope gain, a floating part's offset), height_error_noise (its noise part),

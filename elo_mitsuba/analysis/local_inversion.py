@@ -162,7 +162,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
                    later_error: Mapping | None = None, flat_later_error: Mapping | None = None,
                    shadows: bool = True, nodes=None, iterations: int | None = None,
                    time_budget_s: float | None = None, progress=None):
-    """Refine an :class:`~.inversion.InversionResult` region by region (module docstring).
+    """Refine an :class:`~.height_solver.InversionResult` region by region (module docstring).
 
     Parameters
     ----------
