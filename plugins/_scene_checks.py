@@ -13,7 +13,6 @@ import numpy as np
 from elo_mitsuba.errors import EloInputError
 
 from ._detectors import surfaces_through_detectors
-from ._shapes import shape_key
 from .bsdf_elo_bse import is_elo_bse
 
 
@@ -25,14 +24,14 @@ class SceneChecks:
     """The checks of one integrator, with what they cache between renders."""
 
     def __init__(self):
-        self._smoothed = {}  # (shape key, vertices) of the checked meshes -> whether their normals smooth them
+        self._smoothed = {}  # the checked shapes (their GeometryKey entries) -> whether normals smooth them
         self._cut, self._cut_key = [], None  # surfaces_through_detectors of the last geometry, and its key
         self._triangles = {}  # the scene's triangles for surfaces_through_detectors, by shape
 
-    def refuse(self, scene, detectors, geometry) -> list[str]:
+    def refuse(self, scene, detectors, keys, geometry) -> list[str]:
         """Raise :class:`EloInputError` on what no render may use; return the notes on the meshes.
-        ``geometry``: where the scene's shapes are (:class:`~._shapes.GeometryKey`), the key of the
-        discs' test against the surfaces."""
+        ``keys`` (:class:`~._shapes.GeometryKey`) and ``geometry`` (its key of ``scene``): where the
+        shapes are, the keys of what is checked once (a mesh given new vertices is checked again)."""
         for name, shape in detectors:
             check_collector(name, shape)
             if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
@@ -45,8 +44,7 @@ class SceneChecks:
                     "cannot check or tabulate (their BSDFs, their triangles, where they cut a detector); write each "
                     "shape of the group out as a <shape> of its own")
             check_scatterer(shape)
-            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
-            if key not in self._smoothed:  # once per mesh (its area and indices are reduced on the device)
+            if keys.entry(shape) not in self._smoothed:  # once per placement (area, indices: device reductions)
                 check_mesh(shape)
         # segments along the discs against the (checked) meshes, once per geometry
         if self._cut_key != geometry:
@@ -56,8 +54,8 @@ class SceneChecks:
                                 "moved through a wall or a shield?); move it clear of the scene's surfaces")
         notes = []
         for shape in scatterers:
-            key = (shape_key(shape), shape.vertex_count() if shape.is_mesh() else 0)
-            if key not in self._smoothed:  # once per mesh: its buffers are copied to the host (checked above)
+            key = keys.entry(shape)
+            if key not in self._smoothed:  # once per placement: a mesh's buffers are copied to the host
                 self._smoothed[key] = smoothed(shape)
             if self._smoothed[key]:
                 notes.append(

@@ -180,7 +180,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             )
         self.detectors = detectors
         geometry = self._geometry_key(scene)  # where every shape is: the key of the set-up's caches
-        mesh_notes = self._checks.refuse(scene, detectors, geometry)  # before any work: what no render may use
+        mesh_notes = self._checks.refuse(scene, detectors, self._geometry_key, geometry)  # what no render may use
         names = [name for name, _ in detectors]
         front_only = parse_detector_list(self.front_only, names, "front_only")
         self._two_sided = [name not in front_only for name in names]

@@ -167,7 +167,8 @@ def test_a_mesh_given_new_vertices_is_analysed_again():
     """What the set-up learns of a mesh (whether it is one plane, so whether the relief can scatter
     onto itself) is kept per placement: the corrugated sheet's vertices moved, through Mitsuba's
     parameters (a new vertex buffer), onto a tilted plane within the same bounds are one plane at
-    the next render, and bent back they are relief again."""
+    the next render, and bent back they are relief again; all moved into one point, the mesh is
+    checked again and refused (no area)."""
     import mitsuba as mi
 
     scene = em.load_scene("corrugated_sheet", res=8)
@@ -186,3 +187,7 @@ def test_a_mesh_given_new_vertices_is_analysed_again():
         assert (tuple(box().min), tuple(box().max)) == before
         scene.render(quality="draft", progress=False, events=2)
         assert scene.integrator.relief == relief
+    params["corrugated_sheet.vertex_positions"] = mi.Float(np.zeros(bent.size))  # every vertex in one point
+    params.update()
+    with pytest.raises(em.EloInputError, match="surface 'corrugated_sheet' has an area of 0"):
+        scene.render(quality="draft", progress=False, events=2)
