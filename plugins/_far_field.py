@@ -72,7 +72,7 @@ NEAR_MM = 60.0
 BUILD_SEED = 0x26F4
 
 
-def geometry_key(scene, sensor, traced, two_sided):
+def geometry_key(scene, sensor, traced, two_sided, keys):
     """Everything the table depends on, as a hashable tuple (compared before every render).
 
     Parameters
@@ -83,18 +83,28 @@ def geometry_key(scene, sensor, traced, two_sided):
         The last event the table holds (2; with the option ``far_field_later``: every traced one).
     two_sided : list of bool
         Per detector, whether it collects on both faces.
+    keys : GeometryKey
+        Where the scene's shapes are (:class:`~._shapes.GeometryKey`, called on ``scene``).
     """
     digest = hashlib.sha1()
     for shape in scene.shapes():
-        digest_geometry(digest, shape)
+        digest_geometry(digest, shape, keys)
         digest.update(repr((shape.is_emitter(), float(np.ravel(shape.surface_area())[0]))).encode())
-        bsdf = shape.bsdf()
-        for attr in ("material", "lobe_width", "lobe"):
-            value = getattr(bsdf, attr, None)
-            if value is not None:
-                digest.update(repr(getattr(value, "describe", lambda v=value: np.ravel(v).tolist())()).encode())
+    digest.update(repr(scattering_key(scene)).encode())
     beam = (float(sensor.field), float(sensor.field_y), float(sensor.wd), str(getattr(sensor, "projection", "")))
     return (digest.hexdigest(), beam, int(traced), tuple(two_sided), NODES, N_U, N_PHI, JITTER)
+
+
+def scattering_key(scene) -> tuple:
+    """Per shape what its BSDF scatters by (an ``elo_bse``'s material, lobe width and lobe; empty
+    for others): the part of the keys of what depends on the scattering law."""
+    out = []
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        values = [getattr(bsdf, attr, None) for attr in ("material", "lobe_width", "lobe")]
+        out.append(tuple(repr(getattr(v, "describe", lambda v=v: np.ravel(v).tolist())()) for v in values
+                         if v is not None))
+    return tuple(out)
 
 
 def build_rays(scene, sensor):

@@ -92,8 +92,8 @@ def probe_directions(count=PROBES):
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1.0 - v))], axis=1)
 
 
-def geometry_key(scene, sensor):
-    """What the classes depend on: the bounds and mesh vertices of every shape a probe could meet,
+def geometry_key(scene, sensor, keys):
+    """What the classes depend on: the placement (:class:`~._shapes.GeometryKey`) of every shape a probe could meet,
     the beam (with its profile: the footprint's points) and the film. Detectors farther than :data:`NEAR_MM` from the field (with a margin of
     half the field for where relief moves the beam's hits) are left out, so that a sweep moving
     them reuses the classes."""
@@ -105,7 +105,7 @@ def geometry_key(scene, sensor):
         lo, hi = np.ravel(box.min), np.ravel(box.max)
         if shape.is_emitter() and (lo[0] > reach[0] or hi[0] < -reach[0] or lo[1] > reach[1] or hi[1] < -reach[1]):
             continue  # a detector out of the probes' reach
-        digest_geometry(digest, shape)
+        digest_geometry(digest, shape, keys)
     size = sensor.film().crop_size()
     return (digest.hexdigest(), float(sensor.field), float(sensor.field_y), float(sensor.wd),
             float(getattr(sensor, "fwhm", 0.0)), str(getattr(sensor, "projection", "")), tuple(sensor.aim_offset_mm),

@@ -107,7 +107,7 @@ from ._bounce_filter import GUIDE_CHANNELS, filter_bounces
 from ._geometry_classes import GeometryClasses
 from ._geometry_classes import geometry_key as classes_key
 from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, build_rays, geometry_key,
-                         near_share, reduce_table)
+                         near_share, reduce_table, scattering_key)
 from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
 from ._shapes import GeometryKey, shape_key
@@ -152,6 +152,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._checks = SceneChecks()  # what a scene must be, with the caches of its checks
         self._geometry_key = GeometryKey()
         self._occlusion = (None, None)  # (geometry and beam, unblockable_regions) of the last set-up
+        self._near = (None, None)  # (geometry, beam, scattering law; near_share) of the last call
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -222,8 +223,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._unblockable_regions = [[] for _ in detectors]
         if self.occlusion_analysis and beam is not None:
             # once per geometry and beam (the two halves of a render, a sweep over anything else)
-            key = (geometry, tuple(name for name, _ in detectors),
-                   tuple(getattr(beam, a, None) for a in ("wd", "field", "field_y", "projection", "fwhm")))
+            key = (geometry, tuple(name for name, _ in detectors), _beam_key(beam))
             if self._occlusion[0] != key:
                 self._occlusion = (key, unblockable_regions(scene, beam, detectors))
             self._unblockable_regions = self._occlusion[1]
@@ -259,7 +259,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         if not hasattr(sensor, "centre_rays"):
             raise EloInputError(f"elo: bounce_share={self.bounce_share:g} mm classifies the scan points of the "
                                 f"elo_beam sensor; this scene's sensor is {type(sensor).__name__}; set bounce_share=0")
-        key = (classes_key(scene, sensor), float(self.bounce_share))
+        key = (classes_key(scene, sensor, self._geometry_key), float(self.bounce_share))
         if self._classes is not None and self._classes.key == key:
             return
         self._classes = None  # the old classes' arrays go before the new ones are made
@@ -274,7 +274,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         every live scene slows the compilation of every render's kernels."""
         if not self.relief or not self.bounce_possible:
             return 0.0
-        return near_share(scene, sensor)
+        # once per geometry, beam and scattering law (a ray cast from a grid over the field)
+        key = (self._geometry_key(scene), _beam_key(sensor), scattering_key(scene))
+        if self._near[0] != key:
+            self._near = (key, near_share(scene, sensor))
+        return self._near[1]
 
     def _update_mean_table(self, scene, sensor, si):
         """Tabulate the far field's mean (option ``far_table``) for the BSDF the beam meets most
@@ -301,7 +305,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         """Build the far-field table (:mod:`._far_field`) unless the one held was built for this
         geometry: a table is never used for a geometry other than its own."""
         traced = self._table_events()
-        key = geometry_key(scene, sensor, traced, self._two_sided)
+        key = geometry_key(scene, sensor, traced, self._two_sided, self._geometry_key)
         if self._far is not None and self._far.key == key:
             return
         o, d, nodes = build_rays(scene, sensor)
@@ -1081,6 +1085,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         names = ", ".join(n for n, _ in self.detectors) or "(resolved at render time)"
         return (f"EloIntegrator[events={self.events}, detector_sampling={self.detector_sampling}, "
                 f"detector_samples={self.detector_samples}, units={self.units}, detectors={names}]")
+
+
+def _beam_key(beam) -> tuple:
+    """What the set-up's analyses read of the ``elo_beam`` sensor (None where another sensor lacks it)."""
+    return tuple(getattr(beam, a, None) for a in ("wd", "field", "field_y", "projection", "fwhm"))
 
 
 def _sample_direction(si, ray, ctx, u1, u2, alive):

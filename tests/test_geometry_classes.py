@@ -113,6 +113,15 @@ def test_classes_are_built_once_per_geometry(mi):
     scene.restore_detectors()
     scene.render(quality="default", seed=3, progress=False)
     assert integ.class_builds == 3
+    # the sheet given new vertices within its bounds (every other ridge lowered): built again
+    params = mi.traverse(scene.scene)
+    v = np.array(params["corrugated_sheet.vertex_positions"]).reshape(-1, 3)
+    top = v[:, 2] == v[:, 2].max()
+    v[top & np.isin(v[:, 0], np.unique(v[top, 0])[1::2]), 2] = 0.0
+    params["corrugated_sheet.vertex_positions"] = mi.Float(v.ravel())
+    params.update()
+    scene.render(quality="default", seed=3, progress=False)
+    assert integ.class_builds == 4
 
 
 def test_the_presets_share_on_relief_only(mi):

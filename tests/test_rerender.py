@@ -171,6 +171,8 @@ def test_a_mesh_given_new_vertices_is_analysed_again():
     checked again and refused (no area)."""
     import mitsuba as mi
 
+    from elo_mitsuba.plugins._far_field import near_share
+
     scene = em.load_scene("corrugated_sheet", res=8)
     scene.render(quality="draft", progress=False, events=2)
     assert scene.integrator.relief == ["corrugated_sheet"]
@@ -187,6 +189,19 @@ def test_a_mesh_given_new_vertices_is_analysed_again():
         assert (tuple(box().min), tuple(box().max)) == before
         scene.render(quality="draft", progress=False, events=2)
         assert scene.integrator.relief == relief
+    # every other ridge lowered to the mean, within the same bounds: the share of later electrons
+    # meeting the sheet again is the new relief's, not the corrugation's (read at every render)
+    lowered = bent.copy()
+    ridges = np.unique(bent[bent[:, 2] == bent[:, 2].max(), 0])
+    lowered[np.isin(bent[:, 0], ridges[1::2]) & (bent[:, 2] == bent[:, 2].max()), 2] = 0.0
+    shares = []
+    for vertices in (bent, lowered):
+        params["corrugated_sheet.vertex_positions"] = mi.Float(vertices.ravel())
+        params.update()
+        scene.render(quality="draft", progress=False, events=2)
+        shares.append(scene.integrator.near_share(scene.scene, scene.sensor))
+        assert shares[-1] == near_share(scene.scene, scene.sensor)
+    assert shares[0] != shares[1]
     params["corrugated_sheet.vertex_positions"] = mi.Float(np.zeros(bent.size))  # every vertex in one point
     params.update()
     with pytest.raises(em.EloInputError, match="surface 'corrugated_sheet' has an area of 0"):
