@@ -1,7 +1,8 @@
-"""Host-side facts about a scene's shapes (set-up time): identity, planarity, covering triangles
-and the geometry digest of the caches' keys. numpy; the detectors' quadrature (:mod:`._detectors`),
-the occlusion analysis (:mod:`._occlusion`), the relief probes (:mod:`._relief`), the far-field
-table and the geometry classes all ask these questions of the same shapes.
+"""Host-side facts about a scene's shapes (set-up time): identity, planarity, covering triangles,
+and where they are (:class:`GeometryKey`, the key of every cache of the set-up). numpy; the
+detectors' quadrature (:mod:`._detectors`), the scene checks (:mod:`._scene_checks`), the occlusion
+analysis (:mod:`._occlusion`), the relief probes (:mod:`._relief`), the far-field table and the
+geometry classes all ask these questions of the same shapes.
 """
 
 import drjit as dr
