@@ -45,6 +45,34 @@ def relief_under_beam(scene, sensor, surfaces, probe=None, planar=is_planar):
     return [s.id() or "a shape" for s in candidates if id(s) in hit_ids]
 
 
+#: A hit counts as on a surface's back when the beam arrives at least this far behind its plane
+#: (cosine of the angle to the geometric normal): grazing hits on near-vertical facets of a
+#: consistently wound mesh round either way.
+BACK_COS = -1e-2
+
+
+def surfaces_seen_from_behind(surfaces, sensor, probe):
+    """[(name, share)] of the scattering ``surfaces`` whose back the beam of ``sensor`` meets, with
+    the share of the scan field where it does (:func:`beam_probe`'s grid, its margin left out):
+    triangles wound clockwise seen from the gun (a mesh oriented inconsistently, a surface upside
+    down). g_BSE scatters nothing back through a surface's underside, so those pixels are dark."""
+    if not surfaces or not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):
+        return []
+    si = probe()
+    behind = np.asarray(si.is_valid() & (dr.dot(si.n, si.to_world(si.wi)) < BACK_COS), dtype=bool)
+    if not behind.any():
+        return []
+    x, y = probe_points(sensor)
+    inside = (np.abs(x) <= 0.5 * float(sensor.field)) & (np.abs(y) <= 0.5 * float(sensor.field_y))
+    keys = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape))
+    found = []
+    for shape in surfaces:
+        share = float(np.count_nonzero(behind & inside & (keys == shape_key(shape)))) / max(1, np.count_nonzero(inside))
+        if share > 0:
+            found.append((shape.id() or "a surface without an id", share))
+    return found
+
+
 def detectors_in_beam(detectors, sensor, probe):
     """[(name, share)] of the ``detectors`` ([(name, shape)]) that the beam of ``sensor`` meets
     before any surface, with the share of the scan field where it does (:func:`beam_probe`'s grid,
