@@ -73,6 +73,29 @@ def surfaces_seen_from_behind(surfaces, sensor, probe):
     return found
 
 
+#: Where a probe ray misses, it is cast again this fraction of the probe's pitch aside: a ray aimed
+#: exactly at a mesh's vertex or edge can slip through the crack between its triangles (the melt
+#: plate's vertices lie on the probe's grid: 3 % of its rays missed a plate that covers the field).
+MISS_NUDGE = 1e-3
+
+
+def field_missed(scene, sensor, probe) -> float:
+    """The share of the scan field where the beam of ``sensor`` meets no surface at all
+    (:func:`beam_probe`'s grid, its margin left out): a field wider than the scene's surfaces.
+    Those pixels are 0."""
+    if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):
+        return 0.0
+    x, y = probe_points(sensor)
+    inside = (np.abs(x) <= 0.5 * float(sensor.field)) & (np.abs(y) <= 0.5 * float(sensor.field_y))
+    missed = ~np.asarray(probe().is_valid(), dtype=bool) & inside
+    if missed.any():
+        pitch = float(sensor.field) / (GRID - 1)
+        again = beam_probe(scene, sensor, points=(x[missed] + np.float32(MISS_NUDGE * pitch),
+                                                  y[missed] + np.float32(0.7 * MISS_NUDGE * pitch)))
+        missed[missed] = ~np.asarray(again.is_valid(), dtype=bool)
+    return float(np.count_nonzero(missed)) / max(1, np.count_nonzero(inside))
+
+
 def detectors_in_beam(detectors, sensor, probe):
     """[(name, share)] of the ``detectors`` ([(name, shape)]) that the beam of ``sensor`` meets
     before any surface, with the share of the scan field where it does (:func:`beam_probe`'s grid,
@@ -115,10 +138,11 @@ def probe_points(sensor, grid=GRID):
     return x.ravel().astype(np.float32), y.ravel().astype(np.float32)
 
 
-def beam_probe(scene, sensor, grid=GRID):
+def beam_probe(scene, sensor, grid=GRID, points=None):
     """Where the beam of ``sensor`` meets the scene on a ``grid`` x ``grid`` grid over its field
-    (plus a margin of 3 beam sigmas): the surface interactions (a Dr.Jit array of them)."""
-    x, y = probe_points(sensor, grid)
+    (plus a margin of 3 beam sigmas), or at the aim ``points`` (x, y) given: the surface
+    interactions (a Dr.Jit array of them)."""
+    x, y = probe_points(sensor, grid) if points is None else points
     wd = float(sensor.wd)
     if getattr(sensor, "projection", "perspective") == "orthographic":
         o = mi.Point3f(mi.Float(x), mi.Float(y), wd)

@@ -113,7 +113,7 @@ from ._occlusion import unblockable, unblockable_regions
 from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
-from ._relief import beam_probe, detectors_in_beam, relief_under_beam, surfaces_seen_from_behind
+from ._relief import beam_probe, detectors_in_beam, field_missed, relief_under_beam, surfaces_seen_from_behind
 from ._scene_checks import SceneChecks
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
@@ -153,7 +153,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._geometry_key = GeometryKey()
         self._occlusion = (None, None)  # (geometry and beam, unblockable_regions) of the last set-up
         self._near = (None, None)  # (geometry, beam, scattering law; near_share) of the last call
-        self._behind = (None, [])  # (geometry and beam, surfaces_seen_from_behind) of the last set-up
+        self._behind = (None, ([], 0.0))  # (geometry and beam; surfaces_seen_from_behind, field_missed)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -216,8 +216,13 @@ class EloIntegrator(mi.SamplingIntegrator):
         if beam is not None:  # once per geometry and beam: a probe over the field
             key = (geometry, _beam_key(beam))
             if self._behind[0] != key:
-                self._behind = (key, surfaces_seen_from_behind(scatterers, beam, probe))
-            for name, share in self._behind[1]:
+                self._behind = (key, (surfaces_seen_from_behind(scatterers, beam, probe), field_missed(scene, beam, probe)))
+            behind, missed = self._behind[1]
+            if missed > 0:
+                self.notes.append(
+                    f"the beam meets no surface over about {100 * missed:.3g} % of the scan field (a field wider "
+                    "than the scene's surfaces?): those pixels are 0")
+            for name, share in behind:
                 self.notes.append(
                     f"surface {name!r}: the beam meets the back of its triangles over about {100 * share:.3g} % of "
                     "the scan field, where g_BSE sends nothing back and the pixels are dark (triangles wound "

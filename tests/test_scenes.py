@@ -483,6 +483,25 @@ def test_a_mesh_wound_both_ways_is_named_with_its_dark_share(tmp_path):
     assert not [n for n in shipped.metadata["notes"] if "meets the back" in n]
 
 
+def test_a_field_wider_than_the_surface_is_named_with_its_dark_share(tmp_path):
+    """flat_plate's plate cut to 60 x 60 mm under the 80 mm field: the beam misses it over
+    1 - (60/80)^2 = 43.75 % of the field. A note says so, with the share from the beam probe
+    within 2 % of it and of the share of pixels the render leaves 0."""
+    import elo_mitsuba as em
+    from elo_mitsuba.scene_files import portable_scene_text, scenes_dir
+
+    path = tmp_path / "small_plate.xml"
+    text = portable_scene_text(scenes_dir() / "flat_plate.xml")
+    assert text.count('<scale x="100" y="100"/>') == 1
+    path.write_text(text.replace('<scale x="100" y="100"/>', '<scale x="30" y="30"/>'))
+    result = em.load_scene(str(path), res=32).render(quality="draft", progress=False)
+    notes = [n for n in result.metadata["notes"] if "meets no surface" in n]
+    assert len(notes) == 1, result.metadata["notes"]
+    share = float(notes[0].split("over about ")[1].split(" %")[0]) / 100.0
+    dark = float(np.mean(result.channels["right"] == 0.0))
+    assert abs(share - 0.4375) < 0.02 and abs(dark - 0.4375) < 0.02, (share, dark)
+
+
 @pytest.mark.parametrize("name", ["flat_plate", "athene_flat", "corrugated_sheet", "corrugated_chamber", "melt_plate",
                                   "melt_chamber", "shield_chamber"])
 def test_every_shipped_scene_and_layout_passes_the_placement_checks(name):
@@ -499,4 +518,4 @@ def test_every_shipped_scene_and_layout_passes_the_placement_checks(name):
             continue
         notes = em.load_scene(name, res=2, detector_layout=layout).render(quality="draft", progress=False).metadata["notes"]
         assert not [n for n in notes if "lies in the beam's path" in n or "vertex normals" in n
-                    or "meets the back" in n], notes  # dark: masking
+                    or "meets the back" in n or "meets no surface" in n], notes  # dark: masking
