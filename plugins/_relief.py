@@ -96,25 +96,27 @@ def field_missed(scene, sensor, probe) -> float:
     return float(np.count_nonzero(missed)) / max(1, np.count_nonzero(inside))
 
 
+def may_meet_beam(shape, sensor) -> bool:
+    """Whether ``shape``'s bounding box meets the beam's cone (or prism) under the gun of the
+    ``elo_beam`` ``sensor``: a detector that does not cannot change what the beam probe meets."""
+    wd, fx, fy = float(sensor.wd), 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
+    box = shape.bbox()
+    low = max(float(box.min.z), 0.0)
+    if low >= wd:
+        return False
+    shrink = 1.0 if getattr(sensor, "projection", "perspective") == "orthographic" else 1.0 - low / wd
+    return (float(box.min.x) <= fx * shrink and float(box.max.x) >= -fx * shrink
+            and float(box.min.y) <= fy * shrink and float(box.max.y) >= -fy * shrink)
+
+
 def detectors_in_beam(detectors, sensor, probe):
     """[(name, share)] of the ``detectors`` ([(name, shape)]) that the beam of ``sensor`` meets
     before any surface, with the share of the scan field where it does (:func:`beam_probe`'s grid,
     its margin left out). There the beam ends on the detector: no electron reaches the plate."""
     if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):  # not the elo_beam sensor: no beam
         return []
-    wd, fx, fy = float(sensor.wd), 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
-    orthographic = getattr(sensor, "projection", "perspective") == "orthographic"
-
-    def may_block(shape):  # its bounding box meets the beam's cone (or prism) under the gun
-        box = shape.bbox()
-        low = max(float(box.min.z), 0.0)
-        if low >= wd:
-            return False
-        shrink = 1.0 if orthographic else 1.0 - low / wd
-        return (float(box.min.x) <= fx * shrink and float(box.max.x) >= -fx * shrink
-                and float(box.min.y) <= fy * shrink and float(box.max.y) >= -fy * shrink)
-
-    detectors = [(name, shape) for name, shape in detectors if may_block(shape)]
+    fx, fy = 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
+    detectors = [(name, shape) for name, shape in detectors if may_meet_beam(shape, sensor)]
     if not detectors:
         return []
     si = probe()

@@ -113,7 +113,8 @@ from ._occlusion import unblockable, unblockable_regions
 from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
-from ._relief import beam_probe, detectors_in_beam, field_missed, relief_under_beam, surfaces_seen_from_behind
+from ._relief import (beam_probe, detectors_in_beam, field_missed, may_meet_beam, relief_under_beam,
+                      surfaces_seen_from_behind)
 from ._scene_checks import SceneChecks
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
@@ -213,8 +214,11 @@ class EloIntegrator(mi.SamplingIntegrator):
                 f"detector {name!r} lies in the beam's path over about {100 * share:.3g} % of the scan field: "
                 "there the beam lands on it, not on the build surface, and those pixels show no surface (move "
                 "it out of the cone from the gun to the field)")
-        if beam is not None:  # once per geometry and beam: a probe over the field
-            key = (geometry, _beam_key(beam))
+        if beam is not None:
+            # once per surfaces and beam: a probe over the field, not cast again when only detectors
+            # out of the beam's cone move (a cast after a move compiles: the scene's pointer changes)
+            blockers = [sh for _, sh in detectors if may_meet_beam(sh, beam)]
+            key = (tuple(self._geometry_key.entry(sh) for sh in scatterers + blockers), _beam_key(beam))
             if self._behind[0] != key:
                 self._behind = (key, (surfaces_seen_from_behind(scatterers, beam, probe), field_missed(scene, beam, probe)))
             behind, missed = self._behind[1]
