@@ -98,7 +98,10 @@ def field_missed(scene, sensor, probe) -> float:
 
 def may_meet_beam(shape, sensor) -> bool:
     """Whether ``shape``'s bounding box meets the beam's cone (or prism) under the gun of the
-    ``elo_beam`` ``sensor``: a detector that does not cannot change what the beam probe meets."""
+    ``elo_beam`` ``sensor``: a detector that does not cannot change what the beam probe meets
+    (another sensor: no beam, False)."""
+    if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):
+        return False
     wd, fx, fy = float(sensor.wd), 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
     box = shape.bbox()
     low = max(float(box.min.z), 0.0)
