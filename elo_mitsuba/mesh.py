@@ -206,8 +206,9 @@ def ply_header(path) -> dict:
     -------
     dict
         ``format`` (``ascii``, ``binary_little_endian``, ...), ``vertices`` and ``faces`` (counts,
-        0 when absent) and ``index_type`` (the scalar type of the face list's indices, ``None``
-        without faces).
+        0 when absent), ``index_type`` (the scalar type of the face list's indices, ``None``
+        without faces), ``elements`` (in file order: name, count and each property's words after
+        ``property``) and ``body`` (the byte offset of the data after the header).
 
     Raises :class:`EloInputError` naming the file when it has no PLY header.
     """
@@ -215,18 +216,21 @@ def ply_header(path) -> dict:
         head = f.read(65536)
     if not head.startswith(b"ply") or b"end_header" not in head:
         raise EloInputError(f"mesh file {path} is not a PLY file (no 'ply' ... 'end_header' header)")
-    out = {"format": None, "vertices": 0, "faces": 0, "index_type": None}
-    element = None
-    for line in head[:head.index(b"end_header")].decode("ascii", "replace").splitlines():
+    end = head.index(b"end_header")
+    out = {"format": None, "vertices": 0, "faces": 0, "index_type": None, "elements": [],
+           "body": head.find(b"\n", end) + 1 or len(head)}
+    for line in head[:end].decode("ascii", "replace").splitlines():
         words = line.split()
         if len(words) >= 2 and words[0] == "format":
             out["format"] = words[1]
-        elif len(words) == 3 and words[0] == "element":
-            element = words[1]
-            if element in ("vertex", "face") and words[2].isdigit():
-                out["vertices" if element == "vertex" else "faces"] = int(words[2])
-        elif len(words) == 5 and words[:2] == ["property", "list"] and element == "face":
-            out["index_type"] = words[3]
+        elif len(words) == 3 and words[0] == "element" and words[2].isdigit():
+            out["elements"].append((words[1], int(words[2]), []))
+            if words[1] in ("vertex", "face"):
+                out["vertices" if words[1] == "vertex" else "faces"] = int(words[2])
+        elif words[:1] == ["property"] and out["elements"]:
+            out["elements"][-1][2].append(words[1:])
+            if len(words) == 5 and words[1] == "list" and out["elements"][-1][0] == "face":
+                out["index_type"] = words[3]
     return out
 
 
@@ -271,32 +275,25 @@ def ply_index_range(path) -> tuple[int, int] | None:
     >>> ply_index_range(write_mesh(tri, Path(tempfile.mkdtemp()) / "t.ply"))
     (0, 2)
     """
-    with open(path, "rb") as f:
-        data = f.read()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        return None
-    body = data.index(b"\n", end) + 1
-    fmt, elements = None, []
-    for line in data[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if len(words) >= 2 and words[0] == "format":
-            fmt = words[1]
-        elif len(words) == 3 and words[0] == "element" and words[2].isdigit():
-            elements.append((words[1], int(words[2]), []))
-        elif words[:1] == ["property"] and elements:
-            elements[-1][2].append(words[1:])
     try:
-        if fmt == "ascii":
-            return _ascii_index_range(data[body:], elements)
-        if fmt in ("binary_little_endian", "binary_big_endian"):
-            return _binary_index_range(data, body, elements, "<" if fmt == "binary_little_endian" else ">")
+        h = ply_header(path)
+    except EloInputError:
+        return None
+    elements = h["elements"]
+    try:
+        if h["format"] == "ascii":
+            with open(path, "rb") as f:
+                f.seek(h["body"])
+                return _ascii_index_range(f.read(), elements)
+        if h["format"] in ("binary_little_endian", "binary_big_endian"):
+            data = np.memmap(path, dtype=np.uint8, mode="r")  # the faces are read where they lie
+            return _binary_index_range(data, h["body"], elements, "<" if h["format"] == "binary_little_endian" else ">")
     except (ValueError, KeyError, IndexError):
         return None
     return None
 
 
-def _binary_index_range(data: bytes, offset: int, elements, order: str):
+def _binary_index_range(data, offset: int, elements, order: str):
     for name, count, props in elements:
         fields = []
         for k, p in enumerate(props):

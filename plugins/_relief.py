@@ -62,8 +62,7 @@ def surfaces_seen_from_behind(surfaces, sensor, probe):
     behind = np.asarray(si.is_valid() & (dr.dot(si.n, si.to_world(si.wi)) < BACK_COS), dtype=bool)
     if not behind.any():
         return []
-    x, y = probe_points(sensor)
-    inside = (np.abs(x) <= 0.5 * float(sensor.field)) & (np.abs(y) <= 0.5 * float(sensor.field_y))
+    inside = _in_field(sensor)
     keys = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape))
     found = []
     for shape in surfaces:
@@ -86,7 +85,7 @@ def field_missed(scene, sensor, probe) -> float:
     if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):
         return 0.0
     x, y = probe_points(sensor)
-    inside = (np.abs(x) <= 0.5 * float(sensor.field)) & (np.abs(y) <= 0.5 * float(sensor.field_y))
+    inside = _in_field(sensor)
     missed = ~np.asarray(probe().is_valid(), dtype=bool) & inside
     if missed.any():
         pitch = float(sensor.field) / (GRID - 1)
@@ -118,13 +117,11 @@ def detectors_in_beam(detectors, sensor, probe):
     its margin left out). There the beam ends on the detector: no electron reaches the plate."""
     if not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):  # not the elo_beam sensor: no beam
         return []
-    fx, fy = 0.5 * float(sensor.field), 0.5 * float(sensor.field_y)
     detectors = [(name, shape) for name, shape in detectors if may_meet_beam(shape, sensor)]
     if not detectors:
         return []
     si = probe()
-    x, y = probe_points(sensor)
-    inside = (np.abs(x) <= fx) & (np.abs(y) <= fy)
+    inside = _in_field(sensor)
     found = []
     for name, shape in detectors:
         mask = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == shape_key(shape))
@@ -141,6 +138,12 @@ def probe_points(sensor, grid=GRID):
     u = np.linspace(-0.5, 0.5, grid)
     x, y = np.meshgrid(u * (float(sensor.field) + 2 * margin), u * (float(sensor.field_y) + 2 * margin))
     return x.ravel().astype(np.float32), y.ravel().astype(np.float32)
+
+
+def _in_field(sensor):
+    """Which of :func:`probe_points`' points lie in the scan field (not in the beam's margin)."""
+    x, y = probe_points(sensor)
+    return (np.abs(x) <= 0.5 * float(sensor.field)) & (np.abs(y) <= 0.5 * float(sensor.field_y))
 
 
 def beam_probe(scene, sensor, grid=GRID, points=None):

@@ -84,14 +84,20 @@ class GeometryKey:
         # is held so that no other shape can take its address (the key) while the handle lives
         self._handles, self._scene = {}, None
         self._planar = {}  # a shape's entry -> is_planar (a mesh's vertices are copied to the host)
+        self._entries = {}  # shape key -> entry, as of the last keying (the set-up asks several times)
 
     def __call__(self, scene) -> tuple:
         if self._scene != id(scene):
             self._handles, self._planar, self._scene = {}, {}, id(scene)
-        return (id(scene),) + tuple(self.entry(sh) for sh in scene.shapes())
+        self._entries = {shape_key(sh): self._read(sh) for sh in scene.shapes()}
+        return (id(scene),) + tuple(self._entries.values())
 
     def entry(self, sh) -> tuple:
-        """The key's part of one shape (of the scene last keyed)."""
+        """The key's part of one shape, as of the last keying of its scene (call the key first)."""
+        k = shape_key(sh)
+        return self._entries[k] if k in self._entries else self._read(sh)
+
+    def _read(self, sh) -> tuple:
         k = shape_key(sh)
         box = sh.bbox()
         entry = (k, int(sh.shape_type()), tuple(box.min), tuple(box.max))
