@@ -245,3 +245,61 @@ def test_a_mask_that_is_not_zero_or_one_is_refused(tmp_path, capsys, monkeypatch
     assert not (tmp_path / "h.npy").exists()
     monkeypatch.undo()
     assert main(["reconstruct", grad, "-o", str(tmp_path / "h.npy"), "--ignore-mask"]) == 0
+
+
+def _sawtooth(n=128, period_px=4.56):
+    """45-degree ridges along y, a period of about 4.5 pixels (not commensurate with them): the
+    corrugated sheet's case at 256^2; heights and point-sampled slopes at the pixel centres."""
+    px = FIELD / n
+    phase = ((np.arange(n) + 0.5) / period_px) % 1.0
+    z = np.where(phase < 0.5, phase, 1.0 - phase) * period_px * px
+    slope = np.where(phase < 0.5, 1.0, -1.0)
+    return np.tile(z, (n, 1)), np.tile(slope, (n, 1)), np.zeros((n, n))
+
+
+def test_relief_that_bends_between_pixel_centres_is_flagged():
+    # integrable (residual 0) and no bowl: before the half-sampling test nothing was said, and the
+    # heights were off by 1.5x the relief's RMS
+    from elo_mitsuba.analysis.chain import heights
+    from elo_mitsuba.analysis.sampling_check import MAX_HALF_SAMPLING
+
+    z, p, q = _sawtooth()
+    out = heights(p, q, FIELD)
+    qual = out["quality"]
+    error = float(np.std((out["height"] - out["height"].mean()) - (z - z.mean())))
+    assert qual["integrability_residual"] < 0.01 and error > z.std()
+    assert qual["half_sampling_mm"] > MAX_HALF_SAMPLING * qual["relief_rms_mm"]
+    assert any("does not resolve the relief" in w for w in qual["warnings"])
+    # where the bends fall between pixels the figure is about the error (measured 1.01x)
+    assert 0.7 * error < qual["half_sampling_mm"] < 1.4 * error
+
+
+@pytest.mark.parametrize("scale", [1, 3, 5])
+def test_resolved_relief_passes_and_its_error_is_bounded(scale):
+    # smooth relief, periods along x of 57, 19 and 11 pixels: the figure bounds the map's error
+    # (measured 3.0-3.1x it) and stays below half the warning's threshold (0.02-0.26 of it)
+    from elo_mitsuba.analysis.chain import heights
+    from elo_mitsuba.analysis.sampling_check import MAX_HALF_SAMPLING
+
+    n = 120
+    y, x = np.mgrid[0:n, 0:n] / n * FIELD
+    z = 0.3 * np.sin(scale * x / 3) * np.cos(scale * y / 5)
+    p = 0.3 * scale / 3 * np.cos(scale * x / 3) * np.cos(scale * y / 5)
+    q = 0.3 * scale / 5 * np.sin(scale * x / 3) * np.sin(scale * y / 5)  # y grows with the row: dZ/dy is minus d/dy here
+    out = heights(p, q, FIELD)
+    qual = out["quality"]
+    error = float(np.std((out["height"] - out["height"].mean()) - (z - z.mean())))
+    assert 1.5 * error < qual["half_sampling_mm"] < 6 * error
+    assert qual["half_sampling_mm"] < 0.5 * MAX_HALF_SAMPLING * qual["relief_rms_mm"] and qual["warnings"] == []
+
+
+def test_reconstruct_prints_and_stores_the_half_sampling_test(tmp_path, capsys):
+    z, p, q = _sawtooth()
+    src = tmp_path / "grad.exr"
+    write_exr(src, {"dzdx": p.astype(np.float32), "dzdy": q.astype(np.float32)}, {"field_mm": [FIELD, FIELD]})
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "h.exr")]) == 0
+    out = capsys.readouterr()
+    assert "every other pixel differs by" in out.out and "does not resolve the relief" in out.err
+    quality = read_exr(tmp_path / "h.exr")[1]["quality"]
+    assert quality["half_sampling_mm"] > 0.25 * quality["relief_rms_mm"] > 0
+    assert quality["flags"] == [f"relief not resolved (every other pixel: {quality['half_sampling_mm']:.3g} mm RMS)"]

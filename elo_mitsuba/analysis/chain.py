@@ -448,6 +448,7 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
     ('robust', 1.0)
     """
     from .integrate import integrate_gradient, reconstruction_quality, resolve_method, scan_grid_gradient
+    from .sampling_check import half_sampling
 
     method = resolve_method(method, dzdx, dzdy, mask)  # what runs is what is reported
     gx, gy = dzdx, dzdy
@@ -458,8 +459,16 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
             gx, gy = np.where(mask, 0.0, gx), np.where(mask, 0.0, gy)
     kw = {} if min_component_size is None else {"min_component_size": min_component_size}
     height, mask_out = integrate_gradient(gx, gy, field_mm, method=method, mask=mask, **kw)
+    # the resolution test re-solves on sub-lattices; 'robust' by 'masked', its least-squares core
+    # (its reweighting at twice the pitch would give up other pairs and measure that instead)
+    check = "masked" if method == "robust" else method
+
+    def solve(gx_, gy_, field_, mask_):
+        return integrate_gradient(gx_, gy_, field_, method=check, mask=mask_ if mask_.any() else None, **kw)
+
     return {"height": height, "mask": mask_out, "method": method,
-            "quality": reconstruction_quality(gx, gy, field_mm, height, mask_out),
+            "quality": reconstruction_quality(gx, gy, field_mm, height, mask_out,
+                                              half_sampling(gx, gy, field_mm, height, mask_out, solve)),
             "grid": ("scan grid of a perspective scan: pixel (i, j) holds the height where its beam lands "
                      "(slopes converted, analysis.integrate.scan_grid_gradient)") if perspective else "scan grid"}
 

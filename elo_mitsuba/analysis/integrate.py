@@ -43,6 +43,7 @@ import numpy as np
 from ..arguments import flag, real_array, shown, whole_number
 from ..errors import EloInputError
 from .layout import pixel_size
+from .sampling_check import MAX_HALF_SAMPLING
 
 METHODS = ("dct", "fft", "masked", "robust")
 
@@ -558,7 +559,7 @@ def resolve_method(method: str, dzdx, dzdy, mask=None) -> str:
     return "masked" if bad.any() else "dct"
 
 
-def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
+def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling_mm: float | None = None) -> dict:
     """How far a height map can be trusted: figures computed from its input and itself.
 
     Parameters
@@ -569,6 +570,9 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
         Scan field in mm.
     height, mask_out : ndarray (H, W)
         What :func:`integrate_gradient` returned.
+    half_sampling_mm : float, optional
+        :func:`.sampling_check.half_sampling` of this map: how far heights from every other
+        pixel differ from it (None: not measured).
 
     Returns
     -------
@@ -581,8 +585,11 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
         that of the height minus the quadric. A small bias of the gradient over the field
         (flat-field correction, Eq. 26 at steep flanks, noise) integrates to exactly such a
         quadric, so ``bowl_mm > relief_mm`` says the height *range* is not measured relief.
+        ``relief_rms_mm``: the RMS of the height minus the quadric. ``half_sampling_mm`` as given.
         ``warnings``: one line per figure above :data:`MAX_INTEGRABILITY_RESIDUAL`,
-        :data:`MAX_MASKED_FRACTION`, or a bowl larger than the relief.
+        :data:`MAX_MASKED_FRACTION`, a bowl larger than the relief, or a half-sampling difference
+        above :data:`.sampling_check.MAX_HALF_SAMPLING` of the relief's RMS (the scan does not
+        resolve the relief). ``flags``: a few words for each warning (a preview's title).
     """
     from scipy import ndimage
 
@@ -601,7 +608,7 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
         den += float(np.sum(target ** 2))
     residual = math.sqrt(num / den) if den > 0 else 0.0
     masked = float(bad.mean())
-    bowl = relief = 0.0
+    bowl = relief = relief_rms = 0.0
     labels, n = ndimage.label(ok)
     if n:
         largest = labels == 1 + int(np.argmax(ndimage.sum_labels(ok, labels, range(1, n + 1))))
@@ -615,21 +622,35 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out) -> dict:
             quad = basis @ coef
             bowl = float(np.ptp(quad))
             relief = float(np.ptp(z[rows, cols] - quad))
-    warnings = []
+            relief_rms = float(np.std(z[rows, cols] - quad))
+    warnings, flags = [], []
     if residual > MAX_INTEGRABILITY_RESIDUAL:
+        flags.append(f"not the gradient of a surface (residual {residual:.2f})")
         warnings.append(f"integrability residual {residual:.2f} > {MAX_INTEGRABILITY_RESIDUAL:g}: the gradient is "
                         "not that of a surface (noise, or inconsistent detector images); the heights are not reliable")
     if masked > MAX_MASKED_FRACTION:
+        flags.append(f"{100 * masked:.0f} % without height")
         warnings.append(f"{100 * masked:.1f} % of the pixels have no height (> {100 * MAX_MASKED_FRACTION:g} %)")
     pixel = max(pixel_size(z.shape, field_mm))
     if bowl > relief and bowl > 0.01 * pixel:
+        flags.append(f"bowl {bowl:.3g} mm > relief {relief:.3g} mm")
         warnings.append(f"a field-wide tilt/bowl of {bowl:.3g} mm exceeds the relief of {relief:.3g} mm: a small "
                         "bias of the gradient integrates to that shape, so the height range is not measured relief "
                         "(local relief is)")
+    if half_sampling_mm is not None and half_sampling_mm > MAX_HALF_SAMPLING * relief_rms and half_sampling_mm > 1e-3 * pixel:
+        flags.append(f"relief not resolved (every other pixel: {half_sampling_mm:.3g} mm RMS)")
+        warnings.append(f"heights integrated from every other pixel differ from these by {half_sampling_mm:.3g} mm RMS, "
+                        f"{half_sampling_mm / max(relief_rms, 1e-300):.2g}x the relief's RMS of {relief_rms:.3g} mm: the "
+                        "scan does not resolve the relief (ridges, edges, cliffs or roughness of a few pixels: the slopes' "
+                        "samples do not fix the height between them), and the heights' error may be as large; smaller "
+                        "pixels help, and 'invert' where cliffs are the cause")
     return {"integrability_residual": round(residual, 4), "masked_fraction": round(masked, 6),
-            "bowl_mm": round(bowl, 6), "relief_mm": round(relief, 6), "warnings": warnings,
+            "bowl_mm": round(bowl, 6), "relief_mm": round(relief, 6), "relief_rms_mm": round(relief_rms, 6),
+            "half_sampling_mm": None if half_sampling_mm is None else round(half_sampling_mm, 6), "warnings": warnings,
+            "flags": flags,
             "thresholds": {"integrability_residual": MAX_INTEGRABILITY_RESIDUAL,
-                           "masked_fraction": MAX_MASKED_FRACTION, "bowl": "bowl_mm > relief_mm"}}
+                           "masked_fraction": MAX_MASKED_FRACTION, "bowl": "bowl_mm > relief_mm",
+                           "half_sampling": f"half_sampling_mm > {MAX_HALF_SAMPLING:g} x relief_rms_mm"}}
 
 
 def height_gradient(height, field_mm):

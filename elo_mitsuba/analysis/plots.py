@@ -140,13 +140,17 @@ def preview_gradient(dzdx, dzdy, field_mm, path, *, mask=None, title="Surface gr
     return save_figure(fig, path, overwrite)
 
 
-def preview_height(height, field_mm, path, *, mask=None, title="Height map", overwrite=False) -> Path:
+def preview_height(height, field_mm, path, *, mask=None, title="Height map", overwrite=False, warning=None) -> Path:
     """Height map Z(x, y) in mm (relative: up to a constant); ``title`` names how it was made (the
-    method), a second line the quantity, unit and the range over the measured pixels."""
+    method), a second line the quantity, unit and the range over the measured pixels, a third
+    ``warning`` when given (what the reconstruction's quality figures warn about)."""
     h = np.asarray(height, dtype=float)
     valid = np.isfinite(h) if mask is None else np.isfinite(h) & ~np.asarray(mask, bool)
     span = float(np.ptp(h[valid])) if valid.any() else 0.0
-    return preview_image(h, field_mm, path, title=f"{title}\nZ in mm, relative (zero mean); range {span:.3g} mm",
+    title = f"{title}\nZ in mm, relative (zero mean); range {span:.3g} mm"
+    if warning:
+        title += f"\nwarning: {warning}"
+    return preview_image(h, field_mm, path, title=title,
                          label="Z / mm (relative)", cmap=CMAP_HEIGHT, mask=mask, clip_percent=0.0,
                          overwrite=overwrite)
 
