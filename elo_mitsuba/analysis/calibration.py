@@ -87,8 +87,10 @@ def describe_displacement(moved_mm: float, sigma_mm: float, scale_mm: float | No
 #:   0.49 % at 128, 0.024 % for 0.5 % at 1024); Monte-Carlo renders (quality=scene) 0.04-0.10 %,
 #:   0.9-1.15 x their noise; athene_flat (the plate in a chamber, events 1+2) 0.04-0.24 %.
 #:   corrugated_sheet, the worst detector: 45 % (16 px), 66 % (32), 84 % (64), 20 % (128),
-#:   9.5 % (256), 5.9 % (1024); its noise estimate is the relief itself (20-55 % per pixel at 16,
-#:   32, 128 and 256 px). The bound there: 15, 15, 1.3, 7.5, 3.0, 1.0 %.
+#:   9.5 % (256), 5.9 % (1024). Its noise estimate was the relief itself (20-55 % per pixel at 16,
+#:   32, 128 and 256 px; bounds 15, 15, 1.3, 7.5, 3.0, 1.0 %) until :func:`~.noise.estimate_noise`
+#:   took the second differences along the ridges too: 0.16-0.22 % at 16-256 px, the bound the floor,
+#:   and at 32 px all four detectors refused (back and front at 8.5 %) where two were.
 #:   One dead pixel at 32 px, before outliers were left out: 3.5 % (bound 1 %); a hot one (x10): 31 %.
 #: The factor 3 leaves room for noise that is not white (neighbours' differences understate an
 #: amplifier's low-pass along the lines); the floor, for a real machine's departures from the disc

@@ -192,6 +192,10 @@ class InversionResult:
     steps : list of StepOffset
         The floating parts whose offset was searched in their shadows (:mod:`.step_offsets`), each
         ``lifted`` or ``kept``; empty when none floated or the local refinement did not run.
+    sampling : dict or None
+        With a single-ray beam and a gradient as the start: whether the scan resolves the relief
+        (:func:`~.inversion.start_resolution`: ``half_sampling_mm``, ``relief_rms_mm``,
+        ``warning``); where it warns, ``half_sampling_mm`` is in ``height_error`` in quadrature.
     """
 
     height: np.ndarray
@@ -215,6 +219,7 @@ class InversionResult:
     expected_misfit: float = 0.0
     regions: list = field(default_factory=list)
     steps: list = field(default_factory=list)
+    sampling: dict | None = None
     #: what :func:`height_uncertainty` needs of the solution, dropped once it has run
     _linearised: tuple | None = field(default=None, repr=False, compare=False)
 

@@ -43,7 +43,7 @@ import numpy as np
 from ..arguments import flag, real_array, shown, whole_number
 from ..errors import EloInputError
 from .layout import pixel_size
-from .sampling_check import MAX_HALF_SAMPLING
+from .sampling_check import MAX_HALF_SAMPLING, resolution_warning
 
 METHODS = ("dct", "fft", "masked", "robust")
 
@@ -637,13 +637,10 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling
         warnings.append(f"a field-wide tilt/bowl of {bowl:.3g} mm exceeds the relief of {relief:.3g} mm: a small "
                         "bias of the gradient integrates to that shape, so the height range is not measured relief "
                         "(local relief is)")
-    if half_sampling_mm is not None and half_sampling_mm > MAX_HALF_SAMPLING * relief_rms and half_sampling_mm > 1e-3 * pixel:
-        flags.append(f"relief not resolved (every other pixel: {half_sampling_mm:.3g} mm RMS)")
-        warnings.append(f"heights integrated from every other pixel differ from these by {half_sampling_mm:.3g} mm RMS, "
-                        f"{half_sampling_mm / max(relief_rms, 1e-300):.2g}x the relief's RMS of {relief_rms:.3g} mm: the "
-                        "scan does not resolve the relief (ridges, edges, cliffs or roughness of a few pixels: the slopes' "
-                        "samples do not fix the height between them), and the heights' error may be as large; smaller "
-                        "pixels help, and 'invert' where cliffs are the cause")
+    said = resolution_warning(half_sampling_mm, relief_rms, pixel)
+    if said:
+        warnings.append(f"{said[0]}; smaller pixels help, and 'invert' where cliffs are the cause")
+        flags.append(said[1])
     return {"integrability_residual": round(residual, 4), "masked_fraction": round(masked, 6),
             "bowl_mm": round(bowl, 6), "relief_mm": round(relief, 6), "relief_rms_mm": round(relief_rms, 6),
             "half_sampling_mm": None if half_sampling_mm is None else round(half_sampling_mm, 6), "warnings": warnings,

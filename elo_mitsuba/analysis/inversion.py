@@ -30,6 +30,7 @@ import numpy as np
 from ..budget import check_inversion
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
+from ..grid import pixel_size
 from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, NODES, SCALES, TOL, UNCERTAINTY_PROBES,
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
 from .local_inversion import refine_regions, threshold
@@ -71,18 +72,47 @@ def _fill_masked(a, mask, sigma=3.0):
     return out
 
 
-def start_heights(gradient, geometry) -> np.ndarray:
-    """Heights on the scan grid from a gradient result (e.g. the model gradient): masked slopes
-    filled from their neighbours, perspective slopes converted to the scan grid, DCT integration,
-    zero mean."""
-    from .integrate import integrate_dct, scan_grid_gradient
+def start_gradient(gradient, geometry) -> tuple[np.ndarray, np.ndarray]:
+    """The slopes :func:`start_heights` integrates: masked ones filled from their neighbours,
+    perspective ones converted to the scan grid."""
+    from .integrate import scan_grid_gradient
 
     gx = _fill_masked(np.asarray(gradient.dzdx, float), np.asarray(gradient.mask, bool))
     gy = _fill_masked(np.asarray(gradient.dzdy, float), np.asarray(gradient.mask, bool))
     if geometry.projection == "perspective":
         gx, gy = scan_grid_gradient(gx, gy, geometry.field_mm, geometry.work_distance_mm)
-    h = integrate_dct(gx, gy, geometry.field_mm)
+    return gx, gy
+
+
+def start_heights(gradient, geometry) -> np.ndarray:
+    """Heights on the scan grid from a gradient result (e.g. the model gradient): the slopes of
+    :func:`start_gradient`, DCT integration, zero mean."""
+    from .integrate import integrate_dct
+
+    h = integrate_dct(*start_gradient(gradient, geometry), geometry.field_mm)
     return h - h.mean()
+
+
+def start_resolution(gradient, geometry, h0):
+    """Whether a single-ray scan resolves the relief: :func:`.sampling_check.half_sampling` of the
+    start's slopes against its heights ``h0``, and the warning (None when it resolves it).
+
+    With a single-ray beam (fwhm 0) each pixel's images depend on the surface at its centre only,
+    so what the slopes' samples leave open between the centres the images leave open too: on the
+    corrugated sheet at 256^2 (ridges and valleys 2.3 pixels apart) the start's heights are off by
+    0.48 mm RMS and the inversion's, fitting the images to 0.05 %, by 0.38 mm, against a relief of
+    0.20 mm RMS. Returns ``(half_sampling_mm, relief_rms_mm, warning or None)``.
+    """
+    from .integrate import integrate_dct, reconstruction_quality
+    from .sampling_check import half_sampling, resolution_warning
+
+    gx, gy = start_gradient(gradient, geometry)
+    none = np.zeros(h0.shape, bool)
+    half = half_sampling(gx, gy, geometry.field_mm, h0, none,
+                         lambda x, y, f, m: (integrate_dct(x, y, f), np.zeros(x.shape, bool)))
+    quality = reconstruction_quality(gx, gy, geometry.field_mm, h0, none)
+    said = resolution_warning(half, quality["relief_rms_mm"], max(pixel_size(h0.shape, geometry.field_mm)))
+    return half, quality["relief_rms_mm"], None if said is None else said[0]
 
 
 def check_beam_and_start(geometry, fwhm_mm: float, heights=None, *, what: str = "start heights") -> None:
@@ -236,6 +266,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     if h0.shape != shape or not np.all(np.isfinite(h0)):
         raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")
     check_beam_and_start(geometry, fwhm_mm, h0)
+    resolution = start_resolution(start, geometry, h0) if hasattr(start, "dzdx") and fwhm_mm == 0 else None
     data = ScaleData(images, flats, later, flat_later, later_error, flat_later_error)
     budget = None if time_budget_s is None else float(time_budget_s)
     result, full = solve_field(data, geometry, h0, fwhm_mm=fwhm_mm, alpha=alpha, noise=noise, shadows=shadows,
@@ -282,5 +313,11 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         result.height_error_model = MODEL_SLOPE_GAIN * np.abs(result.height - np.mean(result.height))
         result.height_error = np.sqrt((result.height_error_noise ** 2) * np.maximum(chi2, 1.0) + offset ** 2
                                       + result.height_error_bias ** 2 + result.height_error_model ** 2)
+    if resolution is not None:
+        half, relief_rms, warning = resolution
+        result.sampling = {"half_sampling_mm": half, "relief_rms_mm": relief_rms, "warning": warning}
+        if warning and result.height_error is not None:  # what the images leave open, everywhere alike
+            result.height_error = np.sqrt(result.height_error ** 2 + half ** 2)
+    if result.height_error is not None:
         result.height_error_rms = float(np.sqrt(np.mean(result.height_error ** 2)))
     return result

@@ -95,3 +95,17 @@ def half_sampling(dzdx, dzdy, field_mm, height, mask_out, integrate) -> float | 
         total += float(np.sum(diff ** 2))
         count += diff.size
     return float(np.sqrt(total / count)) if count else None
+
+
+def resolution_warning(half_sampling_mm, relief_rms_mm, pixel_mm):
+    """The warning (without advice: the command adds its own) and its few words (a preview's
+    title) when :func:`half_sampling` exceeds :data:`MAX_HALF_SAMPLING` of the relief's RMS, else
+    None."""
+    if half_sampling_mm is None or not (half_sampling_mm > MAX_HALF_SAMPLING * relief_rms_mm
+                                        and half_sampling_mm > 1e-3 * pixel_mm):
+        return None
+    line = (f"heights integrated from every other pixel differ from these by {half_sampling_mm:.3g} mm RMS, "
+            f"{half_sampling_mm / max(relief_rms_mm, 1e-300):.2g}x the relief's RMS of {relief_rms_mm:.3g} mm: the "
+            "scan does not resolve the relief (ridges, edges, cliffs or roughness of a few pixels: the slopes' "
+            "samples do not fix the height between them), and the heights' error may be as large")
+    return line, f"relief not resolved (every other pixel: {half_sampling_mm:.3g} mm RMS)"

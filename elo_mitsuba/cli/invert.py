@@ -191,6 +191,8 @@ def run(args) -> int:
             "object_later_events": ("rendered from the start surface in the chamber" if args.chamber_later
                                     else "the flat plate's" if args.second_event else "none"),
             "calibration": args.calibration, **shares}
+    if res.sampling is not None:
+        meta["sampling"] = res.sampling
     write_inversion(out, res, geometry, untrusted=res.mask, metadata=meta, overwrite=args.overwrite)
     h = res.height
     print(f"wrote {out}: {scan.shape[1]}x{scan.shape[0]} px, {len(res.history) - 1} steps ({res.stopped}) in "
@@ -220,10 +222,15 @@ def run(args) -> int:
         noise_rms = float(np.sqrt(np.mean(res.height_error_noise ** 2)))
         print(f"height error: {1000 * res.height_error_rms:.3g} um RMS, of which the noise alone {1000 * noise_rms:.3g} "
               f"({1000 * float(res.height_error.max()):.3g} um at most; channels height_error, height_error_noise)")
+    if res.sampling is not None and res.sampling["warning"]:
+        print(f"elo-mitsuba: warning: the start's {res.sampling['warning']}; with a single-ray beam the images leave "
+              "open what the slopes do; height_error holds this figure; smaller pixels help", file=sys.stderr)
     if args.preview:
         from ..analysis.plots import preview_height
 
         preview_height(h, geometry.field_mm, args.preview, mask=res.mask if res.mask.any() else None,
-                       title="Height map (inversion)", overwrite=args.overwrite)
+                       title="Height map (inversion)", overwrite=args.overwrite,
+                       warning=None if res.sampling is None or not res.sampling["warning"] else
+                       f"relief not resolved (every other pixel: {res.sampling['half_sampling_mm']:.3g} mm RMS)")
         print(f"wrote {args.preview}")
     return 0
