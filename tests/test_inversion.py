@@ -430,11 +430,13 @@ def test_start_resolution_says_when_a_single_ray_scan_leaves_the_heights_open(re
     else:
         p = np.tile(np.where(((np.arange(n) + 0.5) / 4.56) % 1.0 < 0.5, 1.0, -1.0), (n, 1))
     start = SimpleNamespace(dzdx=p, dzdy=np.zeros((n, n)), mask=np.zeros((n, n), bool))
-    half, relief_rms, warning = start_resolution(start, geo, start_heights(start, geo))
+    said = start_resolution(start, geo, start_heights(start, geo))
+    half, relief_rms = said["half_sampling_mm"], said["relief_rms_mm"]
     if relief == "smooth":
-        assert warning is None and half < 0.02 * relief_rms
+        assert said["warning"] is None and said["flag"] is None and half < 0.02 * relief_rms
     else:
-        assert half > 0.25 * relief_rms and "does not resolve the relief" in warning
+        assert half > 0.25 * relief_rms and "does not resolve the relief" in said["warning"]
+        assert said["flag"].startswith("relief not resolved")
 
 
 def test_invert_states_what_a_single_ray_scan_of_ridges_leaves_open(tmp_path, capsys):

@@ -195,7 +195,8 @@ class InversionResult:
     sampling : dict or None
         With a single-ray beam and a gradient as the start: whether the scan resolves the relief
         (:func:`~.inversion.start_resolution`: ``half_sampling_mm``, ``relief_rms_mm``,
-        ``warning``); where it warns, ``half_sampling_mm`` is in ``height_error`` in quadrature.
+        ``warning``, ``flag``); where it warns, ``half_sampling_mm`` is in ``height_error`` in
+        quadrature.
     """
 
     height: np.ndarray

@@ -230,7 +230,6 @@ def run(args) -> int:
 
         preview_height(h, geometry.field_mm, args.preview, mask=res.mask if res.mask.any() else None,
                        title="Height map (inversion)", overwrite=args.overwrite,
-                       warning=None if res.sampling is None or not res.sampling["warning"] else
-                       f"relief not resolved (every other pixel: {res.sampling['half_sampling_mm']:.3g} mm RMS)")
+                       warning=None if res.sampling is None else res.sampling["flag"])
         print(f"wrote {args.preview}")
     return 0
