@@ -462,6 +462,18 @@ def test_invert_states_what_a_single_ray_scan_of_ridges_leaves_open(tmp_path, ca
     assert meta["height_error_rms_mm"] >= half > 0.1 and actual < 2 * meta["height_error_rms_mm"]
 
 
+@pytest.mark.parametrize("sigma, said", [(0.0, "negligible"), (1e-6, "negligible"), (0.01, "repeat --flat")])
+def test_the_noise_summary_advises_only_about_noise_there_is(sigma, said):
+    from elo_mitsuba.analysis.noise import noise_shares
+
+    rng = np.random.default_rng(3)
+    base = 1.0 + 0.1 * np.sin(np.mgrid[0:64, 0:64][1] / 9.0)
+    images = {n: base * (1 + sigma * rng.standard_normal(base.shape)) for n in ("right", "left", "back", "front")}
+    flats = {n: np.ones((64, 64)) * (1 + sigma * rng.standard_normal(base.shape)) for n in images}
+    shares, line = noise_shares(images, flats, 1)
+    assert said in line and ("repeat --flat" in line) == (said == "repeat --flat"), line
+
+
 @pytest.mark.parametrize("direction", ["none", "along y", "along x", "diagonal", "anti-diagonal"])
 def test_the_noise_level_does_not_take_straight_relief_for_noise(direction):
     """Ridges 3 pixels apart (melt tracks, the corrugated sheet at 256^2) in four images with 1 %

@@ -20,6 +20,10 @@ from ..constants import DETECTOR_NAMES
 MIN_FLAT = 1e-3
 #: The flat's share of the noise variance from which the summary suggests more recordings of it.
 FLAT_SHARE_ADVICE = 0.1
+#: Relative noise of the corrected images below which the summary says the noise is negligible
+#: and suggests nothing (a recording has 0.5-1 %; noise-free renders leave ~1e-7 of float32 and
+#: Monte Carlo residue, where "repeat --flat" would be advice about nothing).
+NEGLIGIBLE_NOISE = 1e-4
 
 
 #: The directions of the second differences (row step, column step): along rows, along columns
@@ -110,17 +114,20 @@ def noise_shares(images: Mapping, flats: Mapping | None, flat_count: int) -> tup
     if flats is None:
         return {}, ""
     so, sf = relative_noise(images), relative_noise(flats)
-    if not (np.isfinite(so) and np.isfinite(sf) and so + sf > 0):
+    if not (np.isfinite(so) and np.isfinite(sf)):
         return {}, ""
     n = flat_count
+    what = "1 recording" if n == 1 else f"the mean of {n} recordings"
+    line = f"image noise: object {100 * so:.2g} %, flat plate {100 * sf:.2g} % ({what}): "
+    shares = {"noise_object": so, "noise_flat": sf, "flat_recordings": n}
+    if np.hypot(so, sf) < NEGLIGIBLE_NOISE:
+        return shares, line + "negligible (images without noise, e.g. renders)"
     share = sf ** 2 / (so ** 2 + sf ** 2)
     more = sf ** 2 / 4 / (so ** 2 + sf ** 2 / 4)
-    what = "1 recording" if n == 1 else f"the mean of {n} recordings"
-    line = (f"image noise: object {100 * so:.2g} %, flat plate {100 * sf:.2g} % ({what}): the flat holds "
-            f"{100 * share:.0f} % of the corrected images' noise variance")
+    line += f"the flat holds {100 * share:.0f} % of the corrected images' noise variance"
     if share >= FLAT_SHARE_ADVICE:
         line += f"; the mean of {4 * n} flat recordings would hold {100 * more:.0f} % (repeat --flat)"
-    return {"noise_object": so, "noise_flat": sf, "flat_recordings": n}, line
+    return shares, line
 
 
 #: Window (pixels per side) over which a pixel's squared misfit is averaged (:func:`local_chi2`):
