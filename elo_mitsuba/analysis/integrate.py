@@ -67,6 +67,12 @@ ROBUST_CG_TOL = 1e-4
 MAX_INTEGRABILITY_RESIDUAL = 0.3
 #: Untrusted share of the pixels above which the height map covers too little of the field.
 MAX_MASKED_FRACTION = 0.5
+#: Share of the measured pixels outside the largest connected region above which the map is said
+#: to fall apart: each region's heights are relative to its own mean (no slope connects them). On
+#: the hills at 256^2 under 15-degree detectors with 1 % noise (34 % masked by shadows) 1.6 % of
+#: the measured pixels lay in 8 hilltops apart from the largest region, 1.7-2.3 mm off, which made
+#: the map's error 246 um RMS where the rest is 40 um; no warning was given.
+MAX_DETACHED_FRACTION = 0.005
 
 
 def _gradient_pair(dzdx, dzdy):
@@ -586,6 +592,9 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling
         (flat-field correction, Eq. 26 at steep flanks, noise) integrates to exactly such a
         quadric, so ``bowl_mm > relief_mm`` says the height *range* is not measured relief.
         ``relief_rms_mm``: the RMS of the height minus the quadric. ``half_sampling_mm`` as given.
+        ``regions``: connected regions of measured pixels, ``detached_fraction``: the share of
+        them outside the largest (warned above :data:`MAX_DETACHED_FRACTION`: their heights are
+        relative to their own means).
         ``warnings``: one line per figure above :data:`MAX_INTEGRABILITY_RESIDUAL`,
         :data:`MAX_MASKED_FRACTION`, a bowl larger than the relief, or a half-sampling difference
         above :data:`.sampling_check.MAX_HALF_SAMPLING` of the relief's RMS (the scan does not
@@ -610,8 +619,11 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling
     masked = float(bad.mean())
     bowl = relief = relief_rms = 0.0
     labels, n = ndimage.label(ok)
+    detached = 0.0
     if n:
-        largest = labels == 1 + int(np.argmax(ndimage.sum_labels(ok, labels, range(1, n + 1))))
+        sizes = ndimage.sum_labels(ok, labels, range(1, n + 1))
+        detached = float(1.0 - sizes.max() / sizes.sum())
+        largest = labels == 1 + int(np.argmax(sizes))
         rows, cols = np.nonzero(largest)
         if rows.size >= 6:
             step = max(1, rows.size // 250_000)  # a quadric needs few points; keep it fast
@@ -637,16 +649,23 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling
         warnings.append(f"a field-wide tilt/bowl of {bowl:.3g} mm exceeds the relief of {relief:.3g} mm: a small "
                         "bias of the gradient integrates to that shape, so the height range is not measured relief "
                         "(local relief is)")
+    if detached > MAX_DETACHED_FRACTION:
+        flags.append(f"{n} regions apart")
+        warnings.append(f"the measured pixels fall into {n} regions that masked pixels cut apart, "
+                        f"{100 * detached:.1f} % of them outside the largest: each region's heights are relative to its "
+                        "own mean (no slope connects them), so compare heights within one region only")
     said = resolution_warning(half_sampling_mm, relief_rms, pixel)
     if said:
         warnings.append(f"{said[0]}; smaller pixels help, and 'invert' where cliffs are the cause")
         flags.append(said[1])
     return {"integrability_residual": round(residual, 4), "masked_fraction": round(masked, 6),
             "bowl_mm": round(bowl, 6), "relief_mm": round(relief, 6), "relief_rms_mm": round(relief_rms, 6),
+            "regions": int(n), "detached_fraction": round(detached, 6),
             "half_sampling_mm": None if half_sampling_mm is None else round(half_sampling_mm, 6), "warnings": warnings,
             "flags": flags,
             "thresholds": {"integrability_residual": MAX_INTEGRABILITY_RESIDUAL,
-                           "masked_fraction": MAX_MASKED_FRACTION, "bowl": "bowl_mm > relief_mm",
+                           "masked_fraction": MAX_MASKED_FRACTION, "detached_fraction": MAX_DETACHED_FRACTION,
+                           "bowl": "bowl_mm > relief_mm",
                            "half_sampling": f"half_sampling_mm > {MAX_HALF_SAMPLING:g} x relief_rms_mm"}}
 
 

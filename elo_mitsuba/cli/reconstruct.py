@@ -47,6 +47,9 @@ How far the result can be trusted is printed and stored in the header ("quality"
   integrability residual  relative RMS misfit between the height map's gradient and the input
                           (0 = the gradient of a surface, ~0.7 = noise); warning above {res:g}
   masked fraction         share of pixels without height; warning above {mask:g}
+  regions                 connected regions of measured pixels; each has its own zero mean (no
+                          slope connects them): warning when more than {detached:g} of the measured
+                          pixels lie outside the largest
   bowl / relief           peak-to-valley of the best-fitting quadric (tilt + bowl) and of the
                           rest; a small gradient bias integrates to a bowl, so a bowl larger than
                           the relief is warned about: the height range is then not relief
@@ -72,6 +75,7 @@ examples:
 
 def add_parser(subparsers):
     from ..analysis.integrate import (
+        MAX_DETACHED_FRACTION,
         MAX_HALF_SAMPLING,
         MAX_INTEGRABILITY_RESIDUAL,
         MAX_MASKED_FRACTION,
@@ -82,6 +86,7 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "reconstruct", help="gradient EXR -> height map (normal integration)",
         description=DESCRIPTION.format(res=MAX_INTEGRABILITY_RESIDUAL, mask=MAX_MASKED_FRACTION, half=MAX_HALF_SAMPLING,
+                                       detached=MAX_DETACHED_FRACTION,
                                        wd=MAX_RELIEF_OVER_WORK_DISTANCE), epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("gradient", metavar="GRAD.exr", help="output of 'elo-mitsuba gradient'")
@@ -165,7 +170,10 @@ def run(args) -> int:
     print(f"wrote {out}: method {method}, {height.shape[1]}x{height.shape[0]} px, height range {span:.4g} mm, "
           f"{100 * mask_out.mean():.2f} % without height")
     print(f"quality: integrability residual {quality['integrability_residual']:.3f}, "
-          f"{100 * quality['masked_fraction']:.2f} % masked, bowl {quality['bowl_mm']:.3g} mm, "
+          f"{100 * quality['masked_fraction']:.2f} % masked"
+          + (f" in {quality['regions']} regions ({100 * quality['detached_fraction']:.1f} % outside the largest)"
+             if quality["regions"] > 1 else "")
+          + f", bowl {quality['bowl_mm']:.3g} mm, "
           f"relief {quality['relief_mm']:.3g} mm (RMS {quality['relief_rms_mm']:.3g} mm)"
           + ("" if quality["half_sampling_mm"] is None else
              f", every other pixel differs by {quality['half_sampling_mm']:.3g} mm RMS"))
