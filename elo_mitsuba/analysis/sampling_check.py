@@ -78,16 +78,17 @@ def half_sampling(dzdx, dzdy, field_mm, height, mask_out, integrate) -> float | 
 
     if min(np.shape(height)) < MIN_SIDE:
         return None
-    trusted = ~np.asarray(mask_out, dtype=bool)
+    masked = np.asarray(mask_out, dtype=bool)
+    trusted = ~masked
     labels, n = ndimage.label(trusted)
+    height = np.asarray(height, float)
     total = count = 0.0
     for sl in SUB_LATTICES:
-        sub_mask = None if mask_out is None else np.asarray(mask_out, dtype=bool)[sl]
-        h_sub, m_sub = integrate(dzdx[sl], dzdy[sl], field_mm, sub_mask)
+        h_sub, m_sub = integrate(dzdx[sl], dzdy[sl], field_mm, masked[sl])
         common = trusted[sl] & ~np.asarray(m_sub, dtype=bool)
         if not common.any():
             continue
-        diff = (np.asarray(h_sub, float) - np.asarray(height, float)[sl])[common]
+        diff = (np.asarray(h_sub, float) - height[sl])[common]
         lab = labels[sl][common]
         sums = np.bincount(lab, weights=diff, minlength=n + 1)
         counts = np.bincount(lab, minlength=n + 1)
