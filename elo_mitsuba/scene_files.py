@@ -359,7 +359,7 @@ def write_scene_copy(scene_path, source="athene_flat", *, overwrite: bool = Fals
 
 
 def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: bool = False,
-                overwrite: bool = False) -> Path:
+                face_normals: bool = True, overwrite: bool = False) -> Path:
     """Write a Mitsuba scene that renders ``mesh_path`` like ``scenes_xml/melt_plate.xml``.
 
     The scene is the shipped melt-plate scene with its mesh replaced: same parameters (layout,
@@ -368,6 +368,9 @@ def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: 
     relative to the scene file when possible. ``material`` (default Ti-6Al-4V) becomes the
     default of the ``material`` parameter; it is validated here. ``chamber``: the object inside
     the ATHENE-like chamber instead (``scenes_xml/melt_chamber.xml``, events default 2).
+    ``face_normals`` false: the renderer interpolates the mesh's vertex normals (a surface that
+    knows its own normals, :func:`~elo_mitsuba.mesh.heightmap_to_mesh`) instead of using each
+    triangle's.
     """
     from xml.sax.saxutils import escape
 
@@ -394,6 +397,8 @@ def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: 
         f'<default name="material" value="{DEFAULT_MATERIAL}"/>':
             f'<default name="material" value="{escape(material, {chr(34): "&quot;"})}"/>',
     }
+    if not face_normals:
+        replacements['<boolean name="face_normals" value="true"/>'] = '<boolean name="face_normals" value="false"/>'
     if chamber:
         replacements['<include filename="parts/chamber.xml"/>'] = (
             f'<include filename="{escape((src / "parts" / "chamber.xml").as_posix())}"/>')
@@ -417,6 +422,7 @@ def write_object_scene(folder, name: str, mesh, *, material: str | None = None, 
                        overwrite: bool = False) -> Path:
     """Write ``mesh`` (e.g. a surface of :mod:`elo_mitsuba.objects`) as ``folder/name.ply`` and a
     scene that renders it as ``folder/name.xml`` (:func:`write_scene`); returns the scene's path.
+    A mesh that carries its surface's own vertex normals is rendered with them, interpolated.
 
     Examples
     --------
@@ -428,4 +434,6 @@ def write_object_scene(folder, name: str, mesh, *, material: str | None = None, 
     folder = Path(folder)
     check_output(folder / f"{name}.xml", (".xml",), overwrite=overwrite, what="scene")  # before the mesh is written
     mesh_path = write_mesh(mesh, folder / f"{name}.ply", overwrite=overwrite)
-    return write_scene(folder / f"{name}.xml", mesh_path, material=material, chamber=chamber, overwrite=overwrite)
+    smooth = getattr(mesh, "metadata", {}).get("vertex_normals") is not None
+    return write_scene(folder / f"{name}.xml", mesh_path, material=material, chamber=chamber,
+                       face_normals=not smooth, overwrite=overwrite)

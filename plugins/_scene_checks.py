@@ -95,16 +95,27 @@ def check_scatterer(shape):
 
 def smoothed(shape, degrees: float = 1.0) -> bool:
     """Whether a mesh's vertex normals depart from its triangles' own by more than ``degrees``
-    somewhere (a flat shape turned into a mesh has them too, all equal to its face normal)."""
+    somewhere (a flat shape turned into a mesh has them too, all equal to its face normal).
+    Checked in blocks of triangles, stopping at the first that departs: a smooth mesh of millions
+    of triangles answers at once."""
     if not (shape.is_mesh() and shape.has_vertex_normals()):
         return False
     v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
     vn = np.array(shape.vertex_normals_buffer(), dtype=np.float64).reshape(-1, 3)
-    f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
-    cosines = np.einsum("fk,fjk->fj", fn, vn[f]) / np.maximum(np.linalg.norm(vn[f], axis=2), 1e-300)
-    return bool(np.any(cosines < np.cos(np.radians(degrees))))
+    faces = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+    limit = np.cos(np.radians(degrees))
+    for at in range(0, len(faces), _BLOCK):
+        f = faces[at:at + _BLOCK]
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+        cosines = np.einsum("fk,fjk->fj", fn, vn[f]) / np.maximum(np.linalg.norm(vn[f], axis=2), 1e-300)
+        if np.any(cosines < limit):
+            return True
+    return False
+
+
+#: Triangles per block of :func:`smoothed`.
+_BLOCK = 1 << 16
 
 
 def check_mesh(shape):

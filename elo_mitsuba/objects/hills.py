@@ -8,7 +8,8 @@ ridge or cliff, so the smooth surface an inversion reconstructs can be exact; un
 plate its relief is millimetres, far above the images' noise.
 
 :func:`hills_height` evaluates it at any (x, y) (scene mm); :func:`hills_mesh` triangulates it at a
-pitch fine enough that the mesh's facets are the smooth surface's (a third of the image pixel).
+third of the image pixel, with the surface's own normals at the vertices
+(:mod:`.surface_mesh`: the beam sees the surface's normal, not a triangle's).
 """
 
 from __future__ import annotations
@@ -43,14 +44,11 @@ def hills_height(x, y) -> np.ndarray:
     return z
 
 
-def hills_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margin_mm: float = 4.0):
+def hills_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margin_mm: float = 4.0,
+               smooth: bool = True):
     """The relief as a :class:`trimesh.Trimesh` over the field plus ``margin_mm``, at a pitch of
-    ``field_mm / resolution / oversample``."""
-    from ..heightmap import pixel_centres
-    from ..mesh import heightmap_to_mesh
+    ``field_mm / resolution / oversample``; ``smooth``: with its own normals at the vertices
+    (:func:`.surface_mesh.surface_mesh`), else flat triangles."""
+    from .surface_mesh import surface_mesh
 
-    pitch = field_mm / resolution / oversample
-    n = int(round((field_mm + margin_mm) / pitch))
-    xc, yc = pixel_centres((n, n), pitch)
-    xx, yy = np.meshgrid(xc, yc)
-    return heightmap_to_mesh(hills_height(xx, yy), pitch)
+    return surface_mesh(hills_height, field_mm / resolution / oversample, field_mm + margin_mm, smooth=smooth)

@@ -14,7 +14,7 @@ mixes the normals of a pit's rims and a smooth-surface estimate fails first.
   without a grid. Its RMS slope is RMS / CORRELATION (0.05).
 * A pore is a raised-cosine pit, ``-depth (1 + cos(pi r / R)) / 2`` for r < R; a bump the smooth
   cap ``height (1 - (r / R)^2)^2``. Both have a continuous slope, so a mesh fine enough
-  (:func:`rough_mesh`) is the surface itself.
+  (:func:`rough_mesh`, with the surface's own normals at its vertices) is the surface itself.
 
 :func:`defects` lists them (kind, centre, radius, height); :func:`near_defects` is the mask of
 pixels within a distance of any of them, where the validation reports its local errors.
@@ -131,6 +131,38 @@ def rough_height(x, y, seed: int = SEED) -> np.ndarray:
     return roughness_height(x, y, seed) + defect_height(x, y, seed)
 
 
+def rough_gradient(x, y, seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
+    """(dZ/dx, dZ/dy) of :func:`rough_height` at scene points (x, y), in closed form (a pore's
+    slope d (pi / 2R) sin(pi r / R) outward, a bump's -4 h r (1 - (r/R)^2) / R^2).
+
+    Examples
+    --------
+    >>> gx, gy = rough_gradient(3.0, -2.0)
+    >>> e = 1e-5
+    >>> bool(abs(gx - (rough_height(3.0 + e, -2.0) - rough_height(3.0 - e, -2.0)) / (2 * e)) < 1e-7)
+    True
+    """
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    k, phase, amp = _modes(seed)
+    gx, gy = np.zeros(x.shape), np.zeros(x.shape)
+    for (kx, ky), p in zip(k, phase):
+        s = np.sin(kx * x + ky * y + p)
+        gx -= kx * s
+        gy -= ky * s
+    gx, gy = amp * gx, amp * gy
+    for d in defects(seed):
+        dx, dy = x - d["x"], y - d["y"]
+        t = np.hypot(dx, dy) / d["radius"]
+        inside = t < 1.0
+        if d["kind"] == "pore":  # d/dr of h (1 + cos(pi t)) / 2, over r: -h pi^2 sinc(t) / (2 R^2)
+            per_r = -0.5 * np.pi ** 2 * d["height"] * np.sinc(t) / d["radius"] ** 2
+        else:  # d/dr of h (1 - t^2)^2, over r
+            per_r = -4.0 * d["height"] * (1.0 - t * t) / d["radius"] ** 2
+        gx += np.where(inside, per_r * dx, 0.0)
+        gy += np.where(inside, per_r * dy, 0.0)
+    return gx, gy
+
+
 def near_defects(x, y, distance_mm: float = 1.0, seed: int = SEED) -> np.ndarray:
     """True where a point lies within ``distance_mm`` of a defect's rim (or inside it).
 
@@ -148,10 +180,11 @@ def near_defects(x, y, distance_mm: float = 1.0, seed: int = SEED) -> np.ndarray
 
 
 def rough_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margin_mm: float = 4.0,
-               seed: int = SEED):
+               seed: int = SEED, smooth: bool = True):
     """The layer as a :class:`trimesh.Trimesh` over the field plus ``margin_mm``, at a pitch of
     ``field_mm / resolution / oversample`` (and at most a fifth of the smallest pore's radius, so
-    that its rims are resolved).
+    that its rims are resolved); ``smooth``: with its own normals at the vertices
+    (:func:`.surface_mesh.surface_mesh`), else flat triangles.
 
     Examples
     --------
@@ -159,11 +192,8 @@ def rough_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margin_
     >>> mesh.is_watertight, len(mesh.vertices) > 0
     (False, True)
     """
-    from ..heightmap import pixel_centres
-    from ..mesh import heightmap_to_mesh
+    from .surface_mesh import surface_mesh
 
     pitch = min(field_mm / resolution / oversample, PORE_RADIUS_MM[0] / 5.0)
-    n = int(round((field_mm + margin_mm) / pitch))
-    xc, yc = pixel_centres((n, n), pitch)
-    xx, yy = np.meshgrid(xc, yc)
-    return heightmap_to_mesh(rough_height(xx, yy, seed), pitch)
+    return surface_mesh(lambda x, y: rough_height(x, y, seed), pitch, field_mm + margin_mm, smooth=smooth,
+                        gradient=lambda x, y: rough_gradient(x, y, seed))

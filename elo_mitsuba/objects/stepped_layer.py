@@ -14,7 +14,7 @@ outline, :func:`step_height` measures a recovered step from a height map (median
 interior, inset from the cliff, minus the median of a ring outside it).
 
 :func:`stepped_height` evaluates the layer at any (x, y) (scene mm); :func:`stepped_mesh`
-triangulates it at a third of the image pixel, as :mod:`.hills` does.
+triangulates it at a third of the image pixel, as :mod:`.hills` does, the walls as flat cells.
 """
 
 from __future__ import annotations
@@ -154,7 +154,8 @@ def stepped_height(x, y) -> np.ndarray:
     return z
 
 
-def stepped_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margin_mm: float = 4.0):
+def stepped_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margin_mm: float = 4.0,
+                 smooth: bool = True):
     """The layer as a :class:`trimesh.Trimesh` over the field plus ``margin_mm``.
 
     Parameters
@@ -167,26 +168,29 @@ def stepped_mesh(field_mm: float, resolution: int, *, oversample: int = 3, margi
         Mesh cells per image pixel (3: a cliff becomes a wall a third of a pixel wide).
     margin_mm : float
         Extra width beyond the field (the beam lands off its aim point on relief).
+    smooth : bool
+        The relief with its own normals at the vertices, the walls flat
+        (:func:`.surface_mesh.surface_mesh`); False: flat triangles everywhere.
 
     Returns
     -------
     trimesh.Trimesh
-        One vertex per mesh node (:func:`elo_mitsuba.mesh.heightmap_to_mesh`).
+        One vertex per mesh node (:func:`elo_mitsuba.mesh.heightmap_to_mesh`), and vertices of
+        their own for the walls' cells.
 
     Examples
     --------
-    >>> mesh = stepped_mesh(80.0, 16, oversample=1)
+    >>> mesh = stepped_mesh(80.0, 16, oversample=1, smooth=False)
     >>> len(mesh.vertices) == 17 ** 2, round(float(mesh.vertices[:, 2].max()), 1)
     (True, 1.0)
     """
-    from ..heightmap import pixel_centres
-    from ..mesh import heightmap_to_mesh
+    from .surface_mesh import surface_mesh
 
-    pitch = field_mm / resolution / oversample
-    n = int(round((field_mm + margin_mm) / pitch))
-    xc, yc = pixel_centres((n, n), pitch)
-    xx, yy = np.meshgrid(xc, yc)
-    return heightmap_to_mesh(stepped_height(xx, yy), pitch)
+    def part(x, y):  # which patches a point lies in: it changes across every cliff
+        return sum((cliff_distance(p, x, y) < 0).astype(int) << k for k, p in enumerate(steps()))
+
+    return surface_mesh(stepped_height, field_mm / resolution / oversample, field_mm + margin_mm,
+                        smooth=smooth, part=part)
 
 
 def step_height(height, field_mm, patch: dict, *, inset_mm: float = 1.0, ring_mm: float = 2.0,
