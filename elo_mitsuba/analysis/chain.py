@@ -328,18 +328,19 @@ def model_geometry(scan: Scan, *, d_h: float | None = None, d_w: float | None = 
     return model
 
 
-def check_gradient_settings(method: str = "model", iterations: int | None = None, height_passes: int = 1) -> None:
+def check_gradient_settings(method: str = "model", iterations: int | None = None,
+                            height_passes: int | None = None) -> None:
     """Refuse settings :func:`gradient` cannot run with, before any image is read."""
     if iterations is not None and iterations < 1:
         raise EloInputError(f"--iterations {iterations}: need at least 1")
-    if height_passes not in (1, 2, 3):
-        raise EloInputError(f"--height-passes {height_passes}: choose 1, 2 or 3")
+    if height_passes is not None and (isinstance(height_passes, bool) or height_passes not in (1, 2, 3)):
+        raise EloInputError(f"--height-passes {height_passes}: choose 1, 2, 3 or auto")
     if method not in ("model", "eq26"):
         raise EloInputError(f"gradient method {method!r}: choose model or eq26")
 
 
 def gradient(scan: Scan, *, method: str = "model", geometry=None, iterations: int | None = None,
-             noise: float | None = None, second_event=None, height_passes: int = 1,
+             noise: float | None = None, second_event=None, height_passes: int | None = None,
              min_corrected: float | None = None, min_sum: float | None = None,
              min_denominator: float | None = None):
     """The surface gradient of one scan: the per-pixel model fit or the paper's Eq. 26.
@@ -359,8 +360,9 @@ def gradient(scan: Scan, *, method: str = "model", geometry=None, iterations: in
         Noise (std) of the corrected images; default: estimated.
     second_event : path, optional
         A render of the flat plate with ``--events >= 2``: its share of later events is taken out.
-    height_passes : int
-        Model fits, each with the landing points on the heights of the one before (1 to 3).
+    height_passes : int, optional
+        Model fits, each with the landing points on the heights of the one before (1 to 3); None:
+        2 where the relief needs them (:data:`~.model_gradient.AUTO_RELIEF_MM`).
     min_corrected, min_sum, min_denominator : float, optional
         Mask thresholds (corrected units; the denominator as a fraction of d_w, Eq. 26 only).
 
@@ -558,9 +560,9 @@ def invert(scan: Scan, geometry, *, fwhm_mm: float = 0.0, start=None, second_eve
     flat_later, share = read_later_events(second_event, scan.shape) if second_event else (None, None)
     flat_later_error = read_later_errors(second_event) if second_event else None
     if start is None and share is not None:  # the model gradient with the same later events removed
-        from .model_gradient import model_gradient
+        from .model_gradient import model_gradient_refined
 
-        start = model_gradient(scan.images, scan.flats, geometry, flat_second_event=share)
+        start = model_gradient_refined(scan.images, scan.flats, geometry, flat_second_event=share)
     later, later_error = flat_later, flat_later_error
     if chamber_later:
         from .later_events import later_events

@@ -175,7 +175,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         Field, beam, detectors (e.g. from the header or a calibration), material.
     start : ndarray (H, W) or GradientResult, optional
         Starting heights (mm), or a gradient to integrate (:func:`start_heights`); default: the
-        model gradient of the same images, integrated.
+        model gradient of the same images (a second pass on relief that needs it,
+        :func:`~.model_gradient.model_gradient_refined`), integrated.
     fwhm_mm : float
         Beam profile FWHM (mm) of the scan (the header's ``beam_fwhm_mm``).
     later, flat_later : mapping of str to ndarray, optional
@@ -260,9 +261,9 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     check_inversion(shape, iterations, scales, uncertainty_probes, force=force)
     t0 = time.perf_counter()
     if start is None:
-        from .model_gradient import model_gradient
+        from .model_gradient import model_gradient_refined
 
-        start = model_gradient(images, flats, geometry)
+        start = model_gradient_refined(images, flats, geometry)
     h0 = start_heights(start, geometry) if hasattr(start, "dzdx") else real_array("start heights", start)
     if h0.shape != shape or not np.all(np.isfinite(h0)):
         raise EloInputError(f"start heights must be finite and {shape[1]}x{shape[0]} px")

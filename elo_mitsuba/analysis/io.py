@@ -258,6 +258,7 @@ def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, sts
                          "dzdy_sigma": result.dzdy_sigma, "scale": result.scale})
         meta["noise"] = result.noise if np.isfinite(result.noise) else None
         meta["iterations"] = result.iterations
+        meta["height_passes"] = int(getattr(result, "height_passes", 1))
         meta["model_assumes"] = ("each pixel sees one flat facet (no shadowing by neighbours), a single-ray beam, "
                                  "the 1st event only")
     if model_geometry is not None:

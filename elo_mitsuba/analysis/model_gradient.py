@@ -34,6 +34,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
+from ..grid import pixel_size
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
 from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
 from .noise import local_chi2
@@ -56,6 +57,13 @@ RESIDUAL_SIGMAS = 6.0
 MIN_RESIDUAL = 1e-2
 #: Slopes beyond this are outside the model's range (a facet steeper than 80 deg).
 MAX_SLOPE = 5.7
+#: Relief (RMS of the first pass's integrated heights, mm) above which :func:`model_gradient_refined`
+#: fits again with the landing points on the surface. With them at z = 0 the heights came out off
+#: by 1.2-1.3 % of the relief's RMS, with them on the first pass's surface by 0.5 % (the hills scaled
+#: to 0.08-1.0 mm RMS, 128^2, single-ray beam, no noise: 1.11 -> 0.43 um at 0.084 mm, 12.1 -> 5.1 um
+#: at 1.0 mm); below this the first pass's error stays under 1 um. A pass costs about as much as the
+#: first (1500^2: 3.9 s for one, 4.9 s for two).
+AUTO_RELIEF_MM = 0.05
 #: median of chi^2 with one degree of freedom
 _CHI2_1_MEDIAN = 0.454936
 
@@ -76,6 +84,9 @@ class ModelGradientResult(GradientResult):
         Noise level of the corrected images used for the uncertainty (estimated or given).
     iterations : int
         Levenberg-Marquardt iterations run.
+    height_passes : int
+        Fits run, each with the landing points on the heights of the one before
+        (:func:`model_gradient_refined`).
     """
 
     residual: np.ndarray = None
@@ -84,6 +95,7 @@ class ModelGradientResult(GradientResult):
     scale: np.ndarray = None
     noise: float = float("nan")
     iterations: int = 0
+    height_passes: int = 1
 
 
 def _fit(model, points, beam, measured, weights, flat_model, p0, q0, iterations, fd_step):
@@ -359,19 +371,37 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
         scale=np.where(mask, z, s.reshape(shape)), noise=float(noise), iterations=int(iterations))
 
 
-def model_gradient_refined(images, flats, geometry, *, passes: int = 2, integrate=None, **kw) -> ModelGradientResult:
+def model_gradient_refined(images, flats, geometry, *, passes: int | None = None, **kw) -> ModelGradientResult:
     """:func:`model_gradient`, then again with the landing points on the integrated heights.
 
     Pass 2 moves each landing point onto the surface reconstructed from pass 1 (normal
-    integration, :func:`~.integrate.integrate_gradient`, its mean set to 0): it matters for
-    relief of several mm, where the beam lands off its z = 0 aim point and the detectors are seen
-    from a different height.
+    integration, :func:`~.integrate.integrate_gradient`, its mean set to 0): the beam lands off its
+    z = 0 aim point and the detectors are seen from another height. ``passes`` None: a second pass
+    where the first pass's relief exceeds :data:`AUTO_RELIEF_MM` RMS and its heights resolve it
+    (:func:`.sampling_check.resolution_warning` says nothing): on relief the scan does not resolve
+    the integrated heights are further off than z = 0. The corrugated sheet's slopes of exactly
+    +-1 came out 7e-4 off (median) with one pass, 2.3e-3 with two at 256^2 and 3.8e-3 at 40^2,
+    where its heights err by 0.4 mm RMS against a relief of +-0.35 mm.
     """
-    from .integrate import integrate_gradient
+    from .integrate import integrate_gradient, reconstruction_quality
+    from .sampling_check import half_sampling, resolution_warning
 
     res = model_gradient(images, flats, geometry, **kw)
-    for _ in range(int(passes) - 1):
+    done, want = 1, None if passes is None else int(passes)
+    while want is None or done < want:
         height, _ = integrate_gradient(res.dzdx, res.dzdy, geometry.field_mm, mask=res.mask)
-        height = height - np.mean(height[~res.mask]) if (~res.mask).any() else height
+        keep = ~res.mask if (~res.mask).any() else np.ones(res.mask.shape, bool)
+        height = height - np.mean(height[keep])
+        if want is None:
+            if np.sqrt(np.mean(height[keep] ** 2)) <= AUTO_RELIEF_MM:
+                break
+            half = half_sampling(res.dzdx, res.dzdy, geometry.field_mm, height, res.mask,
+                                 lambda gx, gy, field, m: integrate_gradient(gx, gy, field, mask=m))
+            relief = reconstruction_quality(res.dzdx, res.dzdy, geometry.field_mm, height, res.mask)["relief_rms_mm"]
+            if resolution_warning(half, relief, max(pixel_size(res.mask.shape, geometry.field_mm))):
+                break
+            want = 2
         res = model_gradient(images, flats, geometry, heights=height, start=res, **kw)
+        done += 1
+    res.height_passes = done
     return res

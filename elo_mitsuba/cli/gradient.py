@@ -54,6 +54,19 @@ examples:
 """
 
 
+def height_passes(text: str) -> int | None:
+    """``--height-passes``: 1, 2, 3, or auto (None)."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n not in (1, 2, 3):
+        raise argparse.ArgumentTypeError(f"{text!r}: choose 1, 2, 3 or auto")
+    return n
+
+
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "gradient", help="four detector images -> surface gradient (model fit or Eq. 26) and mask",
@@ -71,8 +84,12 @@ def add_parser(subparsers):
     mod.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its share of later "
                           "events is taken out of the flat and the object images (the model is 1st-event only)")
-    mod.add_argument("--height-passes", type=int, default=1, metavar="N",
-                     help="2: refit with the landing points on the integrated heights (relief of several mm)")
+    mod.add_argument("--height-passes", type=height_passes, default=None, metavar="N",
+                     help="fits, each with the beam's landing points on the heights integrated from the one "
+                          "before: 1, 2, 3, or auto (default: 2 where the first pass's relief exceeds 50 um RMS, "
+                          "analysis.model_gradient.AUTO_RELIEF_MM, and the scan resolves it; with the landing "
+                          "points at z = 0 heights come "
+                          "out about 1.3 %% of the relief off, on the surface 0.5 %%)")
     p.add_argument("--event", type=int, metavar="K",
                    help="use the per-event channels right.eK ... instead of the totals")
     thr = p.add_argument_group("mask thresholds")
@@ -116,7 +133,7 @@ def run(args) -> int:
         for flag in ("calibration", "iterations", "noise", "radius", "wd", "projection", "material", "second_event"):
             if getattr(args, flag) is not None:
                 raise EloInputError(f"--{flag.replace('_', '-')} applies to --method model only")
-        if args.height_passes != 1:
+        if args.height_passes is not None:
             raise EloInputError("--height-passes applies to --method model only")
     elif args.min_denominator is not None:
         raise EloInputError("--min-denominator applies to --method eq26 only (the model has no denominator)")
@@ -143,7 +160,8 @@ def run(args) -> int:
                    overwrite=args.overwrite, method=args.method, model_geometry=model, calibration=args.calibration)
     extra = ""
     if model is not None:
-        extra = (f", noise {res.noise:.2g}, median uncertainty of dZ/dx "
+        passes = res.height_passes
+        extra = (f", {passes} height pass{'es' if passes > 1 else ''}, noise {res.noise:.2g}, median uncertainty of dZ/dx "
                  f"{np.median(res.dzdx_sigma[~res.mask]) if (~res.mask).any() else float('nan'):.2g}")
     shape = scan.shape
     print(f"wrote {out}: {shape[1]}x{shape[0]} px, field {geo['field_mm'][0]:g}x{geo['field_mm'][1]:g} mm, "
