@@ -102,3 +102,20 @@ def test_benchmark_usage_errors_are_one_line(capsys):
         rc = exc.code
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "--bogus" in err[0], err
+
+
+def test_a_reader_that_leaves_ends_the_command_quietly(tmp_path):
+    """`elo-mitsuba ... | head -1`: the closed pipe ends the command with SIGPIPE's status (141) and
+    no traceback, where Python would print one (BrokenPipeError) and again at exit."""
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    height = tmp_path / "h.npy"
+    np.save(height, np.zeros((8, 8)))
+    code = ("import sys, os; r, w = os.pipe(); os.close(r); os.dup2(w, 1); from elo_mitsuba.cli import main; "
+            f"sys.exit(main(['mesh', {str(height)!r}, '-o', {str(tmp_path / 'h.ply')!r}, '--pixel-size', '1']))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 141, (p.returncode, p.stderr)
+    assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr, p.stderr

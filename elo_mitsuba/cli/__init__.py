@@ -100,7 +100,21 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("elo-mitsuba: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader left (`... | head -1`): stop quietly, as a command SIGPIPE ends
+        _quiet_stdout()
+        return 141
     return int(result or 0)
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null, so that Python's flush at exit does not fail on the closed pipe."""
+    import os
+
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover
