@@ -517,3 +517,23 @@ def test_the_shadow_march_skips_only_what_no_surface_can_block(block, monkeypatc
     shadowed = int((~plain).sum())
     assert shadowed > 0.02 * plain.size                     # the case has shadows to lose
     assert int((plain != skipping).sum()) <= 0.002 * shadowed
+
+
+def test_a_bowl_larger_than_the_relief_enters_the_error(mi):
+    """A result holding a field-wide bowl larger than its relief (a start whose slopes carried a bias,
+    kept: here no steps) is flagged, and height_error covers the bowl where the noise part alone
+    would not; the same relief without the bowl is not flagged."""
+    shape = (32, 32)
+    geo = ScanGeometry.nominal(shape, 80.0, 272, 127, projection="orthographic")
+    x, y = pixel_coordinates(shape, geo.field_mm)
+    truth = 0.02 * np.sin(x / 3.0) * np.cos(y / 4.0)
+    flat = HeightModel(geo, shadows=False, nodes=NODES).images(np.zeros(shape))
+    img = HeightModel(geo, nodes=NODES).images(truth)
+    bowl = 1.5e-3 * (x * x + y * y)
+    bowl -= bowl.mean()
+    kept = invert_heights(img, flat, geo, start=truth + bowl, iterations=0, local=False)
+    assert kept.bowl is not None and kept.bowl["bowl_mm"] > kept.bowl["relief_mm"]
+    err = np.abs(kept.height - truth - np.mean(kept.height - truth))
+    assert np.mean(err <= kept.height_error) > 0.9, np.mean(err <= kept.height_error)
+    assert np.mean(err <= kept.height_error_noise) < 0.5
+    assert invert_heights(img, flat, geo, start=truth, iterations=0, local=False).bowl is None

@@ -197,6 +197,10 @@ class InversionResult:
         (:func:`~.inversion.start_resolution`: ``half_sampling_mm``, ``relief_rms_mm``,
         ``warning``, ``flag``); where it warns, ``half_sampling_mm`` is in ``height_error`` in
         quadrature.
+    bowl : dict or None
+        Where the heights hold a field-wide bowl larger than their relief
+        (:func:`~.inversion.bowl_check`: ``bowl_mm``, ``relief_mm``, ``warning``, ``flag``); the
+        bowl is then in ``height_error`` in quadrature.
     """
 
     height: np.ndarray
@@ -221,6 +225,7 @@ class InversionResult:
     regions: list = field(default_factory=list)
     steps: list = field(default_factory=list)
     sampling: dict | None = None
+    bowl: dict | None = None
     #: what :func:`height_uncertainty` needs of the solution, dropped once it has run
     _linearised: tuple | None = field(default=None, repr=False, compare=False)
 

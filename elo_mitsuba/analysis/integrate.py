@@ -565,6 +565,27 @@ def resolve_method(method: str, dzdx, dzdy, mask=None) -> str:
     return "masked" if bad.any() else "dct"
 
 
+def fit_quadric(height, where) -> tuple[np.ndarray | None, float, float, float]:
+    """The best-fitting quadric of ``height`` over the pixels ``where`` (least squares in the
+    pixel coordinates): its values on the whole map (None for fewer than 6 pixels), its range (the
+    bowl, mm), and the range and RMS of the heights about it there (the relief)."""
+    z = np.asarray(height, dtype=float)
+    rows, cols = np.nonzero(where)
+    if rows.size < 6:
+        return None, 0.0, 0.0, 0.0
+
+    def basis(r, c):
+        x = c / max(z.shape[1] - 1, 1) - 0.5
+        y = r / max(z.shape[0] - 1, 1) - 0.5
+        return np.stack([np.ones_like(x), x, y, x * x, y * y, x * y], axis=-1)
+
+    step = max(1, rows.size // 250_000)  # a quadric needs few points; keep it fast
+    coef, *_ = np.linalg.lstsq(basis(rows, cols)[::step], z[rows, cols][::step], rcond=None)
+    quad = basis(*np.indices(z.shape).astype(float)) @ coef
+    about = z[rows, cols] - quad[rows, cols]
+    return quad, float(np.ptp(quad[rows, cols])), float(np.ptp(about)), float(np.std(about))
+
+
 def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling_mm: float | None = None) -> dict:
     """How far a height map can be trusted: figures computed from its input and itself.
 
@@ -623,18 +644,7 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling
     if n:
         sizes = ndimage.sum_labels(ok, labels, range(1, n + 1))
         detached = float(1.0 - sizes.max() / sizes.sum())
-        largest = labels == 1 + int(np.argmax(sizes))
-        rows, cols = np.nonzero(largest)
-        if rows.size >= 6:
-            step = max(1, rows.size // 250_000)  # a quadric needs few points; keep it fast
-            x = cols / max(z.shape[1] - 1, 1) - 0.5
-            y = rows / max(z.shape[0] - 1, 1) - 0.5
-            basis = np.stack([np.ones_like(x), x, y, x * x, y * y, x * y], axis=1)
-            coef, *_ = np.linalg.lstsq(basis[::step], z[rows, cols][::step], rcond=None)
-            quad = basis @ coef
-            bowl = float(np.ptp(quad))
-            relief = float(np.ptp(z[rows, cols] - quad))
-            relief_rms = float(np.std(z[rows, cols] - quad))
+        _, bowl, relief, relief_rms = fit_quadric(z, labels == 1 + int(np.argmax(sizes)))
     warnings, flags = [], []
     if residual > MAX_INTEGRABILITY_RESIDUAL:
         flags.append(f"not the gradient of a surface (residual {residual:.2f})")

@@ -193,6 +193,8 @@ def run(args) -> int:
             "calibration": args.calibration, **shares}
     if res.sampling is not None:
         meta["sampling"] = res.sampling
+    if res.bowl is not None:
+        meta["bowl"] = res.bowl
     write_inversion(out, res, geometry, untrusted=res.mask, metadata=meta, overwrite=args.overwrite)
     h = res.height
     print(f"wrote {out}: {scan.shape[1]}x{scan.shape[0]} px, {len(res.history) - 1} steps ({res.stopped}) in "
@@ -225,11 +227,14 @@ def run(args) -> int:
     if res.sampling is not None and res.sampling["warning"]:
         print(f"elo-mitsuba: warning: the start's {res.sampling['warning']}; with a single-ray beam the images leave "
               "open what the slopes do; height_error holds this figure; smaller pixels help", file=sys.stderr)
+    if res.bowl is not None:
+        print(f"elo-mitsuba: warning: {res.bowl['warning']}", file=sys.stderr)
     if args.preview:
         from ..analysis.plots import preview_height
 
+        flags = [said["flag"] for said in (res.sampling, res.bowl) if said is not None and said.get("warning")]
         preview_height(h, geometry.field_mm, args.preview, mask=res.mask if res.mask.any() else None,
                        title="Height map (inversion)", overwrite=args.overwrite,
-                       warning=None if res.sampling is None else res.sampling["flag"])
+                       warning="; ".join(flags) or None)
         print(f"wrote {args.preview}")
     return 0
