@@ -261,3 +261,13 @@ def test_gradient_cli_methods(sawtooth_renders, tmp_path):
     assert main([*base, "-o", str(tmp_path / "x.exr"), "--min-denominator", "0.1"]) == 2
     assert main([*base, "-o", str(tmp_path / "x.exr"), "--radius", "20"]) == 2  # the header has the discs
     assert not (tmp_path / "x.exr").exists()
+
+
+@pytest.mark.parametrize("passes", [0, 4, 1.5, True, "2"])
+def test_passes_refused_before_work(passes):
+    """A number of fits that is not 1, 2, 3 or None is refused in one line, before any image is read."""
+    from elo_mitsuba.analysis.model_gradient import model_gradient_refined
+    from elo_mitsuba.errors import EloInputError
+
+    with pytest.raises(EloInputError, match="choose 1, 2, 3 or None"):
+        model_gradient_refined({}, {}, None, passes=passes)

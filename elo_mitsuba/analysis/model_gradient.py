@@ -386,6 +386,8 @@ def model_gradient_refined(images, flats, geometry, *, passes: int | None = None
     from .integrate import fit_quadric, integrate_gradient
     from .sampling_check import half_sampling, resolution_warning
 
+    if passes is not None and (isinstance(passes, bool) or passes not in (1, 2, 3)):
+        raise EloInputError(f"passes={passes!r}: choose 1, 2, 3 or None (auto)")
     res = model_gradient(images, flats, geometry, **kw)
     done, want = 1, None if passes is None else int(passes)
     while want is None or done < want:
