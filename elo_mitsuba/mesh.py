@@ -417,6 +417,9 @@ def write_mesh(mesh, path, *, overwrite: bool = False) -> Path:
     normals = mesh.metadata.get("vertex_normals") if hasattr(mesh, "metadata") else None
     normal_props = ""
     if normals is not None:
+        if np.shape(normals) != vertices.shape:
+            raise EloInputError(f"{path}: the mesh's vertex normals are {np.shape(normals)}, its vertices "
+                                f"{vertices.shape} (a mesh changed after heightmap_to_mesh gave it normals?)")
         table = np.empty(len(vertices), dtype=[("p", "<f4", (3,)), ("n", "<f4", (3,))])
         table["p"], table["n"] = vertices, np.asarray(normals, float)
         vertices, normal_props = table, "property float nx\nproperty float ny\nproperty float nz\n"

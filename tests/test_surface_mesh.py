@@ -95,3 +95,12 @@ def test_renderer_sees_the_surface_normal(mi, tmp_path):
         if smooth:
             assert np.abs(rel).max() < 1e-3, np.abs(rel).max()
     assert rms[False] > 3e-3, rms  # what the test is about: flat triangles see another normal
+
+
+def test_normals_that_no_longer_fit_the_vertices_are_refused(tmp_path):
+    """A mesh whose vertices changed after it was given normals: refused in one line, nothing written."""
+    mesh = surface_mesh(lambda x, y: 0.0 * x, 0.5, 2.0)
+    mesh.metadata["vertex_normals"] = mesh.metadata["vertex_normals"][:-1]
+    with pytest.raises(EloInputError, match="vertex normals are"):
+        write_mesh(mesh, tmp_path / "m.ply")
+    assert not (tmp_path / "m.ply").exists()
