@@ -105,16 +105,12 @@ def start_resolution(gradient, geometry, h0) -> dict:
     0.20 mm RMS. Returns ``half_sampling_mm``, ``relief_rms_mm`` and, where the test fails,
     ``warning`` and ``flag`` (:func:`.sampling_check.resolution_warning`; else None).
     """
-    from .integrate import integrate_dct, reconstruction_quality
-    from .sampling_check import half_sampling, resolution_warning
+    from .integrate import integrate_dct
+    from .sampling_check import resolution
 
     gx, gy = start_gradient(gradient, geometry)
-    none = np.zeros(h0.shape, bool)
-    half = half_sampling(gx, gy, geometry.field_mm, h0, none,
-                         lambda x, y, f, m: (integrate_dct(x, y, f), np.zeros(x.shape, bool)))
-    relief_rms = reconstruction_quality(gx, gy, geometry.field_mm, h0, none)["relief_rms_mm"]
-    said = resolution_warning(half, relief_rms, max(pixel_size(h0.shape, geometry.field_mm))) or (None, None)
-    return {"half_sampling_mm": half, "relief_rms_mm": relief_rms, "warning": said[0], "flag": said[1]}
+    return resolution(gx, gy, geometry.field_mm, h0, np.zeros(h0.shape, bool),
+                      lambda x, y, f, m: (integrate_dct(x, y, f), np.zeros(x.shape, bool)))
 
 
 def bowl_check(height, field_mm) -> tuple[dict | None, np.ndarray | None]:

@@ -34,7 +34,6 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
-from ..grid import pixel_size
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
 from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
 from .noise import local_chi2
@@ -383,8 +382,8 @@ def model_gradient_refined(images, flats, geometry, *, passes: int | None = None
     +-1 came out 7e-4 off (median) with one pass, 2.3e-3 with two at 256^2 and 3.8e-3 at 40^2,
     where its heights err by 0.4 mm RMS against a relief of +-0.35 mm.
     """
-    from .integrate import fit_quadric, integrate_gradient
-    from .sampling_check import half_sampling, resolution_warning
+    from .integrate import integrate_gradient
+    from .sampling_check import resolution
 
     if passes is not None and (isinstance(passes, bool) or passes not in (1, 2, 3)):
         raise EloInputError(f"passes={passes!r}: choose 1, 2, 3 or None (auto)")
@@ -397,10 +396,8 @@ def model_gradient_refined(images, flats, geometry, *, passes: int | None = None
         if want is None:
             if np.sqrt(np.mean(height[keep] ** 2)) <= AUTO_RELIEF_MM:
                 break
-            half = half_sampling(res.dzdx, res.dzdy, geometry.field_mm, height, res.mask,
-                                 lambda gx, gy, field, m: integrate_gradient(gx, gy, field, mask=m))
-            relief = fit_quadric(height, keep)[3]
-            if resolution_warning(half, relief, max(pixel_size(res.mask.shape, geometry.field_mm))):
+            if resolution(res.dzdx, res.dzdy, geometry.field_mm, height, res.mask,
+                          lambda gx, gy, field, m: integrate_gradient(gx, gy, field, mask=m))["warning"]:
                 break
             want = 2
         res = model_gradient(images, flats, geometry, heights=height, start=res, **kw)

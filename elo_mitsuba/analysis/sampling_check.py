@@ -98,6 +98,21 @@ def half_sampling(dzdx, dzdy, field_mm, height, mask_out, integrate) -> float | 
     return float(np.sqrt(total / count)) if count else None
 
 
+def resolution(dzdx, dzdy, field_mm, height, mask_out, integrate) -> dict:
+    """Whether the scan resolves the relief of ``height`` (integrated from ``dzdx``, ``dzdy`` by
+    ``integrate``, as for :func:`half_sampling`): ``half_sampling_mm``, ``relief_rms_mm`` (the RMS
+    about the best-fitting quadric of the pixels with a height) and, where
+    :func:`resolution_warning` fires, its ``warning`` and ``flag`` (else None)."""
+    from ..grid import pixel_size
+    from .integrate import fit_quadric
+
+    height = np.asarray(height, float)
+    half = half_sampling(dzdx, dzdy, field_mm, height, mask_out, integrate)
+    relief_rms = round(fit_quadric(height, ~np.asarray(mask_out, dtype=bool))[3], 6)
+    said = resolution_warning(half, relief_rms, max(pixel_size(height.shape, field_mm))) or (None, None)
+    return {"half_sampling_mm": half, "relief_rms_mm": relief_rms, "warning": said[0], "flag": said[1]}
+
+
 def resolution_warning(half_sampling_mm, relief_rms_mm, pixel_mm):
     """The warning (without advice: the command adds its own) and its few words (a preview's
     title) when :func:`half_sampling` exceeds :data:`MAX_HALF_SAMPLING` of the relief's RMS, else
