@@ -121,6 +121,20 @@ def test_offset_errors_zero_on_one_connected_field():
     assert not floating.any() and not error.any()
 
 
+def test_offset_errors_cover_a_part_that_only_a_ramp_cuts_off():
+    # a 70 um step whose misfit lies above the noise on two of its walls: no band of misfit closes
+    # round it, its ramp does; given the pixel size its offset is an uncertainty on its pixels
+    h = np.zeros((60, 60))
+    h[20:40, 20:40] = 0.07
+    chi2 = np.ones((60, 60))
+    chi2[19:41, 19:21] = chi2[19:41, 39:41] = 3.0
+    floating, error = offset_errors(h, chi2, 2.0)
+    assert not floating.any()
+    floating, error = offset_errors(h, chi2, 2.0, pixel_mm=(0.2, 0.2))
+    assert floating[30, 30] and not floating[5, 5]
+    assert error[30, 30] == pytest.approx(0.07) and error[5, 5] == 0.0
+
+
 def test_model_gradient_sigma_covers_a_misfit_above_the_noise():
     from elo_mitsuba.analysis.model_gradient import model_gradient
 

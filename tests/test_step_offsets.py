@@ -111,6 +111,75 @@ def test_a_lift_that_would_shrink_the_solves_step_is_refused(square_case):
     assert _step(res.height, inside, powder) > 1.5 * step
 
 
+def _small_cliff_case():
+    """A 0.1 mm square the solve left as a smeared ramp of two thirds of it, its misfit above the
+    noise on two of its four walls only (as on the stepped layer's 0.1 mm cliffs, 56-65 % of the
+    wall): no band of misfit closes round it, the ramp does."""
+    from scipy.ndimage import binary_dilation, binary_erosion, gaussian_filter
+
+    from elo_mitsuba.analysis.height_solver import ALPHA_PER_NOISE2
+
+    step, noise = 0.1, 0.003
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    yy, xx = np.mgrid[0:4 * N, 0:4 * N].astype(float)
+    fine = step * ((np.abs(yy - 127.5) < 40) & (np.abs(xx - 127.5) < 40))
+    rng = np.random.default_rng(5)
+    lin = SuperResolvedModel(geo, 4, fwhm_mm=FWHM).evaluate(corners_from_pixels(fine))
+    img = {k: lin.images[i] * (1 + noise * rng.standard_normal((N, N))) for i, k in enumerate(geo.detectors)}
+    flat = {k: v * (1 + noise * rng.standard_normal(v.shape))
+            for k, v in HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N))).items()}
+    part = fine[::4, ::4] > 0
+    height = gaussian_filter(step * 2.0 / 3.0 * part.astype(float), 0.7)
+    expected = noise * np.sqrt(2)
+    misfit = np.full((N, N), expected)
+    gy, gx = np.gradient(height, 0.2)
+    wall = np.hypot(gx, gy) > 0.06
+    half = np.zeros((N, N), bool)
+    half[:, :N // 2] = half[:N // 2, :] = True
+    misfit[wall & half] = 3.0 * expected
+    kw = dict(fwhm_mm=FWHM, noise=expected, alpha=ALPHA_PER_NOISE2 * expected ** 2)
+    inside, powder = binary_erosion(part, iterations=3), ~binary_dilation(part, iterations=8)
+    return step, height, misfit, expected, img, flat, geo, kw, inside, powder
+
+
+def test_a_cliff_whose_misfit_does_not_close_round_it_is_found_by_its_ramp_and_lifted():
+    from elo_mitsuba.analysis.local_inversion import threshold
+    from elo_mitsuba.analysis.noise import local_chi2
+    from elo_mitsuba.analysis.step_offsets import edge_parts, floating_parts, search_offsets
+
+    step, height, misfit, expected, img, flat, geo, kw, inside, powder = _small_cliff_case()
+    limit = threshold()
+    chi2 = local_chi2(misfit, expected)
+    assert floating_parts(chi2, limit) == []
+    assert [int(c.sum()) for c, _, _ in edge_parts(height, chi2, limit, (0.2, 0.2))] == [324]
+    out, parts, error = search_offsets(height, misfit, expected, limit, img, flat, geo, **kw)
+    assert [p.status for p in parts] == ["lifted"]
+    assert abs(_step(height, inside, powder) - step) > 0.3 * step  # the solve's two thirds
+    assert abs(_step(out, inside, powder) - step) < 0.1 * step, _step(out, inside, powder)
+    assert abs(parts[0].step_after - step) <= parts[0].error
+    # the same ramp where the images agree with it (misfit at the noise): not a part
+    assert edge_parts(height, local_chi2(np.full((N, N), expected), expected), limit, (0.2, 0.2)) == []
+
+
+def test_a_steep_band_is_a_cliff_only_against_the_fields_own_slopes():
+    # a 70 um step with misfit everywhere is a part; on a field whose slopes are steep everywhere
+    # (ridges of slope up to 0.09, median 0.06, as on rough relief) its ramp does not stand out and
+    # cuts nothing off; a part that a band of misfit already cuts off is floating_parts' alone
+    from elo_mitsuba.analysis.step_offsets import edge_parts, floating_parts
+
+    h = np.zeros((60, 60))
+    h[20:40, 20:40] = 0.07
+    chi2 = np.full((60, 60), 3.0)
+    assert [int(c.sum()) for c, _, _ in edge_parts(h, chi2, 2.0, (0.2, 0.2))] == [324]
+    ridged = h + 0.03 * np.sin(2 * np.pi * 0.2 * np.arange(60) / 2.0)[None, :]
+    assert edge_parts(ridged, chi2, 2.0, (0.2, 0.2)) == []
+    closed = np.ones((60, 60))
+    closed[18:42, 18:42] = 3.0
+    closed[21:39, 21:39] = 1.0
+    assert len(floating_parts(closed, 2.0)) == 1
+    assert edge_parts(h, closed, 2.0, (0.2, 0.2)) == []
+
+
 def test_a_step_whose_shadow_leaves_the_window_is_not_searched():
     # a 5 mm plateau (the top of a hill cut off by masked slopes): its shadow at 40 degrees reaches
     # 6 mm, beyond the window's 3.2 mm margin, so the search would measure nothing; reported, kept

@@ -324,6 +324,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         if result.regions:
             result.stopped += f"; {len(result.regions)} region(s) above the noise, {refined} refined"
     limit = threshold(detectors=len(full.names))
+    pixel = pixel_size(shape, geometry.field_mm)
     known = None
     if local and iterations > 0 and in_time():
         lifted, result.steps, known = search_offsets(result.height, result.misfit, result.expected_misfit, limit,
@@ -335,13 +336,13 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
             take_heights(full, result, lifted)
             result.stopped += f"; {n_lifted} of {len(result.steps)} floating part(s) lifted to their shadows"
     chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-    result.floating, offset = offset_errors(result.height, chi2, limit, known)
+    result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
     band = result.floating & (chi2 > limit)
     if local and band.any() and iterations > 0 and in_time():
         cut_across(full, result, band, dict(cg_iterations=cg_iterations, tol=tol, discrepancy=0.0, progress=progress,
                                             iterations=iterations, budget=budget, t0=t0))
         chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-        result.floating, offset = offset_errors(result.height, chi2, limit, known)
+        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
     if result.height_error is not None:
         result.height_error_noise = result.height_error
         result.height_error_model = MODEL_SLOPE_GAIN * np.abs(result.height - np.mean(result.height))

@@ -28,9 +28,9 @@ region is re-inverted on its own (its edge held), and kept only if it fits bette
 field's solve and the start (a pore or a bump on a layer that fits to the noise as a whole;
 --no-local skips it). Slopes recover only 12-62 % of a cliff of 0.1-1 mm (0.2 mm pixels): each
 part a cliff cuts off (floating) is then lifted as a whole to the step its shadow shows (on the
-stepped layer of row D2 the 0.2-1 mm steps within 1-11 %, each with its uncertainty; the summary
-lists them); a part whose shadow says no more (0.1 mm: half a pixel) keeps its step, and its error
-bar holds the offset.
+stepped layer of row D2 the 0.1-1 mm steps within 0.5-9 %, each with its uncertainty; the summary
+lists them; a small cliff whose misfit does not close round its part is found by the ramp the
+solve left); a part whose shadow says no more keeps its step, and its error bar holds the offset.
 
 Where it wins (validation/REPORT.md, rows I1-I5; 0.27 mm beam blur, 1 % noise): steep relief,
 masked and shadowed pixels (a per-pixel fit must drop them; here the model predicts them): height
