@@ -170,7 +170,9 @@ class InversionResult:
         Its RMS over the image (mm; NaN when not computed).
     floating : ndarray of bool (H, W) or None
         Parts of the field that bands of misfit above the noise (a cliff) cut off from its largest
-        part: their offset to it is not measured by the slopes, and ``height_error`` holds the
+        part, or bands of steep slope where the misfit is above the noise on part of them (a small
+        cliff, :func:`~.step_offsets.edge_parts`): their offset to it is not measured by the
+        slopes, and ``height_error`` holds the
         offset as recovered (:func:`~.step_offsets.offset_errors`), or, where the part was lifted
         to the step its shadows show, that step's uncertainty (:mod:`.step_offsets`).
     height_error_noise : ndarray (H, W) or None

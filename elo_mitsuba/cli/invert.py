@@ -51,10 +51,11 @@ channel height_error_noise, scaled up by the local Birge ratio where the misfit 
 with the regulariser's bias, the model's slope gain (channel height_error_model: in proportion to
 the height above or below the mean, as the model and the renderer disagree on a facet's slope) and
 a floating part's offset in quadrature; measured coverage in
-validation/REPORT.md, rows D1-D4), floating (1 = a part cut off by bands of misfit, e.g. a raised part's
-cliff: its offset is not measured); the geometry, the solver's history, the local refinement's
-regions and height_error_rms_mm in the header, with the object's and the flat's own relative noise
-(noise_object, noise_flat; the summary line says the flat's share). .npy/.tif: the height alone.
+validation/REPORT.md, rows D1-D4), floating (1 = a part cut off by bands of misfit or by a small
+cliff's ramp, e.g. a raised part's cliff: its offset is not measured); the geometry, the solver's
+history, the local refinement's regions and height_error_rms_mm in the header, with the object's
+and the flat's own relative noise (noise_object, noise_flat; the summary line says the flat's
+share). .npy/.tif: the height alone.
 """
 
 EPILOG = """\
@@ -218,8 +219,8 @@ def run(args) -> int:
                         f"{p.rows[0]}-{p.rows[1]}, "
                         f"cols {p.cols[0]}-{p.cols[1]}" for p in lifted) + " (header: steps)")
     if res.floating is not None and res.floating.any():
-        print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by bands of misfit (a cliff), "
-              "their offset not measured (channel floating; height_error holds it)")
+        print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by cliffs (bands of misfit "
+              "or steep ramps), their offset not measured (channel floating; height_error holds it)")
     if res.height_error is not None:
         noise_rms = float(np.sqrt(np.mean(res.height_error_noise ** 2)))
         print(f"height error: {1000 * res.height_error_rms:.3g} um RMS, of which the noise alone {1000 * noise_rms:.3g} "
