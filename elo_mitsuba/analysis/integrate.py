@@ -43,6 +43,7 @@ import numpy as np
 from ..arguments import flag, real_array, shown, whole_number
 from ..errors import EloInputError
 from .layout import pixel_size
+from .quadric import fit_quadric
 from .sampling_check import MAX_HALF_SAMPLING, resolution_warning
 
 METHODS = ("dct", "fft", "masked", "robust")
@@ -563,27 +564,6 @@ def resolve_method(method: str, dzdx, dzdy, mask=None) -> str:
     if mask is not None:
         bad = bad | np.asarray(mask, dtype=bool)
     return "masked" if bad.any() else "dct"
-
-
-def fit_quadric(height, where) -> tuple[np.ndarray | None, float, float, float]:
-    """The best-fitting quadric of ``height`` over the pixels ``where`` (least squares in the
-    pixel coordinates): its values on the whole map (None for fewer than 6 pixels), its range (the
-    bowl, mm), and the range and RMS of the heights about it there (the relief)."""
-    z = np.asarray(height, dtype=float)
-    rows, cols = np.nonzero(where)
-    if rows.size < 6:
-        return None, 0.0, 0.0, 0.0
-
-    def basis(r, c):
-        x = c / max(z.shape[1] - 1, 1) - 0.5
-        y = r / max(z.shape[0] - 1, 1) - 0.5
-        return np.stack([np.ones_like(x), x, y, x * x, y * y, x * y], axis=-1)
-
-    step = max(1, rows.size // 250_000)  # a quadric needs few points; keep it fast
-    coef, *_ = np.linalg.lstsq(basis(rows, cols)[::step], z[rows, cols][::step], rcond=None)
-    quad = basis(*np.indices(z.shape).astype(float)) @ coef
-    about = z[rows, cols] - quad[rows, cols]
-    return quad, float(np.ptp(quad[rows, cols])), float(np.ptp(about)), float(np.std(about))
 
 
 def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling_mm: float | None = None) -> dict:

@@ -36,6 +36,7 @@ from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, NODES, SCALE
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
 from .local_inversion import refine_regions, threshold
 from .noise import local_chi2
+from .quadric import fit_quadric
 from .step_offsets import offset_errors, search_offsets
 from .stsa import check_images
 
@@ -134,7 +135,6 @@ def bowl_check(height, field_mm) -> tuple[dict | None, np.ndarray | None]:
     >>> bowl_check(0.01 * np.sin(9 * x), 80.0)[0] is None
     True
     """
-    from .integrate import fit_quadric
 
     h = np.asarray(height, float)
     quad, bowl, relief, _ = fit_quadric(h, np.ones(h.shape, bool))

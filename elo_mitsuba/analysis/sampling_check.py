@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .quadric import fit_quadric
+
 #: ``reconstruct`` warns when heights from every other pixel differ from the full map's by more
 #: than this fraction of the relief's RMS (the heights less their best-fitting quadric). Measured
 #: (orthographic renders, no noise; actual error less a quadric): the corrugated sheet at 1500^2
@@ -104,7 +106,6 @@ def resolution(dzdx, dzdy, field_mm, height, mask_out, integrate) -> dict:
     about the best-fitting quadric of the pixels with a height) and, where
     :func:`resolution_warning` fires, its ``warning`` and ``flag`` (else None)."""
     from ..grid import pixel_size
-    from .integrate import fit_quadric
 
     height = np.asarray(height, float)
     half = half_sampling(dzdx, dzdy, field_mm, height, mask_out, integrate)
