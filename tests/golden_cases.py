@@ -216,6 +216,17 @@ FIT_CHANNELS = ("dzdx", "dzdy", "dzdx_sigma", "dzdy_sigma", "residual", "scale",
 #: backscatter coefficient): 60x the render tolerance.
 TOLERANCE_ULPS = 256.0
 TOLERANCE_ULPS_FIT = 4096.0
+#: A Monte Carlo path can also end otherwise on another instruction set (a ray that grazes a
+#: detector disc's rim or a wall's edge hits on one and misses on the other; a sample next to a
+#: table's step takes the other entry). That moves the pixels whose estimate holds the path (one
+#: pixel, or the block of pixels that share their events >= 2, plugins/_geometry_classes.py) by
+#: the path's share, not by a rounding. Measured between AVX-512 (Sapphire Rapids) and AVX2 code
+#: on one machine: athene_default's e2 moved by 549-2394 roundoffs on one 3 x 3 block of 14 400
+#: pixels (1.7e-4 of the channel's largest value), every other output within the tolerances
+#: above. So up to FLIP_PIXELS pixels of an output may lie beyond its tolerance, each within
+#: FLIP_BOUND of its reference scale; a change of the physics or the sampling moves every pixel.
+FLIP_PIXELS = 27
+FLIP_BOUND = 1e-3
 
 
 def reference_scale(key: str, golden: np.ndarray) -> tuple[float, float]:
@@ -232,8 +243,9 @@ def reference_scale(key: str, golden: np.ndarray) -> tuple[float, float]:
 
 def compare(golden: dict[str, np.ndarray], results: dict[str, np.ndarray]) -> tuple[list[str], dict[str, float]]:
     """Outputs of ``results`` that are not ``golden`` within their tolerance
-    (:func:`reference_scale`; integers, hashes and shapes exactly), and each float output's
-    difference in units of ULP32 x its reference scale."""
+    (:func:`reference_scale`, but for up to :data:`FLIP_PIXELS` pixels within :data:`FLIP_BOUND`;
+    integers, hashes and shapes exactly), and each float output's largest difference in units of
+    ULP32 x its reference scale."""
     problems, ulps = [], {}
     for key in sorted(set(golden) | set(results)):
         if key not in golden or key not in results:
@@ -251,11 +263,14 @@ def compare(golden: dict[str, np.ndarray], results: dict[str, np.ndarray]) -> tu
             problems.append(f"{key}: NaN/Inf elsewhere")
             continue
         scale, allowed = reference_scale(key, g)
-        diff = float(np.max(np.abs(g.astype(np.float64) - r)[np.isfinite(g)], initial=0.0))
+        d = np.abs(g.astype(np.float64) - r)[np.isfinite(g)]
+        diff = float(np.max(d, initial=0.0))
         ulps[key] = diff / (ULP32 * scale) if scale > 0 else (0.0 if diff == 0 else math.inf)
-        if not ulps[key] <= allowed:
-            problems.append(f"{key}: moved by {diff:.3g} = {ulps[key]:.3g} x {ULP32:.3g} x {scale:.3g} "
-                            f"(allowed {allowed:g}; mean {g.mean():.6g} -> {r.mean():.6g})")
+        beyond = int(np.count_nonzero(d > allowed * ULP32 * scale))
+        if beyond and not (beyond <= FLIP_PIXELS and diff <= FLIP_BOUND * scale):
+            problems.append(f"{key}: moved by {diff:.3g} = {ulps[key]:.3g} x {ULP32:.3g} x {scale:.3g} on "
+                            f"{beyond} pixel(s) (allowed {allowed:g}, or up to {FLIP_BOUND:g} x {scale:.3g} on "
+                            f"{FLIP_PIXELS}: a path ending otherwise; mean {g.mean():.6g} -> {r.mean():.6g})")
     return problems, ulps
 
 
