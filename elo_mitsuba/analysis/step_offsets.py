@@ -237,7 +237,7 @@ def floating_parts(chi2, limit: float):
     return out
 
 
-def edge_parts(height, chi2, limit: float, pixel_mm):
+def edge_parts(height, chi2, limit: float, pixel_mm, known=None):
     """The parts of the field that a band of steep slope cuts off, where the band's misfit is
     above the noise: cliffs whose bands of misfit do not close all round.
 
@@ -257,6 +257,8 @@ def edge_parts(height, chi2, limit: float, pixel_mm):
     limit : float
     pixel_mm : (float, float)
         Pixel size along x (columns) and y (rows).
+    known : list, optional
+        ``floating_parts(chi2, limit)`` where the caller has it.
 
     Returns
     -------
@@ -277,7 +279,7 @@ def edge_parts(height, chi2, limit: float, pixel_mm):
     gy, gx = np.gradient(height, pixel_mm[1], pixel_mm[0])
     slope = np.hypot(gx, gy)
     bar = max(EDGE_SLOPE, EDGE_SLOPE_FACTOR * float(np.median(slope)))
-    known = floating_parts(chi2, limit)
+    known = floating_parts(chi2, limit) if known is None else known
     out = []
     for comp, band, ring in floating_parts(np.where(slope > bar, 2.0, 0.0), 1.0):
         if not band.any() or np.mean(chi2[band] > limit) < EDGE_MISFIT_SHARE:
@@ -292,7 +294,7 @@ def edge_parts(height, chi2, limit: float, pixel_mm):
 def all_parts(height, chi2, limit: float, pixel_mm=None):
     """:func:`floating_parts` and, given ``pixel_mm``, :func:`edge_parts`."""
     out = floating_parts(chi2, limit)
-    return out + (edge_parts(height, chi2, limit, pixel_mm) if pixel_mm is not None else [])
+    return out + (edge_parts(height, chi2, limit, pixel_mm, out) if pixel_mm is not None else [])
 
 
 def offset_errors(height, chi2, limit: float, known=None, pixel_mm=None) -> tuple[np.ndarray, np.ndarray]:
@@ -311,7 +313,8 @@ def offset_errors(height, chi2, limit: float, known=None, pixel_mm=None) -> tupl
 
     ``known`` (H, W; NaN elsewhere): an offset uncertainty measured otherwise, e.g. a part whose
     step was searched in its shadows (:func:`~.step_offsets.search_offsets`); a part whose pixels
-    mostly hold one takes it instead.
+    mostly hold one takes it instead. Given ``pixel_mm`` (x, y), the parts that only a small
+    cliff's ramp cuts off count too (:func:`edge_parts`).
 
     Returns
     -------
