@@ -42,7 +42,7 @@ Measured (validation/REPORT.md, row D2, and ``python -m validation.study_defects
 steps of 0.2-1 mm come out within 10 % of the truth's (the 0.5 mm ones were 11 % high with the
 interpolated wall alone, under every noise seed), against 33-62 % recovered by the slopes; the
 0.1 mm steps (shadows of half a pixel at 0.2 mm pixels), found by their ramps and searched on the
-grid's ENLARGED steps, within 2-5 % under six noise seeds (the slopes: 68 %).
+grid's ENLARGED steps, within 1-5 % under six noise seeds (the slopes: 68 %).
 
 A lifted step's uncertainty is how far the finer facets moved it, at least their width (halving
 the facets halved the step's bias on the truth: about one facet's width is left) and at least the
