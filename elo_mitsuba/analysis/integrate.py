@@ -43,7 +43,7 @@ import numpy as np
 from ..arguments import flag, real_array, shown, whole_number
 from ..errors import EloInputError
 from .layout import pixel_size
-from .quadric import fit_quadric
+from .quadric import bowl_exceeds, fit_quadric
 from .sampling_check import MAX_HALF_SAMPLING, resolution_warning
 
 METHODS = ("dct", "fft", "masked", "robust")
@@ -634,7 +634,7 @@ def reconstruction_quality(dzdx, dzdy, field_mm, height, mask_out, half_sampling
         flags.append(f"{100 * masked:.0f} % without height")
         warnings.append(f"{100 * masked:.1f} % of the pixels have no height (> {100 * MAX_MASKED_FRACTION:g} %)")
     pixel = max(pixel_size(z.shape, field_mm))
-    if bowl > relief and bowl > 0.01 * pixel:
+    if bowl_exceeds(bowl, relief, pixel):
         flags.append(f"bowl {bowl:.3g} mm > relief {relief:.3g} mm")
         warnings.append(f"a field-wide tilt/bowl of {bowl:.3g} mm exceeds the relief of {relief:.3g} mm: a small "
                         "bias of the gradient integrates to that shape, so the height range is not measured relief "

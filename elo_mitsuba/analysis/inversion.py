@@ -36,7 +36,7 @@ from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, NODES, SCALE
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
 from .local_inversion import refine_regions, threshold
 from .noise import local_chi2
-from .quadric import fit_quadric
+from .quadric import bowl_exceeds, fit_quadric
 from .step_offsets import offset_errors, search_offsets
 from .stsa import check_images
 
@@ -138,7 +138,7 @@ def bowl_check(height, field_mm) -> tuple[dict | None, np.ndarray | None]:
 
     h = np.asarray(height, float)
     quad, bowl, relief, _ = fit_quadric(h, np.ones(h.shape, bool))
-    if quad is None or not (bowl > relief and bowl > 0.01 * max(pixel_size(h.shape, field_mm))):
+    if quad is None or not bowl_exceeds(bowl, relief, max(pixel_size(h.shape, field_mm))):
         return None, None
     line = (f"the heights hold a field-wide bowl of {bowl:.3g} mm, larger than the relief of {relief:.3g} mm "
             "about it: a bias of the start's slopes integrates to that shape, and the images, which the model "

@@ -44,3 +44,16 @@ def fit_quadric(height, where) -> tuple[np.ndarray | None, float, float, float]:
     quad = basis(*np.indices(z.shape).astype(float)) @ coef
     about = z[rows, cols] - quad[rows, cols]
     return quad, float(np.ptp(quad[rows, cols])), float(np.ptp(about)), float(np.std(about))
+
+
+def bowl_exceeds(bowl_mm: float, relief_mm: float, pixel_mm: float) -> bool:
+    """The rule of ``reconstruct`` and ``invert``: a quadric (``bowl_mm``, its range) larger than
+    the relief about it (``relief_mm``, its range) and than a hundredth of a pixel, below which
+    a flat map's rounding makes one.
+
+    Examples
+    --------
+    >>> bowl_exceeds(0.3, 0.02, 0.2), bowl_exceeds(0.01, 0.02, 0.2), bowl_exceeds(1e-4, 0.0, 0.2)
+    (True, False, False)
+    """
+    return bowl_mm > relief_mm and bowl_mm > 0.01 * pixel_mm

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..grid import pixel_size
 from .quadric import fit_quadric
 
 #: ``reconstruct`` warns when heights from every other pixel differ from the full map's by more
@@ -105,8 +106,6 @@ def resolution(dzdx, dzdy, field_mm, height, mask_out, integrate) -> dict:
     ``integrate``, as for :func:`half_sampling`): ``half_sampling_mm``, ``relief_rms_mm`` (the RMS
     about the best-fitting quadric of the pixels with a height) and, where
     :func:`resolution_warning` fires, its ``warning`` and ``flag`` (else None)."""
-    from ..grid import pixel_size
-
     height = np.asarray(height, float)
     half = half_sampling(dzdx, dzdy, field_mm, height, mask_out, integrate)
     relief_rms = round(fit_quadric(height, ~np.asarray(mask_out, dtype=bool))[3], 6)

@@ -518,14 +518,15 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
     names = tuple(geometry.detectors)
     chi2 = local_chi2(misfit, max(float(expected), 1e-12))
     error = np.full(h.shape, np.nan)
-    pixel = max(pixel_size(h.shape, geometry.field_mm))
-    area = float(np.prod(pixel_size(h.shape, geometry.field_mm)))  # mm^2 per pixel
+    pixel_xy = pixel_size(h.shape, geometry.field_mm)
+    pixel = max(pixel_xy)
+    area = float(np.prod(pixel_xy))  # mm^2 per pixel
     margin = int(np.ceil(MARGIN_MM / pixel))
     move = max(1, int(round(BOUNDARY_MM / pixel)))
     elevation = min(np.arctan2(d.center[2], np.hypot(d.center[0], d.center[1])) for d in geometry.detectors.values())
     max_step = MARGIN_MM * float(np.tan(elevation))
     parts = []
-    for comp, band, ring in all_parts(h, chi2, limit, pixel_size(h.shape, geometry.field_mm)):
+    for comp, band, ring in all_parts(h, chi2, limit, pixel_xy):
         t1 = time.perf_counter()
         rr, cc = np.nonzero(comp | band)
         rows = (max(int(rr.min()) - margin, 0), min(int(rr.max()) + 1 + margin, h.shape[0]))
