@@ -15,7 +15,7 @@ CPU time is the steadier measure of work.
 
 Errors (events = 4 only, ``--res`` pixels): per event and total, worst detector, per pixel
 |x - ref| / max(ref, 5 % of its mean) (benchmarks/harness.py) against a reference: the
-``reference`` preset at events 4 with ``--ref-factor`` x its spp, far field 8, q = 1, fine table
+``unbiased`` preset at events 4 with ``--ref-factor`` x its spp, far field 8, q = 1, fine table
 (the estimator before; unbiased: tests/test_far_field.py), its own noise (from its two halves)
 subtracted in quadrature. "of total": the event's error over the total's reference, what it adds
 to the total's error.
@@ -94,7 +94,7 @@ def measure(name, res, qs, reps, errors, ref_factor):
     if errors:
         ref_scene = em.load_scene(name, res=res)
         ref_scene.set_events(4)
-        spp_ref = ref_scene.set_quality("reference") * ref_factor
+        spp_ref = ref_scene.set_quality("unbiased") * ref_factor
         ref_scene.configure(far_table=False, far_field=8, far_roulette=1.0, far_field_later=True)
         t = time.perf_counter()
         ref = ref_scene.render(spp=spp_ref, seed=90001, progress=False, quality="custom")

@@ -4,7 +4,7 @@ sampled per pixel (option ``far_field`` = s, as the presets had it on scenes wit
 tabulated (option ``far_table``, the presets now, where the near share is small); error per event
 and total, time warm and of the first render, peak memory, and the render's own estimate.
 
-Each scene runs in its own process (peak RSS per scene). Reference: the reference preset with
+Each scene runs in its own process (peak RSS per scene). Reference: the unbiased preset with
 ``--ref-factor`` x its spp, 96 quadrature triangles and the far field at ``--ref-far`` strata
 (unbiased: tests/test_far_field.py), independent seed; its own estimated noise is listed and the
 errors are corrected for it (sqrt(err^2 - noise_ref^2), per channel). Errors per pixel as
@@ -32,9 +32,9 @@ SCENES = ("athene_flat", "corrugated_chamber", "melt_chamber", "shield_chamber")
 #: "tabulated")
 CONFIGS = (("default, no variate", "default", "off"), ("default, sampled mean", "default", "sampled"),
            ("default, tabulated mean", "default", "tabulated"), ("default (as the preset chooses)", "default", None),
-           ("reference, no variate", "reference", "off"), ("reference, sampled mean", "reference", "sampled"),
-           ("reference, tabulated mean", "reference", "tabulated"),
-           ("reference (as the preset chooses)", "reference", None))
+           ("unbiased, no variate", "unbiased", "off"), ("unbiased, sampled mean", "unbiased", "sampled"),
+           ("unbiased, tabulated mean", "unbiased", "tabulated"),
+           ("unbiased (as the preset chooses)", "unbiased", None))
 
 
 def variate_options(options, variate):
@@ -52,7 +52,7 @@ def measure(scene_name, res, ref_factor, ref_far):
 
     em.ensure_variant()
     scene = em.load_scene(scene_name, res=res)
-    spp_ref = scene.set_quality("reference") * ref_factor  # its options, then made "custom" below
+    spp_ref = scene.set_quality("unbiased") * ref_factor  # its options, then made "custom" below
     scene.configure(quadrature_triangles=96, far_table=False, far_field=ref_far)  # sampled: unbiased, not the table
     t = time.perf_counter()
     ref = scene.render(spp=spp_ref, seed=90001, progress=False, quality="custom")

@@ -5,7 +5,7 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
   and now (the preset's block), interleaved after a warm-up render each (the first render of
   "now" builds the classes: its time is given apart), two rounds; the faster warm time, the
   render's own error estimate of the total and of each later event (worst detector).
-* ``--bias N,M``: at ``--bias-res`` (512), N `default` renders (shared) against M of `reference`
+* ``--bias N,M``: at ``--bias-res`` (512), N `default` renders (shared) against M of `unbiased`
   (per-pixel paths, no sharing, the same events), per detector and event >= 2 the RMS per-pixel
   difference of the two means less the noise of both, relative to the event's mean; the worst
   pixel; the share of pixels beyond 4 standard errors (the per-pixel renders' variance pooled
@@ -119,7 +119,7 @@ def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
 
     f = stack("default", n_shared, 1000)
     block, classes = scene.integrator.options.bounce_share, scene.integrator.geometry_classes()
-    g = stack("reference", n_per_pixel, 5000)
+    g = stack("unbiased", n_per_pixel, 5000)
     out = {c: mean_difference(f[:, i], g[:, i], classes) for i, c in enumerate(channels)}
     return block, out
 
@@ -231,7 +231,7 @@ def main(argv=None):
     p.add_argument("--res", type=_positive, default=1500)
     p.add_argument("--scene", choices=SCENES, default="corrugated_chamber")
     p.add_argument("--events", type=_events, default=2)
-    p.add_argument("--bias", help="N,M: N shared against M per-pixel `reference` renders")
+    p.add_argument("--bias", help="N,M: N shared against M per-pixel `unbiased` renders")
     p.add_argument("--bias-res", type=_positive, default=512)
     p.add_argument("--fwhm", type=_fwhm, default=0.0, help="with --bias: the beam profile's FWHM (mm)")
     p.add_argument("--classes", type=_positive, help="N: the classes' own bias from N per-pixel renders")
@@ -284,7 +284,7 @@ def main(argv=None):
         n, m = (int(x) for x in parts)
         block, rows = bias(a.scene, a.bias_res, a.events, n, m, a.fwhm)
         print(f"{a.scene} {a.bias_res}², events {a.events}, fwhm {a.fwhm:g} mm, {n} `default` renders (shared in {block:g} mm blocks) "
-              f"against {m} per-pixel `reference` ones:\n")
+              f"against {m} per-pixel `unbiased` ones:\n")
         print("| channel | bias, RMS per pixel (of the event) | one render's noise | worst pixel | "
               "pixels beyond 4 standard errors |")
         print("|---|---|---|---|---|")

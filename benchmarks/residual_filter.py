@@ -7,7 +7,7 @@ with the presets before it, and its bias.
   total and of e2 (worst detector, per pixel relative to the render's values with a floor of 5 % of
   their mean), peak RSS of the process.
 * ``--bias N,M``: melt_chamber at ``--bias-res`` (128), N `default` renders (the residual
-  filtered) against M of `reference` (the same tabulated mean, no window), per detector the RMS
+  filtered) against M of `unbiased` (the same tabulated mean, no window), per detector the RMS
   per-pixel difference of the two means less the noise of both (each pixel's variance over its
   renders), relative to e2's mean; with ``--whole`` the whole 2nd event is filtered instead.
 
@@ -77,7 +77,7 @@ def bias(res, n_filtered, n_per_pixel, whole=False):
         return np.array([np.stack([scene.render(quality="custom", spp=spp, seed=seed0 + k, progress=False)
                                    .channels[f"{d}.e2"] for d in DETS]).astype(np.float64) for k in range(n)])
 
-    f, g = stack("default", n_filtered, 1000), stack("reference", n_per_pixel, 5000)
+    f, g = stack("default", n_filtered, 1000), stack("unbiased", n_per_pixel, 5000)
     return {d: mean_difference(f[:, i], g[:, i]) for i, d in enumerate(DETS)}
 
 

@@ -2,8 +2,8 @@
 accuracy of the render's own error estimate.
 
 Each scene runs in its own process (a ``presets`` job of :mod:`benchmarks.worker`, the function
-:func:`measure_scene`): draft, default and reference at the section's resolution, each against
-a reference of the reference preset with ``REFERENCE_FACTOR`` x its samples, 96 quadrature
+:func:`measure_scene`): draft, default, reference and unbiased at the section's resolution, each
+against a reference of the unbiased preset with ``REFERENCE_FACTOR`` x its samples, 96 quadrature
 triangles and no filter (independent seed). Errors per pixel as everywhere in benchmarks/
 (|x - ref| / max(ref, 5 % of the mean)); the reference's own noise (its error estimate) is
 listed. "estimate / actual" is sqrt(sum err_est^2 / (sum (x - ref)^2 - sum err_ref^2)) over the
@@ -26,8 +26,8 @@ TITLE = "Presets on every scene: error per event and total, and the error estima
 #: The shipped scenes and their default events (the chamber scenes: the 2nd event on relief).
 SCENES = ("flat_plate", "athene_flat", "corrugated_sheet", "melt_plate", "corrugated_chamber", "melt_chamber",
           "shield_chamber")
-PRESETS = ("draft", "default", "reference")
-#: The reference renders the reference preset with this many times its samples.
+PRESETS = ("draft", "default", "reference", "unbiased")
+#: The reference renders the unbiased preset with this many times its samples.
 REFERENCE_FACTOR = 8
 
 
@@ -38,7 +38,7 @@ def measure_scene(job):
     em.ensure_variant()
     scene = em.load_scene(job["scene"], res=job["res"])
     out = {"scene": job["scene"], "res": job["res"], "presets": {}}
-    spp_ref = scene.set_quality("reference") * REFERENCE_FACTOR
+    spp_ref = scene.set_quality("unbiased") * REFERENCE_FACTOR
     # the far field's mean SAMPLED in the reference (unbiased): the presets' tabulated one is an
     # integral whose small error the comparison must see, not share
     far = dict(far_table=False, far_field=4) if scene.options.far_table else {}
@@ -92,7 +92,7 @@ def run(b):
            "`render --quality` chooses them for that scene (relief under the beam: no bounce filter, unless "
            "the far field's mean is tabulated and events 1 + 2 are traced, where the filter averages the "
            "residual about it), seed 11, "
-           f"after a warm-up render. Reference: the reference preset with {REFERENCE_FACTOR}x its samples, "
+           f"after a warm-up render. Reference: the unbiased preset with {REFERENCE_FACTOR}x its samples, "
            "96 triangles, no filter, the far field's mean sampled (far_field = 4) where the presets tabulate it. Error per pixel relative to the reference (floor 5 % of its mean), worst "
            "detector: RMS, 99th percentile, worst pixel. 'estimate/actual': the render's own error estimate "
            "(two independent halves) over the actual RMS error, range over detectors (1 = right; deterministic "

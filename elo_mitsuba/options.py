@@ -367,14 +367,21 @@ def parameter_table() -> str:
 #: 1.8-2.0 s; athene_flat 0.25 -> 0.13 % (e2 3.7 -> 1.8 %) and shield_chamber 0.26 -> 0.13 % (e2
 #: 5.3 -> 2.6 %) for about 0.1-0.3 s more. The filter's bias on melt_chamber (128^2, against the
 #: per-pixel estimator): 0.17-0.19 % of e2 RMS per pixel, at most 3.2 % of e2 at the melt tracks
-#: (the whole event filtered: 0.34-0.90 %, up to 8.5 %). ``scene`` keeps the scene file's own settings.
+#: (the whole event filtered: 0.34-0.90 %, up to 8.5 %). ``reference`` is ``default``'s estimators
+#: with 4x its paths and 6x the 1st event's triangles: the most accurate preset, its bias that of
+#: the averages (measured against ``unbiased``, benchmarks/RESULTS.md, presets). ``unbiased``
+#: averages nothing between pixels (128 paths per pixel of their own): the ground truth that the
+#: averages' bias is measured against, and slow (at 1500^2 its per-pixel noise on the chamber
+#: scenes is 4x ``default``'s in 27x the time, athene_flat). ``scene`` keeps the scene file's own settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},
     "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 1600,
                 "bounce_min": 2.0, "relief_paths": 16},
-    "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
-                  "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128},
+    "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 1.0, "bounce_budget": 6400,
+                  "bounce_min": 8.0, "relief_paths": 32},
+    "unbiased": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
+                 "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128},
 }
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
@@ -385,7 +392,7 @@ PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
-QUALITY_ACCURACY = {"draft": 0.06, "default": 0.027, "reference": 0.025}  # corrugated_chamber: 5.7, 2.45, 1.9 %
+QUALITY_ACCURACY = {"draft": 0.06, "default": 0.027, "reference": 0.018, "unbiased": 0.025}  # corrugated_chamber: 5.7, 2.45, 1.6, 1.9 %
 #: The presets use the far field's variate (``far_table``) on scenes where less than this share of
 #: the 2nd event's electrons (g_BSE-weighted) meet a surface again within the far field's near
 #: distance: those directions carry the variate too, where it only adds noise. Measured shares

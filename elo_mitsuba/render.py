@@ -448,7 +448,7 @@ class EloScene:
         Parameters
         ----------
         quality : str
-            ``"draft"``, ``"default"``, ``"reference"`` (:data:`~elo_mitsuba.options.QUALITY_PRESETS`),
+            ``"draft"``, ``"default"``, ``"reference"``, ``"unbiased"`` (:data:`~elo_mitsuba.options.QUALITY_PRESETS`),
             ``"scene"`` or ``"custom"``.
 
         Returns

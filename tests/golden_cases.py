@@ -43,6 +43,8 @@ CASES = (
                       "--quality", "draft", "--seed", "3", "--quiet"]),
     ("athene_reference", ["render", "athene_flat", "-o", "{d}/athene_ref.exr", "--resolution", "16",
                           "--events", "2", "--quality", "reference", "--quiet"]),
+    ("athene_unbiased", ["render", "athene_flat", "-o", "{d}/athene_unb.exr", "--resolution", "16",
+                         "--events", "2", "--quality", "unbiased", "--quiet"]),
     ("corr_events2", ["render", "corrugated_sheet", "-o", "{d}/corr2.exr", "--resolution", "48", "--events", "2",
                       "--quiet"]),
     ("melt_blur", ["render", "melt_plate", "-o", "{d}/melt.exr", "--resolution", "32", "--layout", "zeta50",

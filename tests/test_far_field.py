@@ -264,7 +264,7 @@ def _e2_stack(scene, quality, renders, seed0):
 @pytest.mark.slow
 def test_the_filtered_residual_is_unbiased_below_the_noise_on_relief(mi):
     """melt_chamber 128^2, `default` (the 2nd event's residual about the tabulated mean averaged
-    over windows that span the relief's normals) against the per-pixel estimator (`reference`,
+    over windows that span the relief's normals) against the per-pixel estimator (`unbiased`,
     the same tabulated mean, no window), 32 against 80 renders: the RMS per-pixel difference less
     the noise of both means (each pixel's variance over its renders) is below 0.4 % of e2 (measured
     0.17-0.19 % at 64 against 160 renders, benchmarks.residual_filter; 0.012 % of the total
@@ -273,7 +273,7 @@ def test_the_filtered_residual_is_unbiased_below_the_noise_on_relief(mi):
     scene = em.load_scene("melt_chamber", res=128)
     filtered = _e2_stack(scene, "default", 32, 1000)
     assert scene.integrator._filters_residual() and scene.integrator.bounce_filter > 0
-    per_pixel = _e2_stack(scene, "reference", 80, 5000)
+    per_pixel = _e2_stack(scene, "unbiased", 80, 5000)
     assert scene.integrator.far_table and scene.integrator.bounce_filter == 0
     for i, d in enumerate(DETS):
         f, g = filtered[:, i], per_pixel[:, i]

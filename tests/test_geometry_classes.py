@@ -127,14 +127,16 @@ def test_classes_are_built_once_per_geometry(mi):
 def test_the_presets_share_on_relief_only(mi):
     chosen = {}
     for name, fwhm, quality in (("corrugated_chamber", 0.0, "default"), ("corrugated_chamber", 0.0, "draft"),
-                                ("corrugated_chamber", 0.0, "reference"), ("corrugated_chamber", 0.27, "default"),
+                                ("corrugated_chamber", 0.0, "reference"), ("corrugated_chamber", 0.0, "unbiased"),
+                                ("corrugated_chamber", 0.27, "default"),
                                 ("melt_chamber", 0.0, "default"), ("athene_flat", 0.0, "default")):
         scene = em.load_scene(name, res=32, fwhm=fwhm)
         scene.set_quality(quality)
         chosen[(name, fwhm, quality)] = scene.integrator.options.bounce_share
     assert chosen == {("corrugated_chamber", 0.0, "default"): SHARE_BLOCK_MM,
                       ("corrugated_chamber", 0.0, "draft"): SHARE_BLOCK_MM,
-                      ("corrugated_chamber", 0.0, "reference"): 0.0,  # the unbiased ground truth
+                      ("corrugated_chamber", 0.0, "reference"): SHARE_BLOCK_MM,
+                      ("corrugated_chamber", 0.0, "unbiased"): 0.0,  # the ground truth
                       ("corrugated_chamber", 0.27, "default"): SHARE_BLOCK_MM,  # classes of footprints
                       ("melt_chamber", 0.0, "default"): 0.0,  # the residual filter instead
                       ("athene_flat", 0.0, "default"): 0.0}, chosen

@@ -90,7 +90,7 @@ def test_quality_options_spread_the_bounce_budget():
             assert 1 <= o.bounce_samples <= 8
         _, spp_blur = quality_options(name, base, pixel_mm=0.05, fwhm_mm=0.27, traced_events=1)
         assert spp_blur == preset["spp_blur"]
-    with pytest.raises(em.EloInputError, match="choose one of draft, default, reference, scene"):
+    with pytest.raises(em.EloInputError, match="choose one of draft, default, reference, unbiased, scene"):
         quality_options("ultra", base, pixel_mm=0.05, fwhm_mm=0.0, traced_events=1)
 
 

@@ -32,14 +32,14 @@ def test_repeated_renders_keep_the_scene_spp():
     assert scene.sensor.sampler().sample_count() == 16  # also for mi.render(scene) without spp
 
 
-@pytest.mark.parametrize("quality", ["draft", "default", "reference", "scene"])
+@pytest.mark.parametrize("quality", ["draft", "default", "reference", "unbiased", "scene"])
 def test_a_quality_after_other_renders_equals_a_fresh_scene(quality):
     """athene_flat with events 2: the presets' bounce filter, the top-up pass (default) and the
     error estimate's halves (1 spp: half the continuation paths each) all run."""
     args = dict(res=12)
     fresh = em.load_scene("athene_flat", **args).render(events=2, quality=quality, seed=5, progress=False)
     used = em.load_scene("athene_flat", **args)
-    for other in ("reference", "default", "scene", "draft"):
+    for other in ("reference", "unbiased", "default", "scene", "draft"):
         used.render(events=2, quality=other, spp=2, seed=1, progress=False)
     used.render(events=1, progress=False)
     _same(fresh, used.render(events=2, quality=quality, seed=5, progress=False))

@@ -10,6 +10,7 @@ from pathlib import Path
 from ..errors import EloInputError
 from ..files import check_output
 from ..constants import BEAM_CURRENT_A, TRANSIMPEDANCE_V_PER_A
+from ..options import QUALITIES
 from ..scene_files import shipped_scenes
 from ._args import add_yes, define, number, positive_int, seed
 
@@ -33,8 +34,8 @@ beam electrons (or volts with --units voltage, Eq. 9). The header stores the sca
 that 'elo-mitsuba gradient' needs no flags. Image orientation: row 0 is the +y edge, columns run
 towards +x (the plate seen from above, +y up). Lengths are millimetres.
 
-Quality (--quality, default "default"; measured in benchmarks/RESULTS.md): draft, default and
-reference set the spp and how the detectors are integrated: the 1st event by the triangle
+Quality (--quality, default "default"; measured in benchmarks/RESULTS.md): draft, default,
+reference and unbiased set the spp and how the detectors are integrated: the 1st event by the triangle
 quadrature of Appendix A (no noise with a single-ray beam), events >= 2 traced for a fraction of
 the pixels and averaged over a window that stops at changes of the surface normal. "scene" keeps
 the scene file's settings (independent sampling, 2.4%/sqrt(spp) noise per pixel on the 1st event).
@@ -44,17 +45,22 @@ corrugated_chamber) they add the far-field control variate of events >= 2 with i
 tabulated once per geometry, and the window averages only the 2nd event's residual about that
 mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the melt plate 0.2 % of
 e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
->= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft and
-default share them between pixels of matching geometry (same normal, same distances along 64
+>= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft,
+default and reference share them between pixels of matching geometry (same normal, same distances along 64
 probe rays; under a beam profile also around its footprint) in 4 mm blocks, their paths one
 point set per class (at 1500^2, default: 0.32 % total where 16 own paths per pixel gave 6.2 %). Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
 detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
-  draft       corrugated_chamber     5.7 %   0.11 s         0.56 %
-  default     corrugated_chamber     2.45 %  0.13 s         0.25 % (0.13 % net of the reference's noise)
-  reference   corrugated_chamber     1.9 %   0.51 s         0.52 % (no window average)
+  draft       corrugated_chamber     5.7 %   0.06 s         0.56 %
+  default     corrugated_chamber     2.45 %  0.17 s         0.25 % (0.12 % at 1500^2, own estimate)
+  reference   corrugated_chamber     1.6 %   0.26 s         0.23 % (0.06 % at 1500^2, own estimate)
+  unbiased    corrugated_chamber     1.9 %   0.60 s         0.52 % (0.47 % at 1500^2, in 27x default's time)
+
+reference is default's averaging with 4x its paths (at 1500^2 half default's noise in 1.5-2x its
+time); unbiased averages nothing between pixels (128 paths per pixel of their own): the ground
+truth for checking the averages' bias, slow and, at high resolution, noisier than default.
 
 Every render estimates its own error from two independent halves of the samples and prints it
 per channel (RMS relative error per pixel; within 0.9-1.03x of the actual error in the benchmarks
@@ -66,7 +72,7 @@ channels without sampling error (the 1st event by the quadrature with a single-r
 --error-channels, as <channel>.err images. A render whose estimate is above its preset's worst
 figure gets a note.
 
-With a beam profile (fwhm > 0) the presets take more spp (4 / 16 / 256) to average over it.
+With a beam profile (fwhm > 0) the presets take more spp (4 / 16 / 256 / 256) to average over it.
 """
 
 EPILOG = """\
@@ -103,8 +109,9 @@ def add_parser(subparsers):
                    help="detector amplifier transimpedance T in V/A for --units voltage")
     p.add_argument("--detector-samples", type=positive_int, help="points sampled on each detector per event (default 1); the presets integrate the 1st event by "
                    "the triangle quadrature, so there it sets events >= 2 only")
-    p.add_argument("--quality", choices=("draft", "default", "reference", "scene"), default="default",
-                   help="speed/accuracy preset (default: default); 'scene' keeps the scene file's sampling settings")
+    p.add_argument("--quality", choices=QUALITIES, default="default",
+                   help="speed/accuracy preset (default: default); 'unbiased' averages nothing between pixels (the "
+                        "ground truth for bias checks, slow); 'scene' keeps the scene file's sampling settings")
     p.add_argument("--error-channels", action="store_true",
                    help="also write each channel's per-pixel standard error as <channel>.err (from two independent "
                         "halves of the samples; zero for deterministic channels)")

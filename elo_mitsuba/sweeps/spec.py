@@ -16,7 +16,7 @@ Example (``examples/sweep_layouts.toml``)::
     [render]
     resolution = 64                       # the scene parameter res
     events = 1
-    quality = "default"                   # draft / default / reference / scene; spp overrides
+    quality = "default"                   # draft / default / reference / unbiased / scene; spp overrides
     [keep]
     channels = ["right", "left"]          # or "all"; images cost res^2 x 4 bytes each per point
     downsample = 2                        # box-average images by this factor before storing
