@@ -5,8 +5,9 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
   and now (the preset's block), interleaved after a warm-up render each (the first render of
   "now" builds the classes: its time is given apart), two rounds; the faster warm time, the
   render's own error estimate of the total and of each later event (worst detector).
-* ``--bias N,M``: at ``--bias-res`` (512), N `default` renders (shared) against M of `unbiased`
-  (per-pixel paths, no sharing, the same events), per detector and event >= 2 the RMS per-pixel
+* ``--bias N,M``: at ``--bias-res`` (512), N `default` renders (``--preset``: or `draft`,
+  `reference`; shared) against M of `unbiased` (per-pixel paths, no sharing, the same events),
+  per detector and event >= 2 the RMS per-pixel
   difference of the two means less the noise of both, relative to the event's mean; the worst
   pixel; the share of pixels beyond 4 standard errors (the per-pixel renders' variance pooled
   over each class: one pixel's own few-sample variance would give Student's tails).
@@ -15,6 +16,7 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
     python -m benchmarks.geometry_share --bias 8,6               # corrugated_chamber 512² (about 2 min)
     python -m benchmarks.geometry_share --bias 8,6 --scene melt_chamber --events 3 --bias-res 256
     python -m benchmarks.geometry_share --bias 8,6 --bias-res 256 --fwhm 0.27   # under a beam profile
+    python -m benchmarks.geometry_share --bias 8,6 --preset reference        # reference's bias
 
 * ``--classes N``: how far the classes themselves are from "same expected value", apart from the
   estimator's noise: N per-pixel renders (`default`'s paths, no sharing), each replaced by its
@@ -107,7 +109,7 @@ def side_by_side(name, res, events):
     return out
 
 
-def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
+def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0, preset="default"):
     scene = _load(name, res, fwhm)
     scene.set_events(events)
     channels = [event_channel(d, k) for k in range(2, events + 1) for d in DETS]
@@ -117,7 +119,7 @@ def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0):
         return np.array([np.stack([scene.render(quality="custom", spp=spp, seed=seed0 + k, progress=False)
                                    .channels[c] for c in channels]).astype(np.float64) for k in range(n)])
 
-    f = stack("default", n_shared, 1000)
+    f = stack(preset, n_shared, 1000)
     block, classes = scene.integrator.options.bounce_share, scene.integrator.geometry_classes()
     g = stack("unbiased", n_per_pixel, 5000)
     out = {c: mean_difference(f[:, i], g[:, i], classes) for i, c in enumerate(channels)}
@@ -234,6 +236,8 @@ def main(argv=None):
     p.add_argument("--bias", help="N,M: N shared against M per-pixel `unbiased` renders")
     p.add_argument("--bias-res", type=_positive, default=512)
     p.add_argument("--fwhm", type=_fwhm, default=0.0, help="with --bias: the beam profile's FWHM (mm)")
+    p.add_argument("--preset", choices=("draft", "default", "reference"), default="default",
+                   help="with --bias: the shared preset measured (default: default)")
     p.add_argument("--classes", type=_positive, help="N: the classes' own bias from N per-pixel renders")
     p.add_argument("--probes", default="16,64", help="with --classes: probe counts to compare (powers of two; "
                    "C/F under a beam profile: C at the grid point, F at each footprint point)")
@@ -244,6 +248,8 @@ def main(argv=None):
     chosen = [f"--{n}" for n in ("paths", "classes", "bias") if getattr(a, n)]
     if len(chosen) > 1:
         p.error(f"{' and '.join(chosen)}: give one of --paths, --classes, --bias (each is its own measurement)")
+    if a.preset != "default" and not a.bias:
+        p.error(f"--preset {a.preset} applies to --bias only")
     if a.paths:
         sizes, rows = path_trade(a.scene, a.res, a.events, a.paths)
         print(f"{a.scene} {a.res}², events {a.events}, `default` shared ({sizes['classes']} classes, "
@@ -282,8 +288,8 @@ def main(argv=None):
         if len(parts) != 2 or not all(x.strip().isdigit() and int(x) >= 2 for x in parts):
             p.error(f"--bias {a.bias!r}: give N,M, two whole numbers >= 2 (renders of each side)")
         n, m = (int(x) for x in parts)
-        block, rows = bias(a.scene, a.bias_res, a.events, n, m, a.fwhm)
-        print(f"{a.scene} {a.bias_res}², events {a.events}, fwhm {a.fwhm:g} mm, {n} `default` renders (shared in {block:g} mm blocks) "
+        block, rows = bias(a.scene, a.bias_res, a.events, n, m, a.fwhm, a.preset)
+        print(f"{a.scene} {a.bias_res}², events {a.events}, fwhm {a.fwhm:g} mm, {n} `{a.preset}` renders (shared in {block:g} mm blocks) "
               f"against {m} per-pixel `unbiased` ones:\n")
         print("| channel | bias, RMS per pixel (of the event) | one render's noise | worst pixel | "
               "pixels beyond 4 standard errors |")
