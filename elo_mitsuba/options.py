@@ -369,10 +369,11 @@ def parameter_table() -> str:
 #: per-pixel estimator): 0.17-0.19 % of e2 RMS per pixel, at most 3.2 % of e2 at the melt tracks
 #: (the whole event filtered: 0.34-0.90 %, up to 8.5 %). ``reference`` is ``default``'s estimators
 #: with 4x its paths and 6x the 1st event's triangles: the most accurate preset, its bias that of
-#: the averages (measured against ``unbiased``, benchmarks/RESULTS.md, presets). ``unbiased``
-#: averages nothing between pixels (128 paths per pixel of their own): the ground truth that the
-#: averages' bias is measured against, and slow (at 1500^2 its per-pixel noise on the chamber
-#: scenes is 4x ``default``'s in 27x the time, athene_flat). ``scene`` keeps the scene file's own settings.
+#: the averages (measured against ``unbiased``: benchmarks/RESULTS.md, Far field, "`reference` on
+#: the averages"). ``unbiased`` averages nothing between pixels (128 paths per pixel of their
+#: own): the ground truth that the averages' bias is measured against, and slow (at 1500^2 its
+#: per-pixel noise on the chamber scenes is 4x ``default``'s in 27x the time, athene_flat).
+#: ``scene`` keeps the scene file's own settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},

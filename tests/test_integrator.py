@@ -401,8 +401,8 @@ def test_quality_presets():
 
 
 def test_reference_is_the_most_accurate_preset_and_agrees_with_unbiased():
-    """melt_chamber, 48^2 over the central 40 mm, events 1 + 2 (relief in the chamber: the residual filter over windows of
-    3 x 3 pixels): the render's own estimate of e2 falls draft > default > reference, and below
+    """melt_chamber, 48^2 over the central 40 mm, events 1 + 2 (relief in the chamber: the residual
+    filter over windows of 3 x 3 pixels): the render's own estimate of e2 falls draft > default > reference, and below
     unbiased's (at 1500^2 reference's e2 is half default's, unbiased's 4x default's:
     benchmarks/RESULTS.md); reference's mean e2 over the plate agrees with unbiased's (no averaging
     between pixels) within 4 standard errors (the filter's bias, 0.2 % of e2 per pixel, is below
