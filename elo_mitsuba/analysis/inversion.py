@@ -135,7 +135,6 @@ def bowl_check(height, field_mm) -> tuple[dict | None, np.ndarray | None]:
     >>> bowl_check(0.01 * np.sin(9 * x), 80.0)[0] is None
     True
     """
-
     h = np.asarray(height, float)
     quad, bowl, relief, _ = fit_quadric(h, np.ones(h.shape, bool))
     if quad is None or not bowl_exceeds(bowl, relief, max(pixel_size(h.shape, field_mm))):
