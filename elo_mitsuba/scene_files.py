@@ -43,6 +43,8 @@ def resolve_scene_path(scene: str | Path) -> Path:
     shipped = shipped_scenes()
     if str(scene) in shipped:
         return shipped[str(scene)]
+    if path.is_dir():
+        raise EloInputError(f"scene {str(scene)!r} is a folder; give an XML file in it or a shipped scene name")
     if path.suffix.lower() == ".xml" or path.parent != Path("."):
         raise EloInputError(f"scene file {str(scene)!r} does not exist")
     names = ", ".join(shipped) or "(none installed)"

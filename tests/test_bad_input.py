@@ -91,6 +91,7 @@ CLI_CASES = [
     # -- render: the scene
     ("render no such scene", ["render", "no_such_scene", *OUT], "neither an XML file nor a shipped scene"),
     ("render no such xml", ["render", "{d}/nothere.xml", *OUT], "does not exist"),
+    ("render a folder", ["render", "{d}", *OUT], "is a folder; give an XML file in it"),
     ("render copied scene", ["render", "{d}/copied.xml", *OUT, "-D", "dh=250"], "included file 'layouts/zeta25.xml' not found"),
     ("render zero radius", ["render", "{d}/zero_radius.xml", *OUT], "has area 0 mm^2"),
     ("render garbage ply", ["render", "{d}/garbage_ply.xml", *OUT], "is not a PLY file"),
@@ -130,7 +131,8 @@ CLI_CASES = [
     ("render --detector-samples no effect", [*R, *OUT, "--detector-samples", "4"], "would change nothing"),
     ("render --layout zeta99", [*R, *OUT, "--layout", "zeta99"], "unknown detector layout 'zeta99'"),
     ("render --layout abc", [*R, *OUT, "--layout", "abc"], "unknown detector layout 'abc'"),
-    ("render unknown flag", [*R, *OUT, "--colour", "red"], "unrecognized arguments"),
+    ("render unknown flag", [*R, *OUT, "--colour", "red"],
+     "render: error: unrecognized arguments: --colour red (see 'elo-mitsuba render --help')"),
     ("render no -o", [*R], "the following arguments are required: -o/--output"),
     # -- render: -D
     ("render -D no =", [*R, *OUT, "-D", "dh"], "is not NAME=VALUE"),

@@ -75,6 +75,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
             importlib.import_module(f"{__name__}.{name}").add_parser(sub)
     if only is None:
         checkout.add_parsers(sub)
+    parser.commands = sub.choices  # a sub-command's own parser names its own --help in an error
     return parser
 
 
@@ -88,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     wanted = argv[0].replace("-", "_") if argv else None
     parser = build_parser(only=wanted if wanted in COMMANDS else None)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # argparse reports a sub-command's stray arguments from the top parser
+        parser.commands.get(argv[0], parser).error(f"unrecognized arguments: {' '.join(extra)}")
     if not hasattr(args, "run"):
         parser.print_help()
         return 2
