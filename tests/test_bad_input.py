@@ -50,6 +50,10 @@ def d(tmp_path_factory):
         np.save(d / f"neg_{n}.npy", -np.ones((8, 8)))
         np.save(d / f"nan_{n}.npy", np.full((8, 8), np.nan))
         np.save(d / f"mixed_{n}.npy", np.array([[1.0, -1.0], [1.0, 1.0]]))
+        spike = np.ones((8, 8))
+        spike[2, 5] = 1e30  # a saturated or glitched pixel
+        np.save(d / f"spike_{n}.npy", spike)
+        np.save(d / f"bright_{n}.npy", np.where(np.arange(64).reshape(8, 8) == 21, 900.0, 1.0))  # kept
     np.save(d / "small_right.npy", np.ones((4, 4)))
     write_exr(d / "nofield.exr", {"dzdx": np.zeros((4, 4)), "dzdy": np.zeros((4, 4))})
     # scenes a user might write
@@ -178,6 +182,8 @@ CLI_CASES = [
     ("gradient negative images", ["gradient", *four("neg"), "--no-flat", *GEO, "-o", "{d}/g.exr"], "ratios >= 0"),
     ("gradient nan images", ["gradient", *four("nan"), "--no-flat", *GEO, "-o", "{d}/g.exr"], "NaN or Inf"),
     ("gradient mixed sign", ["gradient", *four("mixed"), "--no-flat", *GEO, "-o", "{d}/g.exr"], "others positive"),
+    ("gradient spike", ["gradient", *four("spike"), "--no-flat", *GEO, "-o", "{d}/g.exr"],
+     "1 pixel(s) above 1000 x the image's median 1 (the largest 1e+30 at row 2, column 5)"),
     ("gradient png input", ["gradient", *four("ok")[:-1], "{d}/img.png", "--no-flat", *GEO, "-o", "{d}/g.exr"],
      "unsupported image type .png"),
     ("gradient garbage npy", ["gradient", *four("ok")[:-1], "{d}/garbage.npy", "--no-flat", *GEO, "-o", "{d}/g.exr"],
@@ -373,3 +379,11 @@ def _moved_onto_back():
     scene = _scene()
     scene.set_detector("right", center=(0, 127, 272))
     return scene
+
+
+def test_a_bright_pixel_below_the_spike_bound_is_a_signal(d, tmp_path):
+    """A pixel 900x its image's median is no surface's either (the validation surfaces stay
+    within 9x), but the bound (1000x) leaves room: such images are still read and solved."""
+    out = tmp_path / "g.exr"
+    assert _main(["gradient", *[a.format(d=d) for a in four("bright")], "--no-flat", *GEO, "-o", str(out)]) == 0
+    assert out.exists()
