@@ -26,6 +26,7 @@ from .arguments import real_array, shown
 from .errors import EloInputError
 from .files import atomic_write, check_output
 from .grid import ORIENTATION
+from .schema import check_header
 
 METADATA_ATTRIBUTE = "elo_mitsuba"
 #: Why EXRs are written uncompressed (measured on 2 cores, the 12 channels of athene_flat at
@@ -191,6 +192,7 @@ def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
         if not isinstance(meta, dict):
             raise EloInputError(f"{path}: header attribute {METADATA_ATTRIBUTE!r} holds a JSON "
                                 f"{type(meta).__name__}, not an object (name: value, as elo-mitsuba writes it)")
+        check_header(meta, str(path))
     return channels, meta
 
 

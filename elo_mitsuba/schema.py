@@ -242,6 +242,87 @@ def has_detectors(meta: Mapping | None) -> bool:
     return bool((meta or {}).get(DETECTORS))
 
 
+#: The largest length (mm) a header may record: a kilometre, beyond any chamber (1e300 overflowed
+#: the calibration's fits) ...
+MAX_HEADER_MM = 1e6
+#: ... and the smallest positive one (a field, work distance or detector radius): a nanometre
+#: (1e-300 divided the calibration by zero).
+MIN_HEADER_MM = 1e-6
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _length(v) -> bool:
+    """A finite number of mm within :data:`MAX_HEADER_MM` of 0."""
+    return _is_number(v) and abs(v) <= MAX_HEADER_MM
+
+
+def _lengths(v, n: int) -> bool:
+    return isinstance(v, (list, tuple)) and len(v) == n and all(_length(x) for x in v)
+
+
+def _positive_lengths(v) -> bool:
+    """A length > 0, or two of them (x, y)."""
+    items = v if isinstance(v, (list, tuple)) and len(v) == 2 else [v]
+    return all(_length(x) and x >= MIN_HEADER_MM for x in items)
+
+
+def _whole(v, least: int) -> bool:
+    return _is_number(v) and float(v) == int(v) and int(v) >= least
+
+
+def _detector_entry(v) -> bool:
+    return (isinstance(v, Mapping) and _lengths(v.get("center"), 3) and _lengths(v.get("normal"), 3)
+            and any(x != 0 for x in v["normal"]) and _positive_lengths(v.get("radius")))
+
+
+#: What each header key that the analysis reads must hold (a test, what is allowed): JSON as
+#: elo-mitsuba writes it; a header edited by hand or by another tool is checked before any work.
+HEADER_RULES = {
+    FIELD: (_positive_lengths, f"a length or two [x, y] of {MIN_HEADER_MM:g} to {MAX_HEADER_MM:g} mm"),
+    RESOLUTION: (lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(_whole(x, 1) for x in v),
+                 "two whole numbers >= 1 [W, H]"),
+    "pixel_size_mm": (_positive_lengths, f"a length or two [x, y] of {MIN_HEADER_MM:g} to {MAX_HEADER_MM:g} mm"),
+    WORK_DISTANCE: (_positive_lengths, f"a length of {MIN_HEADER_MM:g} to {MAX_HEADER_MM:g} mm"),
+    PROJECTION: (lambda v: v in PROJECTIONS, " or ".join(PROJECTIONS)),
+    AIM_OFFSET: (lambda v: _lengths(v, 2), f"two lengths [x, y] within {MAX_HEADER_MM:g} mm"),
+    BEAM_FWHM: (lambda v: _length(v) and v >= 0, f"a length >= 0 up to {MAX_HEADER_MM:g} mm"),
+    "events": (lambda v: _whole(v, 1), "a whole number >= 1"),
+    DETECTORS: (lambda v: isinstance(v, Mapping) and all(isinstance(k, str) and _detector_entry(d) for k, d in v.items()),
+                f"{{name: {{center: [x, y, z], normal: [x, y, z] (not zero), radius: r}}}}, lengths within {MAX_HEADER_MM:g} mm, r >= {MIN_HEADER_MM:g}"),
+    MATERIAL: (lambda v: isinstance(v, str) and bool(v), "a material name or composition"),
+    MATERIALS: (lambda v: isinstance(v, Mapping) and all(isinstance(x, str) for x in v.values()),
+                "{shape: material}"),
+    SCATTERING: (lambda v: isinstance(v, Mapping) and all(
+        isinstance(x, Mapping) and isinstance(x.get("lobe", True), bool)
+        and _is_number(x.get("lobe_width_deg", 1.0)) and x.get("lobe_width_deg", 1.0) > 0 for x in v.values()),
+        "{shape: {lobe: true or false, lobe_width_deg: > 0}}"),
+    UNITS: (lambda v: isinstance(v, str), "a unit label"),
+}
+
+
+def check_header(meta: Mapping, source: str = "header") -> None:
+    """Refuse a header whose geometry keys (:data:`HEADER_RULES`) hold what elo-mitsuba never
+    writes, naming the file, the key, its value and what is allowed; keys it lacks are left to
+    their readers (which ask for ``--field`` and the like).
+
+    Examples
+    --------
+    >>> check_header({"field_mm": [80.0, 80.0], "resolution": [64, 64]})
+    >>> check_header({"resolution": "64x64"}, "a.exr")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: a.exr: header resolution='64x64'; need two whole numbers >= 1 [W, H]
+    """
+    for key, (ok, allowed) in HEADER_RULES.items():
+        if key in meta and not ok(meta[key]):
+            value = repr(meta[key])
+            value = value if len(value) <= 80 else value[:77] + "..."
+            raise EloInputError(f"{source}: header {key}={value}; need {allowed}")
+
+
 def read_geometry(meta: Mapping | None, source: str = "header", *, shape=None, field_mm=None) -> HeaderGeometry:
     """The geometry block of a header: the one reader of its keys.
 

@@ -387,3 +387,62 @@ def test_a_bright_pixel_below_the_spike_bound_is_a_signal(d, tmp_path):
     out = tmp_path / "g.exr"
     assert _main(["gradient", *[a.format(d=d) for a in four("bright")], "--no-flat", *GEO, "-o", str(out)]) == 0
     assert out.exists()
+
+
+#: Header values elo-mitsuba never writes (a header edited by hand or by another tool), each with
+#: what the one-line refusal names; every one ended in a traceback or a ZeroDivisionError before.
+BAD_HEADERS = [
+    ({"resolution": "abc"}, "header resolution='abc'; need two whole numbers >= 1 [W, H]"),
+    ({"resolution": [8, 8, 1]}, "header resolution=[8, 8, 1]"),
+    ({"beam_aim_offset_mm": -1}, "header beam_aim_offset_mm=-1; need two lengths"),
+    ({"work_distance_mm": []}, "header work_distance_mm=[]"),
+    ({"work_distance_mm": 1e-300}, "header work_distance_mm=1e-300; need a length of 1e-06 to 1e+06 mm"),
+    ({"field_mm": 1e300}, "header field_mm=1e+300"),
+    ({"beam_fwhm_mm": "abc"}, "header beam_fwhm_mm='abc'"),
+    ({"events": "abc"}, "header events='abc'; need a whole number >= 1"),
+    ({"projection": "fisheye"}, "header projection='fisheye'; need perspective or orthographic"),
+    ({"materials": "abc"}, "header materials='abc'"),
+    ({"scattering": "abc"}, "header scattering='abc'"),
+    ({"detectors": "abc"}, "header detectors='abc'"),
+    ({"detectors": {"right": {"center": [1, 2, 3], "normal": [0, 0, -1], "radius": "abc"}}}, "header detectors="),
+    ({"detectors": {"right": {"center": [1, 2, 3], "normal": [0, 0, 0], "radius": 25}}}, "header detectors="),
+]
+
+
+@pytest.mark.parametrize("change,fragment", BAD_HEADERS, ids=[next(iter(c)) + "=" + repr(next(iter(c.values())))[:20]
+                                                             for c, _ in BAD_HEADERS])
+def test_a_bad_header_is_one_line_before_any_work(d, tmp_path, change, fragment):
+    from elo_mitsuba.exr import read_exr
+
+    channels, meta = read_exr(d / "flat.exr")
+    bad = tmp_path / "bad.exr"
+    write_exr(bad, channels, {**meta, **change})
+    for argv in (["gradient", "--flat", str(d / "flat.exr"), str(bad), "-o", str(tmp_path / "g.exr")],
+                 ["calibrate", str(bad), "-o", str(tmp_path / "c.json")]):
+        rc, message = _one_line(argv)
+        assert rc == 2 and message.startswith(f"elo-mitsuba: error: {bad}: ") and fragment in message, message
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.exr"]
+
+
+def _one_line(argv):
+    import contextlib
+    import io
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        rc = _main(argv)
+    lines = err.getvalue().strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err.getvalue(), err.getvalue()
+    return rc, lines[0]
+
+
+def test_cropped_images_with_the_scans_header_are_refused_by_calibrate_too(d, tmp_path):
+    from elo_mitsuba.exr import read_exr
+
+    channels, meta = read_exr(d / "flat.exr")
+    bad = tmp_path / "crop.exr"
+    write_exr(bad, {k: v[:, :4] for k, v in channels.items()}, meta)
+    for argv in (["calibrate", str(bad), "-o", str(tmp_path / "c.json")],
+                 ["gradient", "--flat", str(bad), str(bad), "-o", str(tmp_path / "g.exr")]):
+        rc, message = _one_line(argv)
+        assert rc == 2 and "header resolution [8, 8] (W, H) does not match the image shape 4x8" in message, message

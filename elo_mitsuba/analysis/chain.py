@@ -240,13 +240,23 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
                     f"the {'object' if meta else 'first flat'}'s {np.round(np.asarray(a, float), 4).tolist()}; "
                     "record all with one geometry"
                 )
-    if geo["resolution"] is not None and tuple(geo["resolution"]) != (shape[1], shape[0]):
-        raise EloInputError(
-            f"{source}: header resolution {list(geo['resolution'])} (W, H) does not match the image "
-            f"shape {shape[1]}x{shape[0]}"
-        )
+    check_resolution(geo["resolution"], shape, source)
     return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo,
                 flat_files=[r.files for r in recordings], object_files=object_exr or given)
+
+
+def check_resolution(resolution, shape, source) -> None:
+    """Refuse images whose shape is not the header's ``resolution`` (W, H): cropped or resampled
+    images with the scan's header would put every pixel elsewhere than it was recorded."""
+    if resolution is None:
+        return
+    try:
+        width, height = (int(r) for r in resolution)
+    except (TypeError, ValueError):
+        raise EloInputError(f"{source}: header resolution {resolution!r}: need two whole numbers (W, H)") from None
+    if (width, height) != (shape[1], shape[0]):
+        raise EloInputError(f"{source}: header resolution {list(resolution)} (W, H) does not match the image "
+                            f"shape {shape[1]}x{shape[0]}")
 
 
 def nominal_geometry(header: Mapping | None, shape, field_mm, d_h: float, d_w: float, *,
@@ -626,6 +636,7 @@ def calibration_start(header: Mapping, shape, source: str, *, d_h=None, d_w=None
 
     if (d_h is None) != (d_w is None):
         raise EloInputError("give both --dh and --dw (the nominal layout), or neither (the header's detectors)")
+    check_resolution((header or {}).get("resolution"), shape, source)
     if d_h is not None or not has_detectors(header):
         if d_h is None:
             raise EloInputError(f"{source}: no detector geometry in the input; pass --dh and --dw (mm)")
