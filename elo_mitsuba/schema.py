@@ -242,12 +242,12 @@ def has_detectors(meta: Mapping | None) -> bool:
     return bool((meta or {}).get(DETECTORS))
 
 
-#: The largest length (mm) a header may record: a kilometre, beyond any chamber (1e300 overflowed
-#: the calibration's fits) ...
-MAX_HEADER_MM = 1e6
+#: The largest length (mm) read from a file (a header, a calibration): a kilometre, beyond any
+#: chamber (1e300 overflowed the calibration's fits) ...
+MAX_LENGTH_MM = 1e6
 #: ... and the smallest positive one (a field, work distance or detector radius): a nanometre
-#: (1e-300 divided the calibration by zero).
-MIN_HEADER_MM = 1e-6
+#: (1e-300 divided the calibration by zero; a disc of that radius collects nothing).
+MIN_LENGTH_MM = 1e-6
 
 
 def _is_number(v) -> bool:
@@ -255,8 +255,8 @@ def _is_number(v) -> bool:
 
 
 def _length(v) -> bool:
-    """A finite number of mm within :data:`MAX_HEADER_MM` of 0."""
-    return _is_number(v) and abs(v) <= MAX_HEADER_MM
+    """A finite number of mm within :data:`MAX_LENGTH_MM` of 0."""
+    return _is_number(v) and abs(v) <= MAX_LENGTH_MM
 
 
 def _lengths(v, n: int) -> bool:
@@ -266,7 +266,7 @@ def _lengths(v, n: int) -> bool:
 def _positive_lengths(v) -> bool:
     """A length > 0, or two of them (x, y)."""
     items = v if isinstance(v, (list, tuple)) and len(v) == 2 else [v]
-    return all(_length(x) and x >= MIN_HEADER_MM for x in items)
+    return all(_length(x) and x >= MIN_LENGTH_MM for x in items)
 
 
 def _whole(v, least: int) -> bool:
@@ -281,17 +281,17 @@ def _detector_entry(v) -> bool:
 #: What each header key that the analysis reads must hold (a test, what is allowed): JSON as
 #: elo-mitsuba writes it; a header edited by hand or by another tool is checked before any work.
 HEADER_RULES = {
-    FIELD: (_positive_lengths, f"a length or two [x, y] of {MIN_HEADER_MM:g} to {MAX_HEADER_MM:g} mm"),
+    FIELD: (_positive_lengths, f"a length or two [x, y] of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
     RESOLUTION: (lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(_whole(x, 1) for x in v),
                  "two whole numbers >= 1 [W, H]"),
-    "pixel_size_mm": (_positive_lengths, f"a length or two [x, y] of {MIN_HEADER_MM:g} to {MAX_HEADER_MM:g} mm"),
-    WORK_DISTANCE: (_positive_lengths, f"a length of {MIN_HEADER_MM:g} to {MAX_HEADER_MM:g} mm"),
+    "pixel_size_mm": (_positive_lengths, f"a length or two [x, y] of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
+    WORK_DISTANCE: (_positive_lengths, f"a length of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
     PROJECTION: (lambda v: v in PROJECTIONS, " or ".join(PROJECTIONS)),
-    AIM_OFFSET: (lambda v: _lengths(v, 2), f"two lengths [x, y] within {MAX_HEADER_MM:g} mm"),
-    BEAM_FWHM: (lambda v: _length(v) and v >= 0, f"a length >= 0 up to {MAX_HEADER_MM:g} mm"),
+    AIM_OFFSET: (lambda v: _lengths(v, 2), f"two lengths [x, y] within {MAX_LENGTH_MM:g} mm"),
+    BEAM_FWHM: (lambda v: _length(v) and v >= 0, f"a length >= 0 up to {MAX_LENGTH_MM:g} mm"),
     "events": (lambda v: _whole(v, 1), "a whole number >= 1"),
     DETECTORS: (lambda v: isinstance(v, Mapping) and all(isinstance(k, str) and _detector_entry(d) for k, d in v.items()),
-                f"{{name: {{center: [x, y, z], normal: [x, y, z] (not zero), radius: r}}}}, lengths within {MAX_HEADER_MM:g} mm, r >= {MIN_HEADER_MM:g}"),
+                f"{{name: {{center: [x, y, z], normal: [x, y, z] (not zero), radius: r}}}}, lengths within {MAX_LENGTH_MM:g} mm, r >= {MIN_LENGTH_MM:g}"),
     MATERIAL: (lambda v: isinstance(v, str) and bool(v), "a material name or composition"),
     MATERIALS: (lambda v: isinstance(v, Mapping) and all(isinstance(x, str) for x in v.values()),
                 "{shape: material}"),

@@ -376,6 +376,10 @@ API_CASES = [
     ("read_calibration centre text", lambda: _read_calibration({"center": "abc"}), "center 'abc'"),
     ("read_calibration below", lambda: _read_calibration({"center": [127, 0, -1]}), "at or below the build plane"),
     ("read_calibration gain 0", lambda: _read_calibration({"gain": 0}), "finite gain other than 0"),
+    ("read_calibration radius 1e-300", lambda: _read_calibration({"radius": 1e-300}),
+     "detector 'right': detector radius 1e-300 mm: must be 1e-06 to 1e+06 mm"),
+    ("read_calibration normal zero", lambda: _read_calibration({"normal": [0, 0, 0]}),
+     "detector 'right': detector normal [0, 0, 0]: must not be zero"),
     ("heightmap_to_mesh beyond float32", lambda: _mesh(np.full((3, 3), 4e38)), "beyond the float32 range"),
     # the Python API's sweep (2026-12-05): truthy non-bools read as consent, numbers beyond float,
     # settings that silently changed or emptied a result

@@ -467,11 +467,11 @@ def read_calibration(path) -> Calibration:
             raise EloInputError(f"{path}: detector {name!r} lacks {', '.join(missing)} (need center, normal, radius)")
         try:
             disc = Disc(d["center"], d["normal"], d["radius"])
+        except EloInputError as exc:  # (an EloInputError is a ValueError too: caught first)
+            raise EloInputError(f"{path}: detector {name!r}: {exc}") from None
         except (TypeError, ValueError, OverflowError):  # text where numbers belong
             raise EloInputError(f"{path}: detector {name!r}: center {d['center']!r}, normal {d['normal']!r}, radius "
                                 f"{d['radius']!r}; need 3 numbers, 3 numbers and a number of mm > 0") from None
-        except EloInputError as exc:
-            raise EloInputError(f"{path}: detector {name!r}: {exc}") from None
         check_detector_placement(name, disc.center, disc.normal, disc.radius, where=str(path))
         numbers = {}
         for key, default in (("gain", 1.0), ("offset", 0.0), ("rms_residual_relative", float("nan"))):
