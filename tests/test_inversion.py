@@ -538,3 +538,29 @@ def test_a_bowl_larger_than_the_relief_enters_the_error(mi):
     assert np.mean(err <= kept.height_error) > 0.9, np.mean(err <= kept.height_error)
     assert np.mean(err <= kept.height_error_noise) < 0.5
     assert invert_heights(img, flat, geo, start=truth, iterations=0, local=False).bowl is None
+
+
+def test_a_saturated_pixel_weighs_nothing_as_a_nan_does(mi):
+    """A pixel above SPIKE x its image's median (saturated, glitched) is left out of the solve as a
+    NaN pixel is, in the object's image and in the flat's: the heights are those of the NaN case
+    bit for bit; with the bound lifted a 1e30 pixel moves them by metres."""
+    from elo_mitsuba.analysis import stsa
+
+    shape = (32, 32)
+    geo = ScanGeometry.nominal(shape, 80.0, 272, 127, projection="orthographic")
+    x, y = pixel_coordinates(shape, geo.field_mm)
+    truth = 0.02 * np.sin(x / 3.0) * np.cos(y / 4.0)
+    flat = HeightModel(geo, shadows=False, nodes=NODES).images(np.zeros(shape))
+    img = HeightModel(geo, nodes=NODES).images(truth)
+
+    def solve(value, where="object", **kw):
+        im, fl = {n: v.copy() for n, v in img.items()}, {n: v.copy() for n, v in flat.items()}
+        (im if where == "object" else fl)["right"][12, 20] = value
+        return invert_heights(im, fl, geo, start=truth, iterations=2, uncertainty_probes=0, local=False, **kw).height
+
+    for where in ("object", "flat"):
+        assert np.array_equal(solve(1e30, where), solve(np.nan, where)), where
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(stsa, "SPIKE", np.inf)
+        lifted = solve(1e30)
+    assert np.ptp(lifted) > 1.0 or not np.all(np.isfinite(lifted)), np.ptp(lifted)

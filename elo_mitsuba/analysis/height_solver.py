@@ -48,6 +48,7 @@ import numpy as np
 
 from ..grid import pixel_size
 from .noise import MIN_FLAT, estimate_noise
+from .stsa import spike_bound
 from .height_model import (HeightModel, SuperResolvedModel, corners_from_pixels,
                            pixels_from_corners)
 
@@ -668,7 +669,11 @@ def _set_up(data, geometry, *, fwhm_mm, alpha, noise, shadows, nodes, factor=1, 
     img = np.stack([np.asarray(images[n], float) for n in names])
     flt = np.stack([np.asarray(flats[n], float) for n in names])
     floor = MIN_FLAT * np.median(flt, axis=(1, 2), keepdims=True)
-    good = np.isfinite(img) & np.isfinite(flt) & (flt > floor)
+    # a pixel that is not finite, or saturated or glitched (above SPIKE x its image's median),
+    # weighs nothing: the command line refuses such images, the Python API leaves them out
+    bound = np.array([[[spike_bound(x)]] for x in (*img, *flt)])
+    good = (np.isfinite(img) & np.isfinite(flt) & (flt > floor)
+            & (np.abs(img) <= bound[:len(names)]) & (np.abs(flt) <= bound[len(names):]))
     corrected = np.where(good, img / np.where(good, flt, 1.0), 0.0)
     weights = good.astype(float)
     flat_model = HeightModel(geometry, fwhm_mm=fwhm_mm, later=flat_later, shadows=False, nodes=nodes)

@@ -27,6 +27,7 @@ from ..files import check_output
 from ..grid import field_xy
 from ..schema import error_channels, event_channel, grid_header
 from ..heightmap import HEIGHT_SUFFIXES, write_height
+from .stsa import SPIKE, spike_bound
 
 IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
 #: Channels of the gradient EXR, in the order written: the Eq. 26 gradient, the normalised
@@ -175,22 +176,11 @@ def read_later_errors(path) -> dict | None:
     return later_events_error(error_channels(channels), DETECTOR_NAMES, int(meta.get("events", 1)))
 
 
-#: A pixel above this many times its image's median (over the pixels that are not 0) is no
-#: detector signal but a saturated or glitched one: the brightest pixel of the validation surfaces
-#: (steep hills, 0.1-1 mm steps, rough layer; detectors 15 or 65 deg up; beam 0 or 0.27 mm; 1st
-#: event, 128^2) is at most 9 times its image's median. A single 1e30 pixel otherwise drove the
-#: inversion's per-pixel scale and misfit to 1e32 and its error bars to 1e16 um over 85 % of the field.
-SPIKE = 1000.0
-#: ... the median taken over at most this many pixels (evenly strided): the bound is 100x coarser
-#: than the contrast it allows.
-SPIKE_SAMPLE = 1 << 16
-
-
 def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, str]) -> None:
     """Refuse detector images no gradient can come from, naming the file and what is wrong.
 
     A detector image is a collected signal (count, current or voltage): finite, of one sign, not
-    zero everywhere and without pixels :data:`SPIKE` times its median. NaN/Inf, values of both
+    zero everywhere and without pixels :data:`~.stsa.SPIKE` times its median. NaN/Inf, values of both
     signs (an offset not subtracted), an all-zero image (a detector not connected, a wrong
     channel) and saturated or glitched pixels would otherwise end as a masked gradient without a
     reason or as error bars of 1e16 um. An image <= 0 throughout (an inverting amplifier) is
@@ -210,14 +200,12 @@ def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, 
                                 f"others positive (max {high:.4g}); a detector signal has one sign: subtract a "
                                 "dark offset only down to 0")
         mag = np.abs(img)
-        sample = mag.ravel()[::max(1, mag.size // SPIKE_SAMPLE)]
-        lit = sample[sample > 0]
-        median = float(np.median(lit if lit.size else mag[mag > 0]))
-        spikes = mag > SPIKE * median
+        bound = spike_bound(img)
+        spikes = mag > bound
         if spikes.any():
             row, col = np.unravel_index(int(np.argmax(mag)), mag.shape)
             raise EloInputError(f"{names[n]}: {int(spikes.sum())} pixel(s) above {SPIKE:g} x the image's median "
-                                f"{median:.4g} (the largest {float(mag[row, col]):.4g} at row {row}, column {col}): "
+                                f"{bound / SPIKE:.4g} (the largest {float(mag[row, col]):.4g} at row {row}, column {col}): "
                                 "no surface scatters that contrast, a saturated or glitched pixel; replace it "
                                 "(e.g. by its neighbours' median)")
 
