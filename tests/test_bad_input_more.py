@@ -190,6 +190,8 @@ CLI_CASES = [
     ("render, no electron reaches a detector", [*R, "--resolution", "4", "-D", "field=1e6"],
      "flat_plate: no electron reached any detector anywhere in the scan"),
     ("invert --fwhm beyond the field", [*INV, "--fwhm", "1e30"], "beam FWHM 1e+30 mm (--fwhm): must be below"),
+    ("invert --noise 1e300", [*INV, "--noise", "1e300"], "noise=1e+300: must be a finite number > 0 and <= 1"),
+    ("gradient --noise 2", [*GRAD, "--noise", "2"], "noise=2.0: must be a finite number > 0 and <= 1"),
     ("invert --init relief reaching the detectors", [*INV, "--init", "{d}/tall.npy"],
      "--init heights: a relief of 500 mm (largest less smallest height) reaches the detectors"),
     ("invert output is its input", ["invert", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/corr.exr",

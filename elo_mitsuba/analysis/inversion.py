@@ -35,7 +35,7 @@ from ..grid import pixel_size
 from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, NODES, SCALES, TOL, UNCERTAINTY_PROBES,
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
 from .local_inversion import refine_regions, threshold
-from .noise import local_chi2
+from .noise import check_noise, local_chi2
 from .quadric import bowl_exceeds, fit_quadric
 from .step_offsets import offset_errors, search_offsets
 from .stsa import check_images
@@ -280,8 +280,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         raise EloInputError(f"tol={tol!r}: must be a finite number >= 0")
     if not (np.isfinite(discrepancy) and discrepancy >= 0):
         raise EloInputError(f"discrepancy={discrepancy!r}: must be a finite number >= 0")
-    if noise is not None and not (np.isfinite(noise) and noise > 0):
-        raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
+    if noise is not None:
+        noise = check_noise(noise)
     check_beam_and_start(geometry, fwhm_mm)  # the start's heights once they are known, below
     shape = tuple(geometry.shape)
     for what, data in (("images", images), ("flats", flats)):

@@ -36,7 +36,7 @@ from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
 from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
-from .noise import local_chi2
+from .noise import check_noise, local_chi2
 from .stsa import MIN_SUM, check_images
 
 #: Levenberg-Marquardt iterations (each: one kernel of three model evaluations).
@@ -245,8 +245,8 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     fraction("geometric_margin", geometric_margin)
     if not hasattr(geometry, "detectors") or not hasattr(geometry, "field_mm"):
         raise EloInputError("geometry: must be a ScanGeometry (analysis.scan_geometry)")
-    if noise is not None and not (np.isfinite(noise) and noise > 0):
-        raise EloInputError(f"noise={noise!r}: must be a finite number > 0 (corrected units)")
+    if noise is not None:
+        noise = check_noise(noise)
     d_h, d_w = geometry.symmetric_layout()
     images = check_images(images, "object images" if flats is not None else "corrected images")
     if heights is not None:

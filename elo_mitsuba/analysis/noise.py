@@ -14,6 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
+from ..errors import EloInputError
 
 #: A level below this fraction of its images' median gives the pixel no weight (a flat plate's
 #: value in the inversion, a smoothed image's in :func:`relative_noise`).
@@ -30,6 +31,33 @@ NEGLIGIBLE_NOISE = 1e-4
 #: and both diagonals. Noise is the same in each; relief with straight features (ridges, melt
 #: tracks, grooves) adds to all but the one along them.
 DIRECTIONS = ((0, 1), (1, 0), (1, 1), (1, -1))
+
+#: The largest noise level (standard deviation of the corrected images, whose level is about 1)
+#: a user may give: 100 %. Above it the images hold no signal, and 1e300 overflowed its square.
+MAX_NOISE = 1.0
+
+
+def check_noise(noise, what: str = "noise") -> float:
+    """``noise`` as a float, if it is a noise level of the corrected images: finite, > 0 and at
+    most :data:`MAX_NOISE`.
+
+    Examples
+    --------
+    >>> check_noise(0.01)
+    0.01
+    >>> check_noise(1e300)
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: noise=1e+300: must be a finite number > 0 and <= 1 (corrected units: a standard deviation of images about 1)
+    """
+    try:
+        level = float(noise)
+    except (TypeError, ValueError):
+        level = float("nan")
+    if not (np.isfinite(level) and 0 < level <= MAX_NOISE) or isinstance(noise, bool):
+        raise EloInputError(f"{what}={noise!r}: must be a finite number > 0 and <= {MAX_NOISE:g} "
+                            "(corrected units: a standard deviation of images about 1)")
+    return level
 
 
 def _shifted(a, dr, dc, k):

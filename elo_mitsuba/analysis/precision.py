@@ -54,6 +54,7 @@ from ..constants import (
 )
 from ..errors import EloInputError
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
+from .noise import check_noise
 
 #: Central-difference step in p and q for the model's derivative (float32 signals: a step of
 #: 1e-3 keeps the round-off of the difference near 1e-4 relative).
@@ -283,9 +284,7 @@ def bound_from_signals(signals: Mapping, noise, scale: float = 1.0) -> dict[str,
         sigma = np.sqrt(np.clip(mean, 0.0, None) + noise.amplifier_electrons ** 2)
         ds = n0 * S
     else:
-        level = float(noise)
-        if not (np.isfinite(level) and level > 0):
-            raise EloInputError(f"noise={noise!r}: a standard deviation of the corrected images must be finite and > 0")
+        level = check_noise(noise)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = np.where(flat > 0, 1.0 / flat, 0.0)
         mean, dp, dq, ds = scale * S * inv, scale * Sp * inv, scale * Sq * inv, S * inv
