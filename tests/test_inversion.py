@@ -520,16 +520,22 @@ def test_the_shadow_march_skips_only_what_no_surface_can_block(block, monkeypatc
     assert int((plain != skipping).sum()) <= 0.002 * shadowed
 
 
-def test_a_bowl_larger_than_the_relief_enters_the_error(mi):
-    """A result holding a field-wide bowl larger than its relief (a start whose slopes carried a bias,
-    kept: here no steps) is flagged, and height_error covers the bowl where the noise part alone
-    would not; the same relief without the bowl is not flagged."""
+def _small_relief():
+    """A gentle relief on a 32^2 orthographic scan, its model images and the flat's (no noise):
+    (geometry, x, y, truth, images, flat)."""
     shape = (32, 32)
     geo = ScanGeometry.nominal(shape, 80.0, 272, 127, projection="orthographic")
     x, y = pixel_coordinates(shape, geo.field_mm)
     truth = 0.02 * np.sin(x / 3.0) * np.cos(y / 4.0)
     flat = HeightModel(geo, shadows=False, nodes=NODES).images(np.zeros(shape))
-    img = HeightModel(geo, nodes=NODES).images(truth)
+    return geo, x, y, truth, HeightModel(geo, nodes=NODES).images(truth), flat
+
+
+def test_a_bowl_larger_than_the_relief_enters_the_error(mi):
+    """A result holding a field-wide bowl larger than its relief (a start whose slopes carried a bias,
+    kept: here no steps) is flagged, and height_error covers the bowl where the noise part alone
+    would not; the same relief without the bowl is not flagged."""
+    geo, x, y, truth, img, flat = _small_relief()
     bowl = 1.5e-3 * (x * x + y * y)
     bowl -= bowl.mean()
     kept = invert_heights(img, flat, geo, start=truth + bowl, iterations=0, local=False)
@@ -546,12 +552,7 @@ def test_a_saturated_pixel_weighs_nothing_as_a_nan_does(mi):
     bit for bit; with the bound lifted a 1e30 pixel moves them by metres."""
     from elo_mitsuba.analysis import stsa
 
-    shape = (32, 32)
-    geo = ScanGeometry.nominal(shape, 80.0, 272, 127, projection="orthographic")
-    x, y = pixel_coordinates(shape, geo.field_mm)
-    truth = 0.02 * np.sin(x / 3.0) * np.cos(y / 4.0)
-    flat = HeightModel(geo, shadows=False, nodes=NODES).images(np.zeros(shape))
-    img = HeightModel(geo, nodes=NODES).images(truth)
+    geo, _, _, truth, img, flat = _small_relief()
 
     def solve(value, where="object", **kw):
         im, fl = {n: v.copy() for n, v in img.items()}, {n: v.copy() for n, v in flat.items()}
