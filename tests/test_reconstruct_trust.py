@@ -209,13 +209,22 @@ def test_masked_pixels_are_exempt_and_an_orthographic_scan_is_not_checked(tmp_pa
     assert main(["reconstruct", grad, "-o", str(tmp_path / "o.npy"), "--ignore-mask"]) == 0
 
 
-@pytest.mark.parametrize("wd", [0.0, -400.0, None, "far"])
+@pytest.mark.parametrize("wd", [0.0, -400.0, None, "far", "absent"])
 def test_a_perspective_header_without_a_work_distance_is_refused(tmp_path, capsys, monkeypatch, wd):
-    grad = _grad_exr(tmp_path / "g.exr", *_ramp(0.5), work_distance_mm=wd)
+    """A work distance that is no length is refused when the header is read; a perspective
+    header without one, by reconstruct (it needs the pivot height)."""
+    if wd == "absent":
+        dzdx, dzdy = _ramp(0.5)
+        grad = str(write_exr(tmp_path / "g.exr", {"dzdx": dzdx, "dzdy": dzdy},
+                             {"field_mm": [80.0, 80.0], "projection": "perspective"}))
+    else:
+        grad = _grad_exr(tmp_path / "g.exr", *_ramp(0.5), work_distance_mm=wd)
     _no_work(monkeypatch)
     assert main(["reconstruct", grad, "-o", str(tmp_path / "h.npy")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and f"header projection 'perspective' with work_distance_mm {wd!r}" in err
+    said = ("header projection 'perspective' with work_distance_mm None" if wd == "absent"
+            else f"header work_distance_mm={wd!r}; need a length of 1e-06 to 1e+06 mm")
+    assert err.count("\n") == 1 and said in err, err
 
 
 def test_a_relief_not_small_against_the_work_distance_is_warned_about(tmp_path, capsys):
