@@ -278,9 +278,9 @@ def _detector_entry(v) -> bool:
             and any(x != 0 for x in v["normal"]) and _positive_lengths(v.get("radius")))
 
 
-#: What each header key that the analysis reads must hold (a test, what is allowed): JSON as
-#: elo-mitsuba writes it; a header edited by hand or by another tool is checked before any work.
-HEADER_RULES = {
+# What each header key that the analysis reads must hold (a test, what is allowed): JSON as
+# elo-mitsuba writes it; a header edited by hand or by another tool is checked before any work.
+_HEADER_RULES = {
     FIELD: (_positive_lengths, f"a length or two [x, y] of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
     RESOLUTION: (lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(_whole(x, 1) for x in v),
                  "two whole numbers >= 1 [W, H]"),
@@ -304,9 +304,10 @@ HEADER_RULES = {
 
 
 def check_header(meta: Mapping, source: str = "header") -> None:
-    """Refuse a header whose geometry keys (:data:`HEADER_RULES`) hold what elo-mitsuba never
-    writes, naming the file, the key, its value and what is allowed; keys it lacks are left to
-    their readers (which ask for ``--field`` and the like).
+    """Refuse a header whose keys that the analysis reads (field, resolution, pixel size, work
+    distance, projection, aim offset, beam FWHM, events, detectors, material(s), scattering, units)
+    hold what elo-mitsuba never writes, naming the file, the key, its value and what is allowed;
+    keys it lacks are left to their readers (which ask for ``--field`` and the like).
 
     Examples
     --------
@@ -316,7 +317,7 @@ def check_header(meta: Mapping, source: str = "header") -> None:
     ...
     elo_mitsuba.errors.EloInputError: a.exr: header resolution='64x64'; need two whole numbers >= 1 [W, H]
     """
-    for key, (ok, allowed) in HEADER_RULES.items():
+    for key, (ok, allowed) in _HEADER_RULES.items():
         if key in meta and not ok(meta[key]):
             value = repr(meta[key])
             value = value if len(value) <= 80 else value[:77] + "..."
