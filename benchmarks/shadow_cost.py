@@ -17,7 +17,6 @@ quadrature keeps its rays.
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 import time
@@ -76,11 +75,23 @@ def run_one(scene_name: str, res: int, variant: str) -> list[float]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.shadow_cost", description=__doc__.split("\n\n")[0])
+    from elo_mitsuba.cli._args import OneLineParser  # a usage error is one line, not the usage
+
+    ap = OneLineParser(prog="python -m benchmarks.shadow_cost", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="corrugated_chamber")
     ap.add_argument("--res", type=int, default=1024)
     ap.add_argument("--variant", choices=VARIANTS, help="run one variant here (the parent runs each in a process)")
     args = ap.parse_args(argv)
+    from elo_mitsuba.arguments import whole_number
+    from elo_mitsuba.errors import EloError
+    from elo_mitsuba.scene_files import resolve_scene_path
+
+    try:  # before any process starts
+        resolve_scene_path(args.scene)
+        whole_number("--res", args.res, 1, None)
+    except EloError as exc:
+        print(f"python -m benchmarks.shadow_cost: error: {exc}", file=sys.stderr)
+        return 2
     if args.variant:
         times = run_one(args.scene, args.res, args.variant)
         print(f"{args.variant}: " + ", ".join(f"{t:.2f}" for t in times) + " s")

@@ -23,6 +23,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from .constants import DEFAULT_MATERIAL, WORK_DISTANCE_MM
+from .arguments import shown
 from .errors import EloInputError
 from .grid import field_xy
 
@@ -319,9 +320,7 @@ def check_header(meta: Mapping, source: str = "header") -> None:
     """
     for key, (ok, allowed) in _HEADER_RULES.items():
         if key in meta and not ok(meta[key]):
-            value = repr(meta[key])
-            value = value if len(value) <= 80 else value[:77] + "..."
-            raise EloInputError(f"{source}: header {key}={value}; need {allowed}")
+            raise EloInputError(f"{source}: header {key}={shown(meta[key])}; need {allowed}")
 
 
 def read_geometry(meta: Mapping | None, source: str = "header", *, shape=None, field_mm=None) -> HeaderGeometry:

@@ -14,6 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from ..constants import DETECTOR_NAMES
+from ..arguments import shown
 from ..errors import EloInputError
 
 #: A level below this fraction of its images' median gives the pixel no weight (a flat plate's
@@ -55,7 +56,7 @@ def check_noise(noise, what: str = "noise") -> float:
     except (TypeError, ValueError):
         level = float("nan")
     if not (np.isfinite(level) and 0 < level <= MAX_NOISE) or isinstance(noise, bool):
-        raise EloInputError(f"{what}={noise!r}: must be a finite number > 0 and <= {MAX_NOISE:g} "
+        raise EloInputError(f"{what}={shown(noise)}: must be a finite number > 0 and <= {MAX_NOISE:g} "
                             "(corrected units: a standard deviation of images about 1)")
     return level
 

@@ -45,10 +45,11 @@ def spike_bound(image) -> float:
     >>> spike_bound(img), bool(np.sum(np.abs(img) > spike_bound(img)) == 1)
     (1000.0, True)
     """
-    mag = np.abs(np.asarray(image, float))
-    sample = mag.ravel()[::max(1, mag.size // SPIKE_SAMPLE)]
+    image = np.asarray(image, float)
+    sample = np.abs(image.ravel()[::max(1, image.size // SPIKE_SAMPLE)])
     lit = sample[(sample > 0) & np.isfinite(sample)]
-    if not lit.size:
+    if not lit.size:  # every sampled pixel dark: the whole image decides
+        mag = np.abs(image)
         lit = mag[(mag > 0) & np.isfinite(mag)]
     return SPIKE * float(np.median(lit)) if lit.size else float("inf")
 
