@@ -120,6 +120,11 @@ class EloOptions:
             object.__setattr__(self, f.name, value)
         if self.bounce_detector_samples is None:
             object.__setattr__(self, "bounce_detector_samples", self.detector_samples)
+        gain = self.beam_current * self.transimpedance  # volts per unit of N_d/N_0 (Eq. 9)
+        if not VOLTS_PER_SIGNAL[0] <= gain <= VOLTS_PER_SIGNAL[1]:
+            raise EloInputError(f"elo: beam_current={self.beam_current!r} A x transimpedance={self.transimpedance!r} V/A "
+                                f"= {gain:.3g} V per unit signal (Eq. 9); must be {VOLTS_PER_SIGNAL[0]:g} to "
+                                f"{VOLTS_PER_SIGNAL[1]:g} V so that the images stay float32 numbers")
         if self.bounce_share > 0 and self.bounce_filter > 0:
             raise EloInputError(f"elo: bounce_share={self.bounce_share:g} mm and bounce_filter={self.bounce_filter:g} mm "
                                 "both average events >= 2 and only one applies; set one of them to 0")
@@ -202,6 +207,10 @@ def _coerce(f: dataclasses.Field, value):
     return number
 
 
+#: I_b T (V) allowed in Eq. 9: a float32 image of N_d/N_0 (1e-12 to 1 in practice) times it stays
+#: within float32's normal numbers (1.2e-38 to 3.4e38); 1e300 wrote Inf after the render, and
+#: 1e-300 would have written zeros. Real chains give 1e-2 to 1e4 V (3 mA x 1e5 V/A = 300 V).
+VOLTS_PER_SIGNAL = (1e-20, 1e20)
 #: Bounds that are open (the value may not equal them), by option.
 _OPEN = {"bounce_fraction": "lo", "far_roulette": "lo", "bounce_filter_angle": "both", "beam_current": "lo",
          "transimpedance": "lo"}
@@ -422,18 +431,26 @@ MAX_BOUNCE_SAMPLES = 8
 MAX_BOUNCE_SPP = 64
 
 
-def filter_window_levels(half_width_mm: float, pixel_mm: float) -> int | None:
+def filter_window_levels(half_width_mm: float, pixel_mm: float, size_px: int | None = None) -> int | None:
     """The tile level k of the bounce filter: windows of 3 x 2^k pixels (3 x 3 tiles of 2^k)
     for a half-width of ``half_width_mm``; None where the half-width is below one pixel (no
-    filtering). The one rule for the filter (plugins/_bounce_filter.py) and the presets' budget."""
+    filtering). The one rule for the filter (plugins/_bounce_filter.py) and the presets' budget.
+
+    ``size_px`` (the image's larger side) caps k where one tile already holds the whole image:
+    larger tiles would only add padding (a 16 px scan of a 1e-6 mm field asked for tiles of 2^23
+    pixels, 256 TiB of scratch)."""
     radius = half_width_mm / pixel_mm  # half-width in pixels
     if not radius >= 1.0:
         return None
-    return max(0, int(round(math.log2((2.0 * radius + 1.0) / 3.0))))
+    level = max(0, int(round(math.log2((2.0 * radius + 1.0) / 3.0))))
+    if size_px is not None:
+        level = min(level, max(0, math.ceil(math.log2(size_px))))
+    return level
 
 
 def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm: float,
-                    traced_events: int, relief: bool = False, near_share: float = 0.0) -> tuple[EloOptions, int]:
+                    traced_events: int, relief: bool = False, near_share: float = 0.0,
+                    size_px: int | None = None) -> tuple[EloOptions, int]:
     """The options and spp of a preset for a scene.
 
     Parameters
@@ -454,6 +471,8 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     near_share : float
         The share of the 2nd event's electrons that meet a surface again near where the beam hit
         (plugins/_far_field.near_share); the far field's variate only below :data:`NEAR_SHARE_MAX`.
+    size_px : int, optional
+        The image's larger side in pixels (caps the filter's window, :func:`filter_window_levels`).
 
     Returns
     -------
@@ -478,7 +497,7 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         bounce_filter, bounce_min = 0.0, 0.0
         per_pixel = float(preset["relief_paths"])
     else:
-        level = filter_window_levels(bounce_filter, pixel_mm)
+        level = filter_window_levels(bounce_filter, pixel_mm, size_px)
         window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y
         per_pixel = preset["bounce_budget"] / window**2  # continuation paths per pixel
     # at most MAX_BOUNCE_SPP samples per pixel for the continuation paths (where the window is one

@@ -185,7 +185,8 @@ class EloScene:
         out = {}
         for name, shape in self.integrator.detectors:
             key = f"{name}.to_world"
-            out[name] = detector_geometry(shape, self.mi_params[key] if key in self.mi_params else None)
+            with np.errstate(invalid="ignore", over="ignore"):  # NaN from a scale beyond float32: refused below
+                out[name] = detector_geometry(shape, self.mi_params[key] if key in self.mi_params else None)
             if not (out[name]["area_mm2"] > 0 and np.all(np.isfinite(out[name]["normal"]))):
                 why = "a scale of 0 in its transform?" if out[name]["area_mm2"] == 0 else "a scale beyond float32?"
                 raise EloInputError(f"{self.path}: detector {name!r} has area {out[name]['area_mm2']:g} mm^2 "
@@ -484,7 +485,8 @@ class EloScene:
         options, spp = quality_options(quality, self.integrator.options, pixel_mm=pixel_mm,
                                        fwhm_mm=self.sensor.fwhm, traced_events=self.integrator.traced_events(),
                                        relief=bool(self.integrator.relief),
-                                       near_share=self.integrator.near_share(self.scene, self.sensor))
+                                       near_share=self.integrator.near_share(self.scene, self.sensor),
+                                       size_px=max(self.sensor.resolution))
         self.integrator.configure(options)
         self.quality = quality
         return spp

@@ -74,7 +74,7 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
     h, w = int(planes.shape[1]), int(planes.shape[2])
     if not field_mm:
         return
-    top = filter_window_levels(half_width_mm, field_mm / w)
+    top = filter_window_levels(half_width_mm, field_mm / w, max(h, w))
     if top is None:
         return
     bounce = [index[name] for name in bounce_names]

@@ -175,6 +175,12 @@ class EloIntegrator(mi.SamplingIntegrator):
     def prepare_scene(self, scene, sensor=None):
         """Find the detectors of ``scene`` and prepare what the options need; called by
         :meth:`render` (and the Python API) before every render, so moved detectors are seen."""
+        # a transform beyond float32 (a detector scaled by 1e300) makes NaN in the host geometry
+        # below, which the scene's checks then name in one line; numpy's warnings would precede it
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            return self._prepare_scene(scene, sensor)
+
+    def _prepare_scene(self, scene, sensor):
         detectors = find_detectors(scene)
         if not detectors:
             raise EloInputError(

@@ -25,7 +25,7 @@ import numpy as np
 from elo_mitsuba.constants import FIELD_MM, WORK_DISTANCE_MM
 from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.grid import film_to_plane
-from elo_mitsuba.schema import fwhm_to_sigma
+from elo_mitsuba.schema import MAX_LENGTH_MM, MIN_LENGTH_MM, fwhm_to_sigma
 
 #: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
 #: aimed exactly at a vertex or edge of a mesh built on the same grid as the scan (a height map
@@ -40,10 +40,22 @@ PROJECTIONS = ("perspective", "orthographic")
 
 
 def _positive(props, name, default, allow_zero=False):
-    value = float(props.get(name, default))
-    ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+    return _check_length(name, float(props.get(name, default)), allow_zero)
+
+
+def _check_length(name, value, allow_zero=False):
+    """``value`` (mm) within the lengths an output header may hold (:data:`MIN_LENGTH_MM` to
+    :data:`MAX_LENGTH_MM`): a render never writes a file that the package's own reader refuses
+    (wd=1e-300 did), and a field of 1e-300 mm no longer reaches the presets' window arithmetic.
+    ``allow_zero`` (the beam's FWHM): 0 or at least :data:`MIN_LENGTH_MM`, its upper bound being
+    the scan field (checked with the film)."""
+    if allow_zero:
+        ok = np.isfinite(value) and (value == 0 or value >= MIN_LENGTH_MM)
+        bound = f"0 or >= {MIN_LENGTH_MM:g} mm"
+    else:
+        ok = np.isfinite(value) and MIN_LENGTH_MM <= value <= MAX_LENGTH_MM
+        bound = f"{MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"
     if not ok:
-        bound = ">= 0" if allow_zero else "> 0"
         raise EloInputError(f"elo_beam: {name}={value!r} mm; must be {bound}")
     return value
 
@@ -83,6 +95,10 @@ class EloBeam(mi.Sensor):
             raise EloInputError(f"elo_beam: fwhm={self.fwhm:g} mm; must be below the scan field's "
                                 f"{max(self.field, self.field_y):g} mm (a beam profile is a fraction of a millimetre)")
         pitch = (self.field / self.resolution[0], self.field_y / self.resolution[1])
+        if min(pitch) < MIN_LENGTH_MM:  # the header's pixel size must read back (schema.check_header)
+            raise EloInputError(f"elo_beam: field={self.field:g} mm over {self.resolution[0]}x{self.resolution[1]} px "
+                                f"is a pixel of {min(pitch):.3g} mm; pixels must be >= {MIN_LENGTH_MM:g} mm "
+                                "(a larger field or fewer pixels)")
         #: (dx, dy) mm: the beam aims at every pixel centre plus this (recorded in output headers)
         self.aim_offset_mm = tuple(min(f * p, cap) for f, p, cap in zip(_AIM_NUDGE, pitch, _AIM_NUDGE_MAX_MM))
         self.sigma = mi.Float(fwhm_to_sigma(self.fwhm))
@@ -96,9 +112,7 @@ class EloBeam(mi.Sensor):
 
     def parameters_changed(self, keys=[]):
         mi.Sensor.parameters_changed(self, keys)
-        self.wd = float(self._wd[0])
-        if not (np.isfinite(self.wd) and self.wd > 0):
-            raise EloInputError(f"elo_beam: wd={self.wd!r} mm; must be > 0")
+        self.wd = _check_length("wd", float(self._wd[0]))
 
     def centre_rays(self, offset_mm=(0.0, 0.0)):
         """The beam's rays at the pixel centres (no profile), moved by ``offset_mm`` (dx, dy) on

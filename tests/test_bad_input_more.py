@@ -78,6 +78,10 @@ def d(tmp_path_factory):
     (d / "empty.csv").write_text("")
     (d / "blank.csv").write_text("\n  \n")
     np.save(d / "pickled.npy", np.array([{"heights": 1}, None], dtype=object), allow_pickle=True)
+    # detectors scaled beyond float32: NaN host geometry (numpy warned five times before the line)
+    shutil.copytree(src, d / "sx", ignore=shutil.ignore_patterns("meshes", "*.py", "*.md"))
+    detectors = d / "sx" / "parts" / "detectors.xml"
+    detectors.write_text(detectors.read_text().replace('<scale value="25"/>', '<scale value="1e300"/>'))
     (d / "empty.npy").write_bytes(b"")
     np.save(d / "zero_size.npy", np.zeros((0,)))
     (d / "garbage.npy").write_bytes(b"\x00not an array")
@@ -301,6 +305,18 @@ CLI_CASES = [
     ("gradient --min-corrected nan", [*GRAD, "--min-corrected", "nan"], "--min-corrected nan: must be a finite number"),
     ("gradient --min-sum inf", [*GRAD, "--min-sum", "inf"], "--min-sum inf: must be a finite number"),
     ("validate --only bogus", ["validate", "--only", "bogus"], "invalid choice: 'bogus'"),
+    # the render side's sweep (2026-12-05, third session): a file its own reader refused, Inf
+    # written after the work, numpy's warnings before the line
+    ("render -D wd=1e-300", ["render", "flat_plate", "-D", "wd=1e-300", "-o", "{d}/new.exr"],
+     "elo_beam: wd=1e-300 mm; must be 1e-06 to 1e+06 mm"),
+    ("render pixels below 1e-6 mm", ["render", "flat_plate", "-D", "field=1e-6", "--resolution", "16", "-o",
+                                     "{d}/new.exr"], "is a pixel of 6.25e-08 mm; pixels must be >= 1e-06 mm"),
+    ("render --beam-current 1e300", ["render", "flat_plate", "--units", "voltage", "--beam-current", "1e300", "-o",
+                                     "{d}/new.exr"], "= 1e+305 V per unit signal (Eq. 9); must be 1e-20 to 1e+20 V"),
+    ("render --transimpedance 1e-300", ["render", "flat_plate", "--units", "voltage", "--transimpedance", "1e-300",
+                                        "-o", "{d}/new.exr"], "= 3e-303 V per unit signal"),
+    ("render a detector scaled beyond float32", ["render", "{d}/sx/flat_plate.xml", "-o", "{d}/new.exr"],
+     "detector 'right' has area nan mm^2"),
 ]
 
 
@@ -741,3 +757,20 @@ def test_a_mesh_with_vertex_normals_is_said_to_be_smoothed(d, tmp_path):
     for name in ("corrugated_sheet", "athene_flat"):
         notes = em.load_scene(name, res=4).render(quality="draft", progress=False).metadata["notes"]
         assert not any("vertex normals" in n for n in notes), (name, notes)
+
+
+def test_a_tiny_field_renders_with_the_filter_and_reads_back(tmp_path):
+    """A 10 nm field at 8 px: the bounce filter's 1 mm window is 8e5 pixels, which asked for
+    tiles of 2^19 px (a 1 TiB scratch plane, a traceback); capped at the image it renders, and
+    the header (pixel 1.25e-6 mm) reads back."""
+    from elo_mitsuba.options import filter_window_levels
+
+    assert filter_window_levels(1.0, 1e-5 / 8) == 19 and filter_window_levels(1.0, 1e-5 / 8, 8) == 3
+    assert filter_window_levels(1.0, 80.0 / 1500, 1500) == filter_window_levels(1.0, 80.0 / 1500) == 4
+    scene = em.load_scene("athene_flat", res=8, field=1e-5)
+    result = scene.render(quality="default", progress=False)
+    assert scene.integrator.options.bounce_filter == 1.0  # the filter did run
+    result.write_exr(tmp_path / "tiny.exr")
+    images, header = read_exr(tmp_path / "tiny.exr")
+    assert header["pixel_size_mm"] == pytest.approx(1.25e-6)
+    assert all(np.isfinite(v).all() and (v > 0).all() for v in images.values())
