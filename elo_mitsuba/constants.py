@@ -31,6 +31,10 @@ BEAM_CURRENT_A = 3e-3
 TRANSIMPEDANCE_V_PER_A = 1e5
 ELEMENTARY_CHARGE_C = 1.602176634e-19
 
+# --- Sampling ---------------------------------------------------------------------------------------
+#: Largest seed (renders, sweeps, the optimiser): Mitsuba's samplers and numpy's take 32-bit seeds.
+MAX_SEED = (1 << 32) - 1
+
 # --- ATHENE validation geometry (Sec. 2.2) ----------------------------------------------------------
 DETECTOR_HEIGHT_MM = 272.0        # d_h
 DETECTOR_DISTANCE_MM = 127.0      # d_w, from the z-axis

@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from ._version import __version__
+from .constants import MAX_SEED
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
 from .grid import ORIENTATION
@@ -51,8 +52,6 @@ MAX_SPP_PER_PASS = 1024
 #: Options whose validity depends on the scene (detector ids, detector shapes for the quadrature):
 #: EloScene.configure checks them at once; the others are checked by EloOptions alone.
 _NEEDS_THE_SCENE = {"front_only", "detector_sampling", "quadrature_triangles"}
-#: Largest seed: Mitsuba's samplers take 32-bit seeds.
-MAX_SEED = (1 << 32) - 1
 
 
 # ---- the scene ----------------------------------------------------------------------------------------

@@ -473,7 +473,24 @@ API_CASES = [
     ("set_detector centre beyond float32", lambda: _scene().set_detector("right", center=(1e300, 0, 1e300)),
      "within +-1e+06 mm"),
     ("sweep seed beyond float", lambda: _sweep_spec(seed=10 ** 400), "must be a whole number in [0, 4294967295]"),
+    # the optimiser spec's sweep (2026-12-05, third session): tracebacks (IndexError, OverflowError,
+    # numpy's seed ValueError) and numpy warnings from numbers beyond any chamber
+    ("optimize dh 1e300", lambda: _optimize_spec(parameters={"dh": [60.0, 1e300]}),
+     "parameters.dh = 1e+300; must be a finite number <= 1e+06"),
+    ("optimize aim_z -1e300", lambda: _optimize_spec(parameters={"aim_z": -1e300}), "must be a finite number >= -1e+06"),
+    ("optimize wd 1e300", lambda: _optimize_spec(metric={"wd": 1e300}), "metric.wd = 1e+300; must be a finite number >= 1e-06 <= 1e+06"),
+    ("optimize s_max 1e300", lambda: _optimize_spec(metric={"s_max": 1e300}), "metric.s_max = 1e+300; must be a finite number >= 0 <= 5.7"),
+    ("optimize amplifier 1e300", lambda: _optimize_spec(metric={"amplifier": 1e300}), "metric.amplifier = 1e+300; must be a finite"),
+    ("optimize beam current 1e300", lambda: _optimize_spec(metric={"beam_current": 1e300}),
+     "metric.beam_current = 1e+300 A x metric.dwell = 1e-06 s is inf electrons per pixel; must be <= 1e+30"),
+    ("optimize seed 2^40", lambda: _optimize_spec(optimizer={"seed": 2 ** 40}), "optimizer.seed = 1099511627776; must be a whole number >= 0 <= 4294967295"),
 ]
+
+
+def _optimize_spec(**tables):
+    from elo_mitsuba.design.spec import load_spec
+
+    return load_spec(tables)
 
 
 def _calibrate_with(geometry, flats=None):

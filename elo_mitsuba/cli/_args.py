@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from ..constants import MAX_SEED
+
 
 class OneLineParser(argparse.ArgumentParser):
     """Usage errors as one line (what is wrong, and where to look), exit status 2, no usage dump."""
@@ -78,8 +80,8 @@ def define(text: str) -> tuple[str, str]:
 def seed(text: str) -> int:
     """A sampler seed: 0 .. 2^32 - 1."""
     value = non_negative_int(text)
-    if value > (1 << 32) - 1:
-        raise argparse.ArgumentTypeError(f"{value} is above 4294967295 (seeds are 32-bit)")
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{value} is above {MAX_SEED} (seeds are 32-bit)")
     return value
 
 

@@ -47,8 +47,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
 
-from ..constants import DEFAULT_MATERIAL, FIELD_MM, WORK_DISTANCE_MM
+from ..analysis.model_gradient import MAX_SLOPE
+from ..constants import DEFAULT_MATERIAL, ELEMENTARY_CHARGE_C, FIELD_MM, MAX_SEED, WORK_DISTANCE_MM
 from ..errors import EloInputError
+from ..schema import MAX_LENGTH_MM, MIN_LENGTH_MM
 from .geometry import PARAMETERS
 
 #: Objectives and their directions. ``e2_share`` renders (the chamber's 2nd event, four detectors).
@@ -123,12 +125,29 @@ class OptimizeSpec:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
 
+#: Ranges of the design parameters (mm, deg): lengths as a header holds them (1e300 raised an
+#: IndexError in the feasibility search), azimuths within a turn.
+_PARAMETER_RANGE = {"dh": (None, MAX_LENGTH_MM), "dw": (None, MAX_LENGTH_MM), "radius": (None, MAX_LENGTH_MM),
+                    "aim_z": (-MAX_LENGTH_MM, MAX_LENGTH_MM), "azimuth": (-360.0, 360.0)}
+#: Primary electrons per pixel (beam current x dwell / e) the metric's noise model accepts: 1e300 A
+#: made them infinite. Real scans: 3 mA x 1 us = 1.9e10.
+MAX_PRIMARIES = 1e30
+#: Amplifier noise (V rms) accepted: its square entered the noise model (1e300 overflowed); a kV of
+#: noise is beyond any detector amplifier.
+MAX_AMPLIFIER_V = 1e3
+
+
+def _shown(bound) -> str:
+    return str(bound) if isinstance(bound, int) else f"{bound:g}"
+
+
 def _number(where, key, value, lo=None, hi=None, integer=False, positive=False):
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if integer:
         ok = ok and float(value).is_integer()
     allowed = ("a whole number" if integer else "a finite number") + (
-        " > 0" if positive else "") + (f" >= {lo}" if lo is not None else "") + (f" <= {hi}" if hi is not None else "")
+        " > 0" if positive else "") + (f" >= {_shown(lo)}" if lo is not None else "") + (
+        f" <= {_shown(hi)}" if hi is not None else "")
     if not ok or (positive and value <= 0) or (lo is not None and value < lo) or (hi is not None and value > hi):
         raise EloInputError(f"{where}: {key} = {value!r}; must be {allowed}")
     return int(value) if integer else float(value)
@@ -218,33 +237,40 @@ def load_spec(spec, *, second_event: bool = False) -> OptimizeSpec:
         if isinstance(v, list):
             if len(v) != 2:
                 raise EloInputError(f"{where}: {key} = {v!r}; give [low, high] or one value")
-            lo, hi = (_number(where, key, x) for x in v)
+            lo, hi = (_number(where, key, x, *_PARAMETER_RANGE.get(name, (None, None))) for x in v)
             if lo > hi:
                 raise EloInputError(f"{where}: {key} = {v!r}; low must not exceed high")
         else:
-            lo = hi = _number(where, key, v)
+            lo = hi = _number(where, key, v, *_PARAMETER_RANGE.get(name, (None, None)))
         if name in ("dh", "dw", "radius") and lo <= 0:
             raise EloInputError(f"{where}: {key} = {v!r}; {name} must be > 0 mm")
         bounds[name] = (lo, hi)
     metric = _table(where, doc, "metric", METRIC_DEFAULTS)
-    for k in ("field", "wd", "beam_current", "dwell"):
+    for k in ("field", "wd"):
+        metric[k] = _number(where, f"metric.{k}", metric[k], MIN_LENGTH_MM, MAX_LENGTH_MM)
+    for k in ("beam_current", "dwell"):
         metric[k] = _number(where, f"metric.{k}", metric[k], positive=True)
+    primaries = metric["beam_current"] * metric["dwell"] / ELEMENTARY_CHARGE_C
+    if not primaries <= MAX_PRIMARIES:
+        raise EloInputError(f"{where}: metric.beam_current = {metric['beam_current']!r} A x metric.dwell = "
+                            f"{metric['dwell']!r} s is {primaries:.3g} electrons per pixel; must be <= {MAX_PRIMARIES:g}")
     metric["grid"] = _number(where, "metric.grid", metric["grid"], 1, 64, integer=True)
-    for k in ("s_max", "s_mask", "amplifier"):
-        metric[k] = _number(where, f"metric.{k}", metric[k], 0)
+    for k in ("s_max", "s_mask"):
+        metric[k] = _number(where, f"metric.{k}", metric[k], 0, MAX_SLOPE)
+    metric["amplifier"] = _number(where, "metric.amplifier", metric["amplifier"], 0, MAX_AMPLIFIER_V)
     if not isinstance(metric["material"], str):
         raise EloInputError(f"{where}: metric.material = {metric['material']!r}; give a material name or composition")
     from ..physics import get_material
 
     get_material(metric["material"])
     constraints = _table(where, doc, "constraints", {"clearance": 10.0})
-    clearance = _number(where, "constraints.clearance", constraints["clearance"], 0)
+    clearance = _number(where, "constraints.clearance", constraints["clearance"], 0, MAX_LENGTH_MM)
     opt = _table(where, doc, "optimizer", OPTIMIZER_DEFAULTS)
     if opt["sampler"] not in SAMPLERS:
         raise EloInputError(f"{where}: optimizer.sampler = {opt['sampler']!r}; choose {', '.join(SAMPLERS)}")
     opt["trials"] = _number(where, "optimizer.trials", opt["trials"], 1, MAX_TRIALS, integer=True)
     opt["batch"] = _number(where, "optimizer.batch", opt["batch"], 1, 1024, integer=True)
-    opt["seed"] = _number(where, "optimizer.seed", opt["seed"], 0, integer=True)
+    opt["seed"] = _number(where, "optimizer.seed", opt["seed"], 0, MAX_SEED, integer=True)
     opt["grid_points"] = _number(where, "optimizer.grid_points", opt["grid_points"], 2, 1000, integer=True)
     if "grid_points" in doc.get("optimizer", {}) and opt["sampler"] != "grid":
         raise EloInputError(f"{where}: optimizer.grid_points = {opt['grid_points']} sets the grid of sampler = \"grid\" "

@@ -53,6 +53,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..constants import MAX_SEED
 from ..errors import EloInputError
 from ..schema import event_channels
 from ..options import MAX_EVENTS
@@ -304,7 +305,7 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
         _fail(source, f"scene = {scene!r}; give a shipped scene name or an XML path as a string")
     if scene.lower().endswith(".xml"):  # absolute: the digest (resume) must not depend on the cwd
         scene = str((base / scene).resolve())
-    seed = _integer(source, "seed", t.get("seed", 0), 0, (1 << 32) - 1)
+    seed = _integer(source, "seed", t.get("seed", 0), 0, MAX_SEED)
     for sec in ("fixed", "vary", "zip", "render", "integrator", "keep", "surface"):
         if sec in t and not isinstance(t[sec], dict):
             _fail(source, f"{sec} must be a table ([{sec}]), not {type(t[sec]).__name__}")
