@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import keyword
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -117,6 +119,33 @@ def test_sweep_plot_select_takes_both_spellings(store, capsys):
         err = _one_line_error(capsys)
         assert expected in err, err
         assert "right.radius is" not in err and "right.radius takes" not in err
+
+
+def test_sweep_plot_detector_on_a_per_point_metric_is_refused(store, capsys):
+    """--detector on a metric with one value per point was ignored (a setting not applied)."""
+    _, out = store
+    capsys.readouterr()
+    assert _cli("sweep-plot", out, "render_seconds", "-o", out.parent / "q.png", "--detector", "right") == 2
+    assert "--detector right: render_seconds is one value per sweep point, not one per detector" in _one_line_error(capsys)
+    assert not (out.parent / "q.png").exists()
+
+
+def test_sweep_plot_reads_a_store_without_consolidated_metadata_quietly(store, tmp_path, capfd):
+    """A store whose consolidated metadata is gone (copied by a tool that drops it) plots without
+    xarray's and zarr's warnings before the figure."""
+    import shutil
+
+    _, out = store
+    copy = tmp_path / "c.zarr"
+    shutil.copytree(out, copy)
+    (copy / ".zmetadata").unlink()
+    (copy / ".claims").mkdir(exist_ok=True)
+    capfd.readouterr()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert _cli("sweep-plot", copy, "signal_mean", "-o", tmp_path / "c.png", "--select", "right.radius=30") == 0
+    assert not [str(w.message) for w in caught], [str(w.message) for w in caught]
+    assert capfd.readouterr().err == ""
 
 
 def test_a_store_with_dotted_names_resumes_and_plots(store, tmp_path, capsys):

@@ -10,6 +10,7 @@ title (and the colour bar's label): the axis and colour scale stretch any range 
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,13 @@ def _open(store):
     if not (path / ".zgroup").is_file():
         raise EloInputError(f"{path} is not a sweep's Zarr store")
     try:
-        ds = xr.open_zarr(str(path))
+        with warnings.catch_warnings():
+            # a store whose consolidated metadata is gone still reads (slower): xarray's
+            # three-point advice and zarr's note about the claims folder (.claims, ours) would
+            # only precede the figure
+            warnings.filterwarnings("ignore", message="Failed to open Zarr store with consolidated metadata")
+            warnings.filterwarnings("ignore", message=r"Object at \.claims is not recognized")
+            ds = xr.open_zarr(str(path))
     except Exception as exc:  # noqa: BLE001 -- damaged metadata: one line
         text = " ".join(str(exc).split())[:200]
         raise EloInputError(f"{path}: cannot read the sweep store ({type(exc).__name__}: {text})") from None
@@ -138,6 +145,9 @@ def plot_metric(store, metric: str, path, *, detector: str | None = None, select
                                 f"{', '.join(f'{v:g}' if numeric else str(v) for v in vals)}")
         da = da.isel({dim: hits[0]})
     title = metric + "".join(f", {k}={v}" for k, (_, v) in chosen.items())
+    if detector is not None and "detector" not in da.dims:
+        raise EloInputError(f"--detector {detector}: {metric} is one value per sweep point, not one per detector; "
+                            "drop --detector")
     if "detector" in da.dims and detector is not None:
         if detector not in list(ds["detector"].values):
             raise EloInputError(f"detector {detector!r}: not in {', '.join(map(str, ds['detector'].values))}")
