@@ -57,14 +57,14 @@ def no_render(monkeypatch):
     def fail(*a, **k):
         pytest.fail("a render started")
 
-    real_connect = run._connect
+    real_connect = run.connect
 
     def connect(address, workers):
         if address is None:
             pytest.fail("a local cluster started")
         return real_connect(address, workers)
 
-    monkeypatch.setattr(run, "_connect", connect)
+    monkeypatch.setattr(run, "connect", connect)
     monkeypatch.setattr(worker, "run_batch", fail)
     monkeypatch.setattr(run, "run_batch", fail)
     monkeypatch.setattr(worker, "render_point", fail)

@@ -266,24 +266,6 @@ def _record(spec, number, params, count, result) -> dict:
             "violations": result["violations"], "seconds": result["seconds"], "feasible": bool(feasible)}
 
 
-def _connect(workers, address):
-    import logging
-
-    from distributed import Client, LocalCluster
-
-    if address is None:
-        import dask
-
-        with dask.config.set({"distributed.worker.profile.enabled": False}):
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                   silence_logs=logging.ERROR)
-        return Client(cluster), cluster
-    try:
-        return Client(**address, timeout="10s"), None
-    except Exception as exc:  # noqa: BLE001 -- refused, unreachable: one line
-        raise EloInputError(f"cannot reach the Dask scheduler {address} within 10 s ({type(exc).__name__})") from None
-
-
 def optimize(spec, output, *, workers: int | None = None, scheduler: str | None = None,
              threads_per_worker: int | None = None, overwrite: bool = False, progress: bool | None = None,
              max_evaluations: int | None = None, force: bool = False) -> OptimizeSummary:
@@ -371,7 +353,9 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
     show = sys.stderr.isatty() if progress is None else progress
     client = cluster = None
     if workers != 0:
-        client, cluster = _connect(workers, address)
+        from ..sweeps.run import connect
+
+        client, cluster = connect(address, workers)
         if address is None:
             from ..sweeps.run import available_cores
             from ..sweeps.worker import set_up
@@ -441,12 +425,9 @@ def optimize(spec, output, *, workers: int | None = None, scheduler: str | None 
             print(file=sys.stderr)
         store.write_dataset(path, records.values(), spec)
     finally:
-        for thing in (client, cluster):
-            if thing is not None:
-                try:
-                    thing.close()
-                except Exception:  # noqa: BLE001 -- closing a cluster that is already gone
-                    pass
+        from ..sweeps.run import disconnect
+
+        disconnect(client, cluster)
     ds = store.read_designs(path)
     return OptimizeSummary(path=path, trials=int(ds.sizes["design"]), evaluated=evaluated, recovered=recovered,
                            seconds=time.perf_counter() - t0, workers=workers or 0, state=state,

@@ -331,7 +331,7 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
     if workers != 0:  # the cluster answers before the store is created
         quiet.__enter__()
         try:
-            client, cluster = _connect(address, workers)
+            client, cluster = connect(address, workers)
         except BaseException:
             quiet.__exit__()
             raise
@@ -364,7 +364,7 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
         finally:
             claims.release()
     finally:
-        _disconnect(client, cluster)
+        disconnect(client, cluster)
         quiet.__exit__()
     final = zstore.read_status(path).ravel()
     return SweepSummary(path=path, points=spec.n_points, done=int((final == zstore.STATUS_DONE).sum()),
@@ -394,7 +394,7 @@ class _QuietDask:
         self.saved = None
 
 
-def _connect(address, workers):
+def connect(address, workers):
     """(client, local cluster or None): a local cluster of ``workers`` processes, or a client of
     the running scheduler ``address`` ({"address"} or {"scheduler_file"}), which must answer
     within :data:`CONNECT_SECONDS`."""
@@ -417,7 +417,7 @@ def _connect(address, workers):
                             f"({_one_line(exc)}); is it running, and is the address right?") from None
 
 
-def _disconnect(client, cluster):
+def disconnect(client, cluster):
     for thing in (client, cluster):
         if thing is None:
             continue
