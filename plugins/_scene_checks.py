@@ -34,8 +34,9 @@ class SceneChecks:
         shapes are, the keys of what is checked once (a mesh given new vertices is checked again)."""
         for name, shape in detectors:
             check_collector(name, shape)
-            if not str(shape.bsdf()).startswith("SmoothDiffuse"):  # Mitsuba's default when none is given
-                check_scatterer(shape)  # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else
+            # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else; Mitsuba's
+            # default for an emitter without a BSDF is a diffuse one of reflectance 0, an absorber
+            check_scatterer(shape, detector=True)
         scatterers = [s for s in scene.shapes() if not s.is_emitter()]
         for shape in scatterers:
             if shape.shape_type() not in _PLAIN and str(shape).startswith("Instance["):  # its group is out of reach
@@ -76,9 +77,11 @@ def check_collector(name, shape):
                             "voltage for volts)")
 
 
-def check_scatterer(shape):
+def check_scatterer(shape, detector: bool = False):
     """A surface electrons meet must carry ``elo_bse`` (g_BSE), or absorb them (a BSDF of zero
-    reflectance): any other BSDF would scatter by a law that is not the electrons'."""
+    reflectance): any other BSDF would scatter by a law that is not the electrons'. On a
+    ``detector`` it would be a setting that is not applied (a detector's plate keeps what arrives,
+    or backscatters by its own ``elo_bse``; a diffuse reflectance of 0.5 was ignored)."""
     bsdf = shape.bsdf()
     if bsdf is None or is_elo_bse(bsdf):
         return
@@ -87,6 +90,12 @@ def check_scatterer(shape):
     if values and max(values) == 0.0:
         return  # an absorber: electrons that arrive end there
     kind = str(bsdf).split("[")[0].strip() or "another BSDF"
+    if detector:
+        raise EloInputError(
+            f"detector {shape.id()!r} has a {kind} BSDF that reflects, which the renderer does not apply: a "
+            "detector keeps every electron that reaches it (the paper's model); give it no BSDF or "
+            "<bsdf type=\"diffuse\"><float name=\"reflectance\" value=\"0\"/></bsdf>, or <bsdf type=\"elo_bse\"> "
+            "for a plate that backscatters (-D plates=copper)")
     raise EloInputError(
         f"surface {shape.id() or '(no id)'!r} has a {kind} BSDF, which does not describe electron "
         "backscatter; give it <bsdf type=\"elo_bse\"> (with its material), or make it an absorber: "

@@ -52,7 +52,10 @@ def d(tmp_path_factory):
     grad = {k: v.copy() for k, v in grad.items()}
     grad["dzdx"][2, 3], grad["dzdy"][1, 1] = np.nan, np.inf
     _raw_exr(d / "nan_grad.exr", grad, json.dumps(gmeta))
-    _, fmeta = read_exr(d / "flat.exr")
+    flat_images, fmeta = read_exr(d / "flat.exr")
+    # flats of another beam pivot or projection (the images of the flat carry its beam's tilts)
+    _raw_exr(d / "flat_wd300.exr", flat_images, json.dumps({**fmeta, "work_distance_mm": 300.0}))
+    _raw_exr(d / "flat_ortho.exr", flat_images, json.dumps({**fmeta, "projection": "orthographic"}))
     good = {"detectors": {n: {k: g[k] for k in ("center", "normal", "radius")} for n, g in fmeta["detectors"].items()}}
 
     def calibration(name, **right):
@@ -82,6 +85,10 @@ def d(tmp_path_factory):
     shutil.copytree(src, d / "sx", ignore=shutil.ignore_patterns("meshes", "*.py", "*.md"))
     detectors = d / "sx" / "parts" / "detectors.xml"
     detectors.write_text(detectors.read_text().replace('<scale value="25"/>', '<scale value="1e300"/>'))
+    # detector plates that reflect diffusely (reflectance 0.5): ignored by the renderer until refused
+    shutil.copytree(src, d / "sx_reflect", ignore=shutil.ignore_patterns("meshes", "*.py", "*.md"))
+    plates = d / "sx_reflect" / "parts" / "plates_absorbing.xml"
+    plates.write_text(plates.read_text().replace('name="reflectance" value="0"', 'name="reflectance" value="0.5"'))
     (d / "empty.npy").write_bytes(b"")
     np.save(d / "zero_size.npy", np.zeros((0,)))
     (d / "garbage.npy").write_bytes(b"\x00not an array")
@@ -305,6 +312,12 @@ CLI_CASES = [
     ("gradient --min-corrected nan", [*GRAD, "--min-corrected", "nan"], "--min-corrected nan: must be a finite number"),
     ("gradient --min-sum inf", [*GRAD, "--min-sum", "inf"], "--min-sum inf: must be a finite number"),
     ("validate --only bogus", ["validate", "--only", "bogus"], "invalid choice: 'bogus'"),
+    ("gradient with a flat of another work distance", ["gradient", "--flat", "{d}/flat_wd300.exr", "{d}/corr.exr", "-o",
+                                                      "{d}/g.exr"],
+     "flat_wd300.exr: flat-plate work_distance_mm 300.0 differs from the object's 400.0; record all with one geometry"),
+    ("invert with a flat of another projection", ["invert", "--flat", "{d}/flat_ortho.exr", "{d}/corr.exr", "-o",
+                                                 "{d}/h.exr"],
+     "flat_ortho.exr: flat-plate projection 'orthographic' differs from the object's 'perspective'"),
     # the render side's sweep (2026-12-05, third session): a file its own reader refused, Inf
     # written after the work, numpy's warnings before the line
     ("render -D wd=1e-300", ["render", "flat_plate", "-D", "wd=1e-300", "-o", "{d}/new.exr"],
@@ -315,6 +328,8 @@ CLI_CASES = [
                                      "{d}/new.exr"], "= 1e+305 V per unit signal (Eq. 9); must be 1e-20 to 1e+20 V"),
     ("render --transimpedance 1e-300", ["render", "flat_plate", "--units", "voltage", "--transimpedance", "1e-300",
                                         "-o", "{d}/new.exr"], "= 3e-303 V per unit signal"),
+    ("render detector plates that reflect", ["render", "{d}/sx_reflect/flat_plate.xml", "-o", "{d}/new.exr"],
+     "detector 'right' has a SmoothDiffuse BSDF that reflects, which the renderer does not apply"),
     ("render a detector scaled beyond float32", ["render", "{d}/sx/flat_plate.xml", "-o", "{d}/new.exr"],
      "detector 'right' has area nan mm^2"),
 ]

@@ -200,7 +200,7 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
                 if (object_exr or flat) else "single-channel inputs carry no geometry")
         raise EloInputError(f"{what}: pass --field, --dh and --dw (mm)")
     shape = next(iter(images.values())).shape
-    from ..schema import RESOLUTION, has_detectors, read_geometry
+    from ..schema import PROJECTION, RESOLUTION, WORK_DISTANCE, has_detectors, read_geometry
     from .layout import symmetric_layout
     from .scan_geometry import ScanGeometry
 
@@ -240,6 +240,13 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
                     f"the {'object' if meta else 'first flat'}'s {np.round(np.asarray(a, float), 4).tolist()}; "
                     "record all with one geometry"
                 )
+        # the beam's pivot and projection set where it lands and how it tilts across the field,
+        # which the flat's images carry; headers without them (other tools) are not compared
+        for key in (WORK_DISTANCE, PROJECTION):
+            a, b = header.get(key), rec.header.get(key)
+            if a is not None and b is not None and (a != b if isinstance(a, str) or isinstance(b, str) else not _same(a, b)):
+                raise EloInputError(f"{rec.label}: flat-plate {key} {b!r} differs from the "
+                                    f"{'object' if meta else 'first flat'}'s {a!r}; record all with one geometry")
     check_resolution(geo["resolution"], shape, source)
     return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo,
                 flat_files=[r.files for r in recordings], object_files=object_exr or given)
