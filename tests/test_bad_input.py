@@ -442,7 +442,8 @@ def test_cropped_images_with_the_scans_header_are_refused_by_calibrate_too(d, tm
     channels, meta = read_exr(d / "flat.exr")
     bad = tmp_path / "crop.exr"
     write_exr(bad, {k: v[:, :4] for k, v in channels.items()}, meta)
+    write_exr(tmp_path / "crop_flat.exr", {k: v[:, :4] for k, v in channels.items()}, meta)
     for argv in (["calibrate", str(bad), "-o", str(tmp_path / "c.json")],
-                 ["gradient", "--flat", str(bad), str(bad), "-o", str(tmp_path / "g.exr")]):
+                 ["gradient", "--flat", str(tmp_path / "crop_flat.exr"), str(bad), "-o", str(tmp_path / "g.exr")]):
         rc, message = _one_line(argv)
         assert rc == 2 and "header resolution [8, 8] (W, H) does not match the image shape 4x8" in message, message

@@ -191,6 +191,7 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
     if flats is not None and no_flat:
         raise EloInputError("--no-flat contradicts the flat-plate images given")
     check_signs(images, flats, {n: object_exr or given[n] for n in DETECTOR_NAMES})
+    _check_distinct(object_exr, given, recordings)
 
     # Geometry: explicit values win; otherwise the object header, else the flat header.
     header = meta if meta else flat_meta
@@ -200,7 +201,7 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
                 if (object_exr or flat) else "single-channel inputs carry no geometry")
         raise EloInputError(f"{what}: pass --field, --dh and --dw (mm)")
     shape = next(iter(images.values())).shape
-    from ..schema import PROJECTION, RESOLUTION, WORK_DISTANCE, has_detectors, read_geometry
+    from ..schema import PROJECTION, RESOLUTION, UNITS, WORK_DISTANCE, has_detectors, read_geometry
     from .layout import symmetric_layout
     from .scan_geometry import ScanGeometry
 
@@ -241,15 +242,29 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
                     "record all with one geometry"
                 )
         # the beam's pivot and projection set where it lands and how it tilts across the field,
-        # which the flat's images carry; headers without them (other tools) are not compared
-        for key in (WORK_DISTANCE, PROJECTION):
+        # which the flat's images carry, and volts against N_d/N_0 is a factor I_b T in the
+        # division (it masked every pixel as dark); headers without them (other tools) are not compared
+        for key in (WORK_DISTANCE, PROJECTION, UNITS):
             a, b = header.get(key), rec.header.get(key)
             if a is not None and b is not None and (a != b if isinstance(a, str) or isinstance(b, str) else not _same(a, b)):
+                fix = "give all in one unit" if key == UNITS else "record all with one geometry"
                 raise EloInputError(f"{rec.label}: flat-plate {key} {b!r} differs from the "
-                                    f"{'object' if meta else 'first flat'}'s {a!r}; record all with one geometry")
+                                    f"{'object' if meta else 'first flat'}'s {a!r}; {fix}")
     check_resolution(geo["resolution"], shape, source)
     return Scan(images=images, flats=flats, header=header, source=str(source), shape=shape, geo=geo,
                 flat_files=[r.files for r in recordings], object_files=object_exr or given)
+
+
+def _check_distinct(object_exr, given, recordings) -> None:
+    """Refuse an object file that is also a flat: the division gives 1 everywhere and the gradient
+    0, which looks like a flat plate's rather than a mistake."""
+    objects = {Path(p).resolve() for p in [object_exr, *given.values()] if p is not None}
+    for rec in recordings:
+        paths = rec.files.values() if isinstance(rec.files, Mapping) else [rec.files]
+        for p in paths:
+            if p is not None and Path(p).resolve() in objects:
+                raise EloInputError(f"{p} is both an object image and a flat-plate image; give the flat plate's "
+                                    "recording as --flat")
 
 
 def check_resolution(resolution, shape, source) -> None:
