@@ -10,6 +10,7 @@ import argparse
 import math
 
 from ..constants import MAX_SEED
+from ..schema import MAX_LENGTH_MM, MIN_LENGTH_MM
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -42,14 +43,25 @@ def positive_float(text: str) -> float:
     return v
 
 
+def length_mm(text: str) -> float:
+    """A length in mm within what a header may hold (:data:`~elo_mitsuba.schema.MIN_LENGTH_MM` to
+    :data:`~elo_mitsuba.schema.MAX_LENGTH_MM`): the geometry options override a header's, and a
+    field of 1e300 mm reached the calibration's fit (scipy's "initial guess outside bounds")."""
+    v = number(text)
+    if not (math.isfinite(v) and MIN_LENGTH_MM <= v <= MAX_LENGTH_MM):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a length of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm")
+    return v
+
+
 def field_arg(text: str) -> tuple[float, float]:
-    """``--field FX[,FY]``: the scan field in mm (one value: a square field)."""
+    """``--field FX[,FY]``: the scan field in mm (one value: a square field), each a :func:`length_mm`."""
     try:
         vals = [float(v) for v in text.replace("x", ",").split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: give FX or FX,FY in mm, e.g. 80 or 80,60") from None
-    if len(vals) not in (1, 2) or not all(math.isfinite(v) and v > 0 for v in vals):
-        raise argparse.ArgumentTypeError(f"{text!r}: give one or two lengths > 0 in mm, e.g. 80 or 80,60")
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) and MIN_LENGTH_MM <= v <= MAX_LENGTH_MM for v in vals):
+        raise argparse.ArgumentTypeError(f"{text!r}: give one or two lengths of {MIN_LENGTH_MM:g} to "
+                                         f"{MAX_LENGTH_MM:g} mm, e.g. 80 or 80,60")
     return (vals[0], vals[-1])
 
 
@@ -116,11 +128,11 @@ def add_scan_arguments(p):
                       help="the inputs are already STSA-corrected (skip the division)")
     geo = p.add_argument_group("geometry (overrides the EXR headers)")
     geo.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm, e.g. 80")
-    geo.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
-    geo.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
-    geo.add_argument("--radius", type=positive_float, metavar="MM",
+    geo.add_argument("--dh", type=length_mm, metavar="MM", help="detector height d_h in mm")
+    geo.add_argument("--dw", type=length_mm, metavar="MM", help="detector distance d_w from the z-axis in mm")
+    geo.add_argument("--radius", type=length_mm, metavar="MM",
                      help="detector disc radius (model method, without a header; default 25)")
-    geo.add_argument("--wd", "--work-distance", dest="wd", type=positive_float, metavar="MM",
+    geo.add_argument("--wd", "--work-distance", dest="wd", type=length_mm, metavar="MM",
                      help="work distance: beam pivot height (model method, without a header; default 400)")
     geo.add_argument("--projection", choices=("perspective", "orthographic"),
                      help="beam from the pivot or parallel to -z (model method, without a header)")

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES
 from ..schema import scattering_note
-from ._args import field_arg, positive_float, positive_int
+from ._args import field_arg, length_mm, positive_float, positive_int
 
 DESCRIPTION = """\
 Fit where each detector really is, from the four images of a plane plate (any unit: volts,
@@ -65,10 +65,10 @@ def add_parser(subparsers):
         src.add_argument(f"--{n}", metavar="FILE", help=f"{n} detector image of the flat plate (EXR/TIFF/NPY)")
     geo = p.add_argument_group("nominal geometry (the drawing: the start of the fit)")
     geo.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm, e.g. 80")
-    geo.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
-    geo.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
-    geo.add_argument("--radius", type=positive_float, metavar="MM", help="detector disc radius (default 25)")
-    geo.add_argument("--wd", "--work-distance", dest="wd", type=positive_float, metavar="MM",
+    geo.add_argument("--dh", type=length_mm, metavar="MM", help="detector height d_h in mm")
+    geo.add_argument("--dw", type=length_mm, metavar="MM", help="detector distance d_w from the z-axis in mm")
+    geo.add_argument("--radius", type=length_mm, metavar="MM", help="detector disc radius (default 25)")
+    geo.add_argument("--wd", "--work-distance", dest="wd", type=length_mm, metavar="MM",
                      help="work distance (default: header, else 400)")
     geo.add_argument("--projection", choices=("perspective", "orthographic"), help="beam projection")
     geo.add_argument("--material", metavar="NAME", help="plate material (default: header, else Ti-6Al-4V)")

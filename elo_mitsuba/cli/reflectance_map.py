@@ -8,7 +8,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES, TABLE1_LAYOUTS, WORK_DISTANCE_MM
 from ..errors import EloInputError
-from ._args import positive_float
+from ._args import length_mm, positive_float
 
 DESCRIPTION = f"""\
 Draw the reflectance maps of Sec. 4.3 (Figs. 12-13): the scattering function g_BSE of Eq. 13
@@ -53,8 +53,8 @@ def add_parser(subparsers):
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("-o", "--output", required=True, metavar="MAP.png", help="PNG to write")
-    p.add_argument("--dh", type=positive_float, metavar="MM", help="detector height d_h in mm")
-    p.add_argument("--dw", type=positive_float, metavar="MM", help="detector distance d_w from the z-axis in mm")
+    p.add_argument("--dh", type=length_mm, metavar="MM", help="detector height d_h in mm")
+    p.add_argument("--dw", type=length_mm, metavar="MM", help="detector distance d_w from the z-axis in mm")
     p.add_argument("--layout", metavar="zetaNN", help="a Table 1 detector layout instead of --dh/--dw: "
                    + ", ".join(f"zeta{z}" for z in TABLE1_LAYOUTS) + " (as render --layout)")
     p.add_argument("--zeta", type=float, choices=[float(z) for z in TABLE1_LAYOUTS], metavar="DEG",
@@ -65,7 +65,7 @@ def add_parser(subparsers):
     p.add_argument("--material", default=None, help="preset or composition, e.g. Ti-6Al-4V or 'Ti:0.9,Al:0.1'")
     p.add_argument("--beam", choices=("vertical", "pivot"), default="vertical",
                    help="vertical beam (paper) or deflected from the gun pivot at --wd")
-    p.add_argument("--wd", "--work-distance", dest="work_distance", type=positive_float, default=None, metavar="MM",
+    p.add_argument("--wd", "--work-distance", dest="work_distance", type=length_mm, default=None, metavar="MM",
                    help=f"pivot height for --beam pivot (default {WORK_DISTANCE_MM:g} mm)")
     p.add_argument("--range", type=positive_float, default=3.0, metavar="R", help="plot -R <= p, q <= R (default 3)")
     p.add_argument("--samples", type=int, default=301, metavar="N", help="samples along p and q (default 301)")
