@@ -310,6 +310,10 @@ CLI_CASES = [
     ("mesh empty csv", ["mesh", "{d}/empty.csv", *MESH], "is empty (no numbers)"),
     ("mesh a file that is not .npy", ["mesh", "{d}/garbage.npy", *MESH], "garbage.npy' could not be read: not a NumPy .npy file"),
     ("mesh blank csv", ["mesh", "{d}/blank.csv", *MESH], "is empty (no numbers)"),
+    # float32 vertices: a pixel of 1e-300 mm put every vertex at x = y = 0 and wrote the mesh
+    ("mesh --pixel-size 1e-300", ["mesh", "{d}/hm.npy", "-o", "{d}/m.ply", "--pixel-size", "1e-300"],
+     "pixel size 1e-300 mm must be 1e-06 to 1e+06 mm"),
+    ("mesh --base nan", ["mesh", "{d}/hm.npy", *MESH, "--base", "nan"], "base nan mm must be a finite number below"),
     ("gradient --min-corrected nan", [*GRAD, "--min-corrected", "nan"], "--min-corrected nan: must be a finite number"),
     ("gradient --min-sum inf", [*GRAD, "--min-sum", "inf"], "--min-sum inf: must be a finite number"),
     ("validate --only bogus", ["validate", "--only", "bogus"], "invalid choice: 'bogus'"),
