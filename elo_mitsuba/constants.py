@@ -34,6 +34,9 @@ ELEMENTARY_CHARGE_C = 1.602176634e-19
 # --- Sampling ---------------------------------------------------------------------------------------
 #: Largest seed (renders, sweeps, the optimiser): Mitsuba's samplers and numpy's take 32-bit seeds.
 MAX_SEED = (1 << 32) - 1
+#: Largest samples per pixel: Mitsuba's samplers count them in 32 bits (a sweep's spp = 1e300 was
+#: carried to the time estimate and printed as a 301-digit number).
+MAX_SPP = (1 << 32) - 1
 
 # --- ATHENE validation geometry (Sec. 2.2) ----------------------------------------------------------
 DETECTOR_HEIGHT_MM = 272.0        # d_h

@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from ._version import __version__
-from .constants import MAX_SEED
+from .constants import MAX_SEED, MAX_SPP
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
 from .grid import ORIENTATION
@@ -382,7 +382,7 @@ class EloScene:
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "
                                 "from above it")
         n = vector3(f"detector {name!r}: normal", normal) if normal is not None else -c
-        if not np.linalg.norm(n) > 0:
+        if not np.abs(n).max() > 0:  # not its norm: that of (1e300, 1e300, 1e300) overflows with a warning
             raise EloInputError(f"detector {name!r}: normal {n.tolist()} is zero")
         n = n / np.abs(n).max()  # no norm of (1e300, 0, -1e300) overflows to inf
         n = n / np.linalg.norm(n)
@@ -549,7 +549,7 @@ class EloScene:
         True
         """
         seed = whole_number("seed", seed, 0, MAX_SEED)  # checked before anything changes
-        spp, force = None if spp is None else whole_number("spp", spp, 1, None), flag("force", force)
+        spp, force = None if spp is None else whole_number("spp", spp, 1, MAX_SPP), flag("force", force)
         progress = flag("progress", progress, none=True)
         if quality is not None:
             _check_quality(quality)

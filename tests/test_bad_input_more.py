@@ -434,7 +434,7 @@ API_CASES = [
     ("render force='False'", lambda: _scene().render(force="False"), "force='False'; must be True or False"),
     ("render progress='no'", lambda: _scene().render(progress="no"), "progress='no'; must be True or False (or None)"),
     ("render quality a list", lambda: _scene().render(quality=["draft"]), "quality ['draft']; choose one of"),
-    ("render spp text", lambda: _scene().render(spp="4"), "spp='4'; must be a whole number >= 1"),
+    ("render spp text", lambda: _scene().render(spp="4"), "spp='4'; must be a whole number in [1, 4294967295]"),
     ("render events beyond float", lambda: _scene().render(events=10 ** 400), "elo: events=1000"),
     ("configure beyond float", lambda: _scene().configure(detector_samples=10 ** 400), "must be a finite number"),
     ("render a loaded scene with a variant", lambda: em.render(_scene(), variant="bogus"),
@@ -501,6 +501,9 @@ API_CASES = [
     ("sweep seed beyond float", lambda: _sweep_spec(seed=10 ** 400), "must be a whole number in [0, 4294967295]"),
     # the optimiser spec's sweep (2026-12-05, third session): tracebacks (IndexError, OverflowError,
     # numpy's seed ValueError) and numpy warnings from numbers beyond any chamber
+    ("render spp 10**300", lambda: _scene().render(spp=10 ** 300), "must be a whole number in [1, 4294967295]"),
+    ("sweep spp 1e300", lambda: _sweep_spec(render={"spp": 1e300}),
+     "render.spp = 1e+300; must be a whole number in [1, 4294967295]"),
     ("optimize dh 1e300", lambda: _optimize_spec(parameters={"dh": [60.0, 1e300]}),
      "parameters.dh = 1e+300; must be a finite number <= 1e+06"),
     ("optimize aim_z -1e300", lambda: _optimize_spec(parameters={"aim_z": -1e300}), "must be a finite number >= -1e+06"),
@@ -818,3 +821,14 @@ def test_a_tiny_field_renders_with_the_filter_and_reads_back(tmp_path):
     images, header = read_exr(tmp_path / "tiny.exr")
     assert header["pixel_size_mm"] == pytest.approx(1.25e-6)
     assert all(np.isfinite(v).all() and (v > 0).all() for v in images.values())
+
+
+def test_a_huge_detector_normal_is_a_direction_without_warnings():
+    """set_detector takes a normal of any length: (-1e300, -1e300, -1e300) is the direction
+    (-1, -1, -1), and the zero test took its norm first (numpy's overflow warnings before the
+    render, the sweep fuzz of 2026-12-05)."""
+    scene = em.load_scene("flat_plate", res=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene.set_detector("right", normal=(-1e300, -1e300, -1e300))
+    np.testing.assert_allclose(scene.detector_geometry()["right"]["normal"], -np.ones(3) / np.sqrt(3), atol=1e-4)  # float32

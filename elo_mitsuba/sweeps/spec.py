@@ -53,7 +53,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..constants import MAX_SEED
+from ..constants import MAX_SEED, MAX_SPP
 from ..errors import EloInputError
 from ..schema import event_channels
 from ..options import MAX_EVENTS
@@ -323,7 +323,7 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
     resolution = _integer(source, "render.resolution", render["resolution"], 1, 16384) \
         if "resolution" in render else None
     events = _integer(source, "render.events", render.get("events", 1), 1, MAX_EVENTS)
-    spp = _integer(source, "render.spp", render["spp"], 1, None) if "spp" in render else None
+    spp = _integer(source, "render.spp", render["spp"], 1, MAX_SPP) if "spp" in render else None
     quality = _quality(source, "render.quality", render.get("quality", "default"))
 
     axes: list[Axis] = []
@@ -481,7 +481,7 @@ def _members(source, where, key, value) -> list[Member]:
         if key == "quality":
             vals = [_quality(source, where, v) for v in vals]
         else:
-            vals = [_integer(source, where, v, 1, None if key == "spp" else MAX_EVENTS) for v in vals]
+            vals = [_integer(source, where, v, 1, MAX_SPP if key == "spp" else MAX_EVENTS) for v in vals]
         return [Member(key, tuple(vals), "render")]
     if key == "resolution":
         _fail(source, f"{where}: sweep the scene parameter res (render.resolution fixes it)")
