@@ -394,6 +394,22 @@ class _QuietDask:
         self.saved = None
 
 
+def _refused(address: str) -> bool:
+    """Whether the host of a ``tcp://host:port`` address refuses a connection: it answers at once,
+    where Dask's client would retry until :data:`CONNECT_SECONDS` have passed. Anything else (a
+    host that does not answer, a name to resolve) is left to the client and its timeout."""
+    import socket
+
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
+            return False
+    except ConnectionRefusedError:
+        return True
+    except (OSError, ValueError):
+        return False
+
+
 def connect(address, workers):
     """(client, local cluster or None): a local cluster of ``workers`` processes, or a client of
     the running scheduler ``address`` ({"address"} or {"scheduler_file"}), which must answer
@@ -410,6 +426,9 @@ def connect(address, workers):
                                    silence_logs=logging.ERROR)
         return Client(cluster), cluster
     where = address.get("address") or f"in {address['scheduler_file']}"
+    if address.get("address") and _refused(address["address"]):
+        raise EloInputError(f"cannot reach the Dask scheduler {where}: nothing listens there (connection refused); "
+                            "is it running, and is the address right?")
     try:
         return Client(**address, timeout=f"{CONNECT_SECONDS}s"), None
     except Exception as exc:  # noqa: BLE001 -- refused, unreachable, malformed: one line
