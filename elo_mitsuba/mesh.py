@@ -155,7 +155,8 @@ def heightmap_to_mesh(
     if base_mm is not None:
         base = float(base_mm)
         if not math.isfinite(base):
-            raise EloInputError(f"base {base_mm!r} mm must be a finite number below the lowest height ({z.min():.6g} mm)")
+            raise EloInputError(f"base {base_mm!r} mm must be a finite number below the lowest height "
+                                f"({z.min():.6g} mm)")
         if base >= z.min():
             raise EloInputError(
                 f"base {base_mm!r} mm must lie below the lowest height ({z.min():.6g} mm)"

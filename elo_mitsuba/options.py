@@ -122,8 +122,9 @@ class EloOptions:
             object.__setattr__(self, "bounce_detector_samples", self.detector_samples)
         gain = self.beam_current * self.transimpedance  # volts per unit of N_d/N_0 (Eq. 9)
         if not VOLTS_PER_SIGNAL[0] <= gain <= VOLTS_PER_SIGNAL[1]:
-            raise EloInputError(f"elo: beam_current={self.beam_current!r} A x transimpedance={self.transimpedance!r} V/A "
-                                f"= {gain:.3g} V per unit signal (Eq. 9); must be {VOLTS_PER_SIGNAL[0]:g} to "
+            raise EloInputError(f"elo: beam_current={self.beam_current!r} A x transimpedance="
+                                f"{self.transimpedance!r} V/A = {gain:.3g} V per unit signal (Eq. 9); must be "
+                                f"{VOLTS_PER_SIGNAL[0]:g} to "
                                 f"{VOLTS_PER_SIGNAL[1]:g} V so that the images stay float32 numbers")
         if self.bounce_share > 0 and self.bounce_filter > 0:
             raise EloInputError(f"elo: bounce_share={self.bounce_share:g} mm and bounce_filter={self.bounce_filter:g} mm "

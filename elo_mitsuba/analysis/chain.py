@@ -246,7 +246,9 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
         # division (it masked every pixel as dark); headers without them (other tools) are not compared
         for key in (WORK_DISTANCE, PROJECTION, UNITS):
             a, b = header.get(key), rec.header.get(key)
-            if a is not None and b is not None and (a != b if isinstance(a, str) or isinstance(b, str) else not _same(a, b)):
+            if a is None or b is None:
+                continue
+            if a != b if isinstance(a, str) or isinstance(b, str) else not _same(a, b):
                 fix = "give all in one unit" if key == UNITS else "record all with one geometry"
                 raise EloInputError(f"{rec.label}: flat-plate {key} {b!r} differs from the "
                                     f"{'object' if meta else 'first flat'}'s {a!r}; {fix}")

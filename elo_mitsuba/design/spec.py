@@ -253,7 +253,8 @@ def load_spec(spec, *, second_event: bool = False) -> OptimizeSpec:
     primaries = metric["beam_current"] * metric["dwell"] / ELEMENTARY_CHARGE_C
     if not primaries <= MAX_PRIMARIES:
         raise EloInputError(f"{where}: metric.beam_current = {metric['beam_current']!r} A x metric.dwell = "
-                            f"{metric['dwell']!r} s is {primaries:.3g} electrons per pixel; must be <= {MAX_PRIMARIES:g}")
+                            f"{metric['dwell']!r} s is {primaries:.3g} electrons per pixel; "
+                            f"must be <= {MAX_PRIMARIES:g}")
     metric["grid"] = _number(where, "metric.grid", metric["grid"], 1, 64, integer=True)
     for k in ("s_max", "s_mask"):
         metric[k] = _number(where, f"metric.{k}", metric[k], 0, MAX_SLOPE)
