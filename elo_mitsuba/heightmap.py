@@ -43,7 +43,7 @@ import numpy as np
 from .errors import EloInputError
 from .files import atomic_write, check_output
 from .grid import field_xy, pixel_axes
-from .schema import MAX_LENGTH_MM, MIN_LENGTH_MM
+from .schema import LENGTH_RANGE, is_length
 
 #: File name extensions :func:`write_height` writes.
 HEIGHT_SUFFIXES = (".exr", ".npy", ".tif", ".tiff", ".gsf")
@@ -450,9 +450,9 @@ def validate_pixel_size(pixel_size_mm) -> float:
         raise EloInputError(f"pixel size {pixel_size_mm!r} is not a number; give it in mm (> 0)") from None
     if not math.isfinite(p) or p <= 0:
         raise EloInputError(f"pixel size {pixel_size_mm!r} mm must be a finite number > 0")
-    if not MIN_LENGTH_MM <= p <= MAX_LENGTH_MM:
+    if not is_length(p):
         # a PLY holds float32: 1e-300 mm pixels put every vertex at x = y = 0 without a word
-        raise EloInputError(f"pixel size {pixel_size_mm!r} mm must be {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm")
+        raise EloInputError(f"pixel size {pixel_size_mm!r} mm must be {LENGTH_RANGE}")
     return p
 
 

@@ -37,8 +37,8 @@ from .arguments import flag, length, shown, vector3, whole_number
 from .result import NEGLIGIBLE_EVENT_SHARE, NO_SIGNAL_CAUSES, RenderResult  # noqa: F401 -- part of this module's API
 from . import surfaces
 from .runtime import ensure_variant
-from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, PROJECTION, SCATTERING, UNITS, WORK_DISTANCE,
-                     grid_header, signal_units)
+from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, MAX_LENGTH_MM, PROJECTION, SCATTERING, UNITS,
+                     WORK_DISTANCE, grid_header, signal_units)
 from .scene_files import (check_detector_placement, check_detectors_apart, declared_parameters, detector_up,
                           explain_mitsuba_error, resolve_scene_path, scene_values)
 
@@ -376,7 +376,8 @@ class EloScene:
         # where it is: as last set (float64), not as read back from the float32 transform, so that a
         # move's result does not depend on the moves before it
         geo = {**self.detector_geometry()[name], **self._placed.get(name, {})}
-        c = vector3(f"detector {name!r}: centre", center if center is not None else geo["center"], limit=1e6)
+        c = vector3(f"detector {name!r}: centre", center if center is not None else geo["center"],
+                    limit=MAX_LENGTH_MM)
         r = length(f"detector {name!r}: radius", radius if radius is not None else geo["radius"])
         if not np.any(np.abs(c) > 1e-9):
             raise EloInputError(f"detector {name!r}: centre {c.tolist()} is the origin; a detector faces the field "

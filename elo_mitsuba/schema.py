@@ -251,6 +251,21 @@ MAX_LENGTH_MM = 1e6
 MIN_LENGTH_MM = 1e-6
 
 
+#: How messages state :func:`is_length`'s range.
+LENGTH_RANGE = f"{MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"
+
+
+def is_length(v) -> bool:
+    """A length > 0 (mm) that a header may hold (:data:`MIN_LENGTH_MM` to :data:`MAX_LENGTH_MM`):
+    the one test for fields, work distances, pixel sizes and radii wherever they enter, so that
+    nothing is rendered or read that a header could not hold.
+
+    >>> is_length(80.0), is_length(1e-300), is_length(1e300), is_length(float("nan")), is_length(True)
+    (True, False, False, False, False)
+    """
+    return _is_number(v) and MIN_LENGTH_MM <= v <= MAX_LENGTH_MM
+
+
 def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
 
@@ -267,7 +282,7 @@ def _lengths(v, n: int) -> bool:
 def _positive_lengths(v) -> bool:
     """A length > 0, or two of them (x, y)."""
     items = v if isinstance(v, (list, tuple)) and len(v) == 2 else [v]
-    return all(_length(x) and x >= MIN_LENGTH_MM for x in items)
+    return all(is_length(x) for x in items)
 
 
 def _whole(v, least: int) -> bool:
@@ -282,11 +297,11 @@ def _detector_entry(v) -> bool:
 # What each header key that the analysis reads must hold (a test, what is allowed): JSON as
 # elo-mitsuba writes it; a header edited by hand or by another tool is checked before any work.
 _HEADER_RULES = {
-    FIELD: (_positive_lengths, f"a length or two [x, y] of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
+    FIELD: (_positive_lengths, f"a length or two [x, y] of {LENGTH_RANGE}"),
     RESOLUTION: (lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(_whole(x, 1) for x in v),
                  "two whole numbers >= 1 [W, H]"),
-    "pixel_size_mm": (_positive_lengths, f"a length or two [x, y] of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
-    WORK_DISTANCE: (_positive_lengths, f"a length of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"),
+    "pixel_size_mm": (_positive_lengths, f"a length or two [x, y] of {LENGTH_RANGE}"),
+    WORK_DISTANCE: (_positive_lengths, f"a length of {LENGTH_RANGE}"),
     PROJECTION: (lambda v: v in PROJECTIONS, " or ".join(PROJECTIONS)),
     AIM_OFFSET: (lambda v: _lengths(v, 2), f"two lengths [x, y] within {MAX_LENGTH_MM:g} mm"),
     BEAM_FWHM: (lambda v: _length(v) and v >= 0, f"a length >= 0 up to {MAX_LENGTH_MM:g} mm"),

@@ -25,7 +25,7 @@ import numpy as np
 from elo_mitsuba.constants import FIELD_MM, WORK_DISTANCE_MM
 from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.grid import film_to_plane
-from elo_mitsuba.schema import MAX_LENGTH_MM, MIN_LENGTH_MM, fwhm_to_sigma
+from elo_mitsuba.schema import LENGTH_RANGE, MIN_LENGTH_MM, fwhm_to_sigma, is_length
 
 #: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
 #: aimed exactly at a vertex or edge of a mesh built on the same grid as the scan (a height map
@@ -44,17 +44,16 @@ def _positive(props, name, default, allow_zero=False):
 
 
 def _check_length(name, value, allow_zero=False):
-    """``value`` (mm) within the lengths an output header may hold (:data:`MIN_LENGTH_MM` to
-    :data:`MAX_LENGTH_MM`): a render never writes a file that the package's own reader refuses
-    (wd=1e-300 did), and a field of 1e-300 mm no longer reaches the presets' window arithmetic.
+    """``value`` (mm) within the lengths an output header may hold (:func:`is_length`): a render
+    never writes a file that the package's own reader refuses (wd=1e-300 did), and a field of
+    1e-300 mm no longer reaches the presets' window arithmetic.
     ``allow_zero`` (the beam's FWHM): 0 or at least :data:`MIN_LENGTH_MM`, its upper bound being
     the scan field (checked with the film)."""
     if allow_zero:
         ok = np.isfinite(value) and (value == 0 or value >= MIN_LENGTH_MM)
         bound = f"0 or >= {MIN_LENGTH_MM:g} mm"
     else:
-        ok = np.isfinite(value) and MIN_LENGTH_MM <= value <= MAX_LENGTH_MM
-        bound = f"{MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"
+        ok, bound = is_length(value), LENGTH_RANGE
     if not ok:
         raise EloInputError(f"elo_beam: {name}={value!r} mm; must be {bound}")
     return value

@@ -27,7 +27,7 @@ from ..constants import (
 )
 from ..errors import EloInputError
 from ..grid import field_xy, pixel_coordinates, pixel_size
-from ..schema import MAX_LENGTH_MM, MIN_LENGTH_MM, PROJECTIONS, HeaderGeometry, geometry_header, read_geometry
+from ..schema import LENGTH_RANGE, PROJECTIONS, is_length, HeaderGeometry, geometry_header, read_geometry
 from .layout import check_detector_geometry
 
 
@@ -52,8 +52,8 @@ class Disc:
         if not length > 0:
             raise EloInputError(f"detector normal {self.normal!r}: must not be zero")
         r = float(self.radius)
-        if not (np.isfinite(r) and MIN_LENGTH_MM <= r <= MAX_LENGTH_MM):
-            raise EloInputError(f"detector radius {self.radius!r} mm: must be {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm")
+        if not is_length(r):
+            raise EloInputError(f"detector radius {self.radius!r} mm: must be {LENGTH_RANGE}")
         object.__setattr__(self, "center", tuple(float(v) for v in c))
         # a unit normal is kept as given: normalising it again can change its last bit, and a disc
         # read back from CALIB.json must equal the one written

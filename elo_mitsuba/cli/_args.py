@@ -10,7 +10,7 @@ import argparse
 import math
 
 from ..constants import MAX_SEED
-from ..schema import MAX_LENGTH_MM, MIN_LENGTH_MM
+from ..schema import LENGTH_RANGE, is_length
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -44,12 +44,11 @@ def positive_float(text: str) -> float:
 
 
 def length_mm(text: str) -> float:
-    """A length in mm within what a header may hold (:data:`~elo_mitsuba.schema.MIN_LENGTH_MM` to
-    :data:`~elo_mitsuba.schema.MAX_LENGTH_MM`): the geometry options override a header's, and a
-    field of 1e300 mm reached the calibration's fit (scipy's "initial guess outside bounds")."""
+    """A length in mm that a header may hold (:func:`~elo_mitsuba.schema.is_length`): the geometry
+    options override a header's, and a field of 1e300 mm reached the calibration's fit."""
     v = number(text)
-    if not (math.isfinite(v) and MIN_LENGTH_MM <= v <= MAX_LENGTH_MM):
-        raise argparse.ArgumentTypeError(f"{text!r}: must be a length of {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm")
+    if not is_length(v):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a length of {LENGTH_RANGE}")
     return v
 
 
@@ -59,9 +58,8 @@ def field_arg(text: str) -> tuple[float, float]:
         vals = [float(v) for v in text.replace("x", ",").split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: give FX or FX,FY in mm, e.g. 80 or 80,60") from None
-    if len(vals) not in (1, 2) or not all(math.isfinite(v) and MIN_LENGTH_MM <= v <= MAX_LENGTH_MM for v in vals):
-        raise argparse.ArgumentTypeError(f"{text!r}: give one or two lengths of {MIN_LENGTH_MM:g} to "
-                                         f"{MAX_LENGTH_MM:g} mm, e.g. 80 or 80,60")
+    if len(vals) not in (1, 2) or not all(is_length(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"{text!r}: give one or two lengths of {LENGTH_RANGE}, e.g. 80 or 80,60")
     return (vals[0], vals[-1])
 
 
