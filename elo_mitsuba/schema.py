@@ -266,8 +266,26 @@ def is_length(v) -> bool:
     return _is_number(v) and MIN_LENGTH_MM <= v <= MAX_LENGTH_MM
 
 
+#: How messages state :func:`is_fwhm`'s range.
+FWHM_RANGE = f"0 (a single ray) or {MIN_LENGTH_MM:g} to {MAX_LENGTH_MM:g} mm"
+
+
+def is_fwhm(v) -> bool:
+    """A beam profile's FWHM (mm) that a header may hold: 0 (the single ray of the paper) or a
+    length (:func:`is_length`); the one test wherever a FWHM enters (a render, a header, the
+    inversion), so that 1e-300 is not a profile in one place and refused in another. Its upper
+    bound, the scan field, is checked where the field is known.
+
+    >>> is_fwhm(0.0), is_fwhm(0.27), is_fwhm(1e-300), is_fwhm(-0.1), is_fwhm(float("inf"))
+    (True, True, False, False, False)
+    """
+    return _is_number(v) and (v == 0 or is_length(v))
+
+
 def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+    """A finite real number, numpy's scalars included (an API caller's np.float32(0.27)); not a bool."""
+    return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+            and bool(np.isfinite(v)))
 
 
 def _length(v) -> bool:
@@ -304,7 +322,7 @@ _HEADER_RULES = {
     WORK_DISTANCE: (_positive_lengths, f"a length of {LENGTH_RANGE}"),
     PROJECTION: (lambda v: v in PROJECTIONS, " or ".join(PROJECTIONS)),
     AIM_OFFSET: (lambda v: _lengths(v, 2), f"two lengths [x, y] within {MAX_LENGTH_MM:g} mm"),
-    BEAM_FWHM: (lambda v: _length(v) and v >= 0, f"a length >= 0 up to {MAX_LENGTH_MM:g} mm"),
+    BEAM_FWHM: (is_fwhm, FWHM_RANGE),
     "events": (lambda v: _whole(v, 1), "a whole number >= 1"),
     DETECTORS: (lambda v: isinstance(v, Mapping) and all(isinstance(k, str) and _detector_entry(d) for k, d in v.items()),
                 f"{{name: {{center: [x, y, z], normal: [x, y, z] (not zero), radius: r}}}}, lengths within {MAX_LENGTH_MM:g} mm, r >= {MIN_LENGTH_MM:g}"),

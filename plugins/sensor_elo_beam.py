@@ -25,7 +25,7 @@ import numpy as np
 from elo_mitsuba.constants import FIELD_MM, WORK_DISTANCE_MM
 from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.grid import film_to_plane
-from elo_mitsuba.schema import LENGTH_RANGE, MIN_LENGTH_MM, fwhm_to_sigma, is_length
+from elo_mitsuba.schema import FWHM_RANGE, LENGTH_RANGE, MIN_LENGTH_MM, fwhm_to_sigma, is_fwhm, is_length
 
 #: Aim-point nudge, in pixel pitches: Mitsuba's ray-triangle test is not watertight, so a beam ray
 #: aimed exactly at a vertex or edge of a mesh built on the same grid as the scan (a height map
@@ -47,11 +47,10 @@ def _check_length(name, value, allow_zero=False):
     """``value`` (mm) within the lengths an output header may hold (:func:`is_length`): a render
     never writes a file that the package's own reader refuses (wd=1e-300 did), and a field of
     1e-300 mm no longer reaches the presets' window arithmetic.
-    ``allow_zero`` (the beam's FWHM): 0 or at least :data:`MIN_LENGTH_MM`, its upper bound being
-    the scan field (checked with the film)."""
+    ``allow_zero`` (the beam's FWHM): :func:`is_fwhm`, its upper bound being the scan field
+    (checked with the film)."""
     if allow_zero:
-        ok = np.isfinite(value) and (value == 0 or value >= MIN_LENGTH_MM)
-        bound = f"0 or >= {MIN_LENGTH_MM:g} mm"
+        ok, bound = is_fwhm(value), FWHM_RANGE
     else:
         ok, bound = is_length(value), LENGTH_RANGE
     if not ok:

@@ -161,7 +161,8 @@ CLI_CASES = [
     ("render -D field=-5", [*R, *OUT, "-D", "field=-5"], "field"),
     ("render -D fwhm=-1", [*R, *OUT, "-D", "fwhm=-1"], "fwhm"),
     # a beam as wide as the field lights all of it at every scan point (fwhm=1e30 rendered zeros)
-    ("render -D fwhm=1e30", [*R, *OUT, "-D", "fwhm=1e30"], "fwhm=1e+30 mm; must be below the scan field's 80 mm"),
+    ("render -D fwhm=100", [*R, *OUT, "-D", "fwhm=100"], "fwhm=100 mm; must be below the scan field's 80 mm"),
+    ("render -D fwhm=1e30", [*R, *OUT, "-D", "fwhm=1e30"], "fwhm=1e+30 mm; must be 0 (a single ray) or 1e-06 to 1e+06 mm"),
     ("render -D projection", [*R, *OUT, "-D", "projection=fisheye"], "fisheye"),
     # -- calibrate
     ("calibrate --event 0", ["calibrate", "{d}/flat.exr", "--event", "0", "-o", "{d}/c.json"],
@@ -208,6 +209,25 @@ CLI_CASES = [
     ("gradient --dh 1e300", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--dh", "1e300", "--dw", "127"],
      "'1e300': must be a length of 1e-06 to 1e+06 mm"),
     ("gradient --dw nan", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--dw", "nan"], "must be a length of"),
+    # a noise of 1e-300 overflowed the misfit's chi^2 (numpy warnings, then uncertainties of 0); an
+    # empty material fell back to the header's without a word; a FWHM of 1e-300 was a profile here and
+    # refused by renders and headers; an alpha of 1e300 overflowed the float32 preconditioner
+    ("gradient --noise 1e-300", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--noise", "1e-300"],
+     "'1e-300': must be a number from 1e-09 to 1"),
+    ("invert --noise 1e300", ["invert", *G_FLAT, "{d}/corr.exr", "-o", "{d}/h.exr", "--noise", "1e300"],
+     "'1e300': must be a number from 1e-09 to 1"),
+    ("gradient --noise 2", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--noise", "2"],
+     "'2': must be a number from 1e-09 to 1"),
+    ("gradient --material empty", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--material", ""],
+     "argument --material: '' is empty; give a preset"),
+    ("calibrate --material empty", ["calibrate", "{d}/flat.exr", "-o", "{d}/c.json", "--material", ""],
+     "argument --material: '' is empty; give a preset"),
+    ("invert --fwhm 1e-300", ["invert", *G_FLAT, "{d}/corr.exr", "-o", "{d}/h.exr", "--fwhm", "1e-300"],
+     "'1e-300': must be 0 (a single ray) or 1e-06 to 1e+06 mm"),
+    ("invert --alpha 1e300", ["invert", *G_FLAT, "{d}/corr.exr", "-o", "{d}/h.exr", "--alpha", "1e300"],
+     "--alpha 1e+300: must be at most 1e+06"),
+    ("reflectance-map --range 1e300", ["reflectance-map", "--zeta", "50", "-o", "{d}/m.png", "--range", "1e300"],
+     "--range 1e+300: must be at most 1000"),
     ("gradient --event 3", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--event", "3"], "right.e3"),
     ("gradient --event x", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--event", "x"], "invalid int value"),
     # -- reconstruct

@@ -201,9 +201,7 @@ CLI_CASES = [
      "field 40x40 mm contradicts the header's field_mm 80x80 mm"),
     ("render, no electron reaches a detector", [*R, "--resolution", "4", "-D", "field=1e6"],
      "flat_plate: no electron reached any detector anywhere in the scan"),
-    ("invert --fwhm beyond the field", [*INV, "--fwhm", "1e30"], "beam FWHM 1e+30 mm (--fwhm): must be below"),
-    ("invert --noise 1e300", [*INV, "--noise", "1e300"], "noise=1e+300: must be a finite number > 0 and <= 1"),
-    ("gradient --noise 2", [*GRAD, "--noise", "2"], "noise=2.0: must be a finite number > 0 and <= 1"),
+    ("invert --fwhm beyond the field", [*INV, "--fwhm", "100"], "beam FWHM 100 mm (--fwhm): must be below"),
     ("invert --init relief reaching the detectors", [*INV, "--init", "{d}/tall.npy"],
      "--init heights: a relief of 500 mm (largest less smallest height) reaches the detectors"),
     ("invert output is its input", ["invert", "--flat", "{d}/flat.exr", "{d}/corr.exr", "-o", "{d}/corr.exr",
@@ -390,7 +388,31 @@ def _configured(**options):
     return scene
 
 
+def _invert(**kw):
+    from elo_mitsuba.analysis.inversion import invert_heights
+
+    return invert_heights(_flats(), _flats(), _geometry(), **kw)
+
+
+def _noise(level):
+    from elo_mitsuba.analysis.noise import check_noise
+
+    return check_noise(level)
+
+
+def _pq_grid(p_range):
+    from elo_mitsuba.analysis.reflectance import pq_grid
+
+    return pq_grid(p_range, (-1.0, 1.0), 3)
+
+
 API_CASES = [
+    # bounds of the analysis's own parameters, as the command line has them
+    ("check_noise 1e-300", lambda: _noise(1e-300), "noise=1e-300: must be a number from 1e-09 to 1"),
+    ("invert_heights alpha 1e300", lambda: _invert(alpha=1e300), "alpha=1e+300: must be a number from 0 to 1e+06"),
+    ("invert_heights fwhm 1e-300", lambda: _invert(fwhm_mm=1e-300), "beam FWHM 1e-300 mm (--fwhm): must be 0 (a single"),
+    ("pq_grid beyond 1e3", lambda: _pq_grid((-1e300, 1e300)), "p_range=(-1e+300, 1e+300): must be lo < hi within +-1000"),
+    ("pq_grid reversed", lambda: _pq_grid((1.0, -1.0)), "p_range=(1.0, -1.0): must be lo < hi"),
     ("configure beam_current without volts", lambda: _scene().configure(beam_current=2e-3),
      "beam_current=0.002 scales volts only"),
     ("configure transimpedance without volts", lambda: _scene().configure(units="fraction", transimpedance=1e6),
@@ -834,3 +856,12 @@ def test_a_huge_detector_normal_is_a_direction_without_warnings():
         warnings.simplefilter("error")
         scene.set_detector("right", normal=(-1e300, -1e300, -1e300))
     np.testing.assert_allclose(scene.detector_geometry()["right"]["normal"], -np.ones(3) / np.sqrt(3), atol=1e-4)  # float32
+
+
+def test_more_scales_than_the_image_holds_are_the_scales_it_holds():
+    """``--scales 2^63`` looped over 2^63 factors of 2^k and ran out of memory (a MemoryError
+    traceback): the factors stop where the shorter side would keep fewer than MIN_SCALE_PX pixels."""
+    from elo_mitsuba.analysis.height_solver import scale_factors
+
+    assert scale_factors((512, 512), 2 ** 63) == scale_factors((512, 512), 5) == [16, 8, 4, 2]
+    assert scale_factors((32, 32), 2 ** 63) == [] and scale_factors((1500, 1500), 2 ** 63) == [4, 2]

@@ -77,7 +77,7 @@ BAD_POINTS = {
                       "layout = 'zeta99'", "allowed: zeta25"),
     "material_second": (FLAT + '[vary]\nmaterial = ["316L", "unobtainium"]\n' + SMALL,
                         "material = 'unobtainium'", "unknown material"),
-    "fwhm_second": (FLAT + "[vary]\nfwhm = [0.1, -1]\n" + SMALL, "fwhm = -1", "must be 0 or >= 1e-06 mm"),
+    "fwhm_second": (FLAT + "[vary]\nfwhm = [0.1, -1]\n" + SMALL, "fwhm = -1", "must be 0 (a single ray) or 1e-06 to 1e+06 mm"),
     "zipped_second": (FLAT + "[zip.g]\ndh = [272, 20]\ndw = [127, 300]\n" + SMALL, "dh = 20", "detector"),
     "center_second": (FLAT + "[vary]\nright.center = [[127, 0, 272], [127, 0, -10]]\n" + SMALL,
                       "right.center = [127.0, 0.0, -10.0]", "at or below the build plane"),

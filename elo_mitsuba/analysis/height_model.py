@@ -46,7 +46,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..grid import pixel_size
-from ..schema import fwhm_to_sigma
+from ..schema import FWHM_RANGE, fwhm_to_sigma, is_fwhm
 from .detector_model import DEFAULT_NODES, FacetModel
 from .grid_kernels import GridKernels
 
@@ -128,9 +128,9 @@ def pixels_from_corners(g) -> np.ndarray:
 def blur_sigma_px(fwhm_mm: float, shape, field_mm) -> tuple[float, float]:
     """Standard deviation of the beam profile in pixels (rows, columns); (0, 0) below :data:`MIN_BLUR_PX`."""
     dx, dy = pixel_size(shape, field_mm)
+    if not is_fwhm(fwhm_mm):
+        raise EloInputError(f"beam fwhm {fwhm_mm!r} mm: must be {FWHM_RANGE}")
     sigma = fwhm_to_sigma(fwhm_mm)
-    if not np.isfinite(sigma) or sigma < 0:
-        raise EloInputError(f"beam fwhm {fwhm_mm!r} mm: must be a finite number >= 0")
     if fwhm_mm / max(dx, dy) < MIN_BLUR_PX:
         return 0.0, 0.0
     return sigma / dy, sigma / dx

@@ -96,6 +96,9 @@ DISCREPANCY = 1.05
 ALPHA_PER_NOISE2 = 30.0
 #: ... and never below this (noise-free images still leave the corner checkerboard to fix).
 MIN_ALPHA = 1e-6
+#: The largest weight a user may give: 30 x noise^2 is at most 30 (noise <= 1), and at 1e6 the
+#: curvature already flattens any relief; 1e300 overflowed the float32 preconditioner.
+MAX_ALPHA = 1e6
 #: Noise level assumed at least (corrected units): the model's own accuracy (discretisation of the
 #: surface, the disc rule, the beam blur's mixing), measured as the misfit RMS the true heights leave
 #: on noise-free renders (0.27 mm beam, --quality default): 1.6e-3 on the rough layer, 1.8e-3 on
@@ -625,7 +628,9 @@ def scale_factors(shape, scales: int) -> list[int]:
     """The coarse scales of a solve, coarsest first: factors 2^k (k < ``scales``) that divide the
     image and leave at least :data:`MIN_SCALE_PX` pixels on its shorter side."""
     out = []
-    for k in range(max(int(scales), 1) - 1, 0, -1):
+    # no factor above the shorter side's can leave MIN_SCALE_PX pixels: scales=2^63 asked for 2^(2^63)
+    top = min(max(int(scales), 1) - 1, max(min(shape) // MIN_SCALE_PX, 1).bit_length() - 1)
+    for k in range(top, 0, -1):
         f = 1 << k
         if shape[0] % f == 0 and shape[1] % f == 0 and min(shape) // f >= MIN_SCALE_PX:
             out.append(f)

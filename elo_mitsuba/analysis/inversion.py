@@ -32,7 +32,8 @@ from ..budget import check_inversion
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..grid import pixel_size
-from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, NODES, SCALES, TOL, UNCERTAINTY_PROBES,
+from ..schema import FWHM_RANGE, is_fwhm
+from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, MAX_ALPHA, NODES, SCALES, TOL, UNCERTAINTY_PROBES,
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
 from .local_inversion import refine_regions, threshold
 from .noise import check_noise, local_chi2
@@ -168,8 +169,8 @@ def check_beam_and_start(geometry, fwhm_mm: float, heights=None, *, what: str = 
     elo_mitsuba.errors.EloInputError: beam FWHM 100 mm (--fwhm): must be below the scan field's 80 mm (a beam profile is a fraction of a millimetre)
     """
     field = max(geometry.field_mm)
-    if not (np.isfinite(fwhm_mm) and fwhm_mm >= 0):
-        raise EloInputError(f"beam FWHM {fwhm_mm!r} mm (--fwhm): must be a finite number >= 0")
+    if not is_fwhm(fwhm_mm):
+        raise EloInputError(f"beam FWHM {fwhm_mm!r} mm (--fwhm): must be {FWHM_RANGE}")
     if fwhm_mm >= field:
         raise EloInputError(f"beam FWHM {fwhm_mm:g} mm (--fwhm): must be below the scan field's {field:g} mm "
                             "(a beam profile is a fraction of a millimetre)")
@@ -274,8 +275,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     if time_budget_s is not None and not (isinstance(time_budget_s, (int, float)) and not isinstance(time_budget_s, bool)
                                           and np.isfinite(time_budget_s) and time_budget_s > 0):
         raise EloInputError(f"time_budget_s={shown(time_budget_s)}: must be a number of seconds > 0, or None")
-    if alpha is not None and not (np.isfinite(alpha) and alpha >= 0):
-        raise EloInputError(f"alpha={alpha!r}: must be a finite number >= 0")
+    if alpha is not None and not (np.isfinite(alpha) and 0 <= alpha <= MAX_ALPHA):
+        raise EloInputError(f"alpha={alpha!r}: must be a number from 0 to {MAX_ALPHA:g} (default 30 x noise^2)")
     if not (np.isfinite(tol) and tol >= 0):
         raise EloInputError(f"tol={tol!r}: must be a finite number >= 0")
     if not (np.isfinite(discrepancy) and discrepancy >= 0):

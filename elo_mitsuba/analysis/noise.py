@@ -36,11 +36,15 @@ DIRECTIONS = ((0, 1), (1, 0), (1, 1), (1, -1))
 #: The largest noise level (standard deviation of the corrected images, whose level is about 1)
 #: a user may give: 100 %. Above it the images hold no signal, and 1e300 overflowed its square.
 MAX_NOISE = 1.0
+#: The smallest noise level a user may give. Float32 images about 1 resolve 6e-8, so a level far
+#: below it says nothing about the images, and 1e-300 overflowed the misfit's chi^2 (a warning, then
+#: uncertainties of 0).
+MIN_NOISE_GIVEN = 1e-9
 
 
 def check_noise(noise, what: str = "noise") -> float:
-    """``noise`` as a float, if it is a noise level of the corrected images: finite, > 0 and at
-    most :data:`MAX_NOISE`.
+    """``noise`` as a float, if it is a noise level of the corrected images: finite, from
+    :data:`MIN_NOISE_GIVEN` to :data:`MAX_NOISE`.
 
     Examples
     --------
@@ -49,14 +53,14 @@ def check_noise(noise, what: str = "noise") -> float:
     >>> check_noise(1e300)
     Traceback (most recent call last):
     ...
-    elo_mitsuba.errors.EloInputError: noise=1e+300: must be a finite number > 0 and <= 1 (corrected units: a standard deviation of images about 1)
+    elo_mitsuba.errors.EloInputError: noise=1e+300: must be a number from 1e-09 to 1 (corrected units: a standard deviation of images about 1)
     """
     try:
         level = float(noise)
     except (TypeError, ValueError):
         level = float("nan")
-    if not (np.isfinite(level) and 0 < level <= MAX_NOISE) or isinstance(noise, bool):
-        raise EloInputError(f"{what}={shown(noise)}: must be a finite number > 0 and <= {MAX_NOISE:g} "
+    if not (np.isfinite(level) and MIN_NOISE_GIVEN <= level <= MAX_NOISE) or isinstance(noise, bool):
+        raise EloInputError(f"{what}={shown(noise)}: must be a number from {MIN_NOISE_GIVEN:g} to {MAX_NOISE:g} "
                             "(corrected units: a standard deviation of images about 1)")
     return level
 

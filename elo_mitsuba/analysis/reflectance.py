@@ -53,6 +53,11 @@ def detector_pq(d_h, d_w, detector="right", x=0.0, y=0.0) -> tuple[float, float]
     return float(d[..., 0]), float(d[..., 1])
 
 
+#: The largest |p| or |q| a map samples: a facet 89.94 degrees from level. Beyond it a map shows
+#: nothing new, and 1e300 overflowed the normals' squared length.
+MAX_PQ = 1e3
+
+
 def pq_grid(p_range=(-3.0, 3.0), q_range=(-3.0, 3.0), n=301):
     """Sample the (p, q) plane: returns ``(P, Q)`` of shape (n_q, n_p), row 0 = largest q.
 
@@ -73,6 +78,10 @@ def pq_grid(p_range=(-3.0, 3.0), q_range=(-3.0, 3.0), n=301):
     >>> P[0].tolist(), Q[:, 0].tolist()
     ([-1.0, 0.0, 1.0], [1.0, 0.0, -1.0])
     """
+    for name, (lo, hi) in (("p_range", p_range), ("q_range", q_range)):
+        if not all(np.isfinite([lo, hi])) or max(abs(float(lo)), abs(float(hi))) > MAX_PQ or not lo < hi:
+            raise EloInputError(f"{name}=({lo!r}, {hi!r}): must be lo < hi within +-{MAX_PQ:g} "
+                                "(a gradient component; e.g. --range 3)")
     n_p, n_q = (n, n) if np.isscalar(n) else n
     if int(n_p) < 2 or int(n_q) < 2:
         raise EloInputError(f"n={n!r}: need at least 2 samples along p and q")

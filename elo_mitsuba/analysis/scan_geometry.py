@@ -160,7 +160,7 @@ class ScanGeometry:
                 raise EloInputError(f"{source}: detector {name!r} lacks {exc} (need center, normal, radius)") from None
         return cls(field_mm=header.field_mm, shape=shape, detectors=discs,
                    work_distance_mm=header.work_distance_mm, projection=header.projection,
-                   aim_offset_mm=header.aim_offset_mm, material=material or header.material)
+                   aim_offset_mm=header.aim_offset_mm, material=header.material if material is None else material)
 
     def with_detectors(self, detectors: Mapping) -> "ScanGeometry":
         """A copy whose detectors are replaced (e.g. by a calibration's)."""

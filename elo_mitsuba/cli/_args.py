@@ -10,7 +10,7 @@ import argparse
 import math
 
 from ..constants import MAX_SEED
-from ..schema import LENGTH_RANGE, is_length
+from ..schema import FWHM_RANGE, LENGTH_RANGE, is_fwhm, is_length
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -61,6 +61,36 @@ def field_arg(text: str) -> tuple[float, float]:
     if len(vals) not in (1, 2) or not all(is_length(v) for v in vals):
         raise argparse.ArgumentTypeError(f"{text!r}: give one or two lengths of {LENGTH_RANGE}, e.g. 80 or 80,60")
     return (vals[0], vals[-1])
+
+
+def noise_level(text: str) -> float:
+    """``--noise``: a noise level of the corrected images (:func:`~elo_mitsuba.analysis.noise.check_noise`)."""
+    from ..analysis.noise import MAX_NOISE, MIN_NOISE_GIVEN
+
+    v = number(text)
+    if not (math.isfinite(v) and MIN_NOISE_GIVEN <= v <= MAX_NOISE):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a number from {MIN_NOISE_GIVEN:g} to {MAX_NOISE:g} "
+                                         "(corrected units: a standard deviation of images about 1, e.g. 0.01)")
+    return v
+
+
+def fwhm_arg(text: str) -> float:
+    """``--fwhm``: a beam profile's FWHM in mm (:func:`~elo_mitsuba.schema.is_fwhm`), as renders and headers take it."""
+    v = number(text)
+    if not is_fwhm(v):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be {FWHM_RANGE}")
+    return v
+
+
+def material_arg(text: str) -> str:
+    """``--material``: not blank (an empty one fell back to the header's without a word); the
+    library names an unknown preset or a bad composition."""
+    if not text.strip():
+        from ..physics.materials import PRESETS
+
+        raise argparse.ArgumentTypeError(f"{text!r} is empty; give a preset ({', '.join(PRESETS)}) or a composition "
+                                         "such as 'Ti:0.9,Al:0.06,V:0.04'")
+    return text
 
 
 def positive_int(text: str) -> int:
@@ -134,7 +164,7 @@ def add_scan_arguments(p):
                      help="work distance: beam pivot height (model method, without a header; default 400)")
     geo.add_argument("--projection", choices=("perspective", "orthographic"),
                      help="beam from the pivot or parallel to -z (model method, without a header)")
-    geo.add_argument("--material", metavar="NAME",
+    geo.add_argument("--material", type=material_arg, metavar="NAME",
                      help="surface material for the model (default: the header's, else Ti-6Al-4V)")
     geo.add_argument("--calibration", metavar="CALIB.json",
                      help="detector centres and normals from 'elo-mitsuba calibrate' (model method)")

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES
 from ..schema import scattering_note
-from ._args import field_arg, length_mm, positive_float, positive_int
+from ._args import field_arg, length_mm, material_arg, positive_float, positive_int
 
 DESCRIPTION = """\
 Fit where each detector really is, from the four images of a plane plate (any unit: volts,
@@ -71,7 +71,7 @@ def add_parser(subparsers):
     geo.add_argument("--wd", "--work-distance", dest="wd", type=length_mm, metavar="MM",
                      help="work distance (default: header, else 400)")
     geo.add_argument("--projection", choices=("perspective", "orthographic"), help="beam projection")
-    geo.add_argument("--material", metavar="NAME", help="plate material (default: header, else Ti-6Al-4V)")
+    geo.add_argument("--material", type=material_arg, metavar="NAME", help="plate material (default: header, else Ti-6Al-4V)")
     fit = p.add_argument_group("fit")
     fit.add_argument("--fit-offset", action="store_true", help="also fit a constant offset per detector")
     fit.add_argument("--no-tilt", action="store_true", help="hold each normal at its nominal direction")

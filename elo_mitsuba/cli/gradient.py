@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..schema import scattering_note
-from ._args import add_scan_arguments, model_inputs, positive_float, scan_files, scan_inputs
+from ._args import add_scan_arguments, model_inputs, noise_level, scan_files, scan_inputs
 
 DESCRIPTION = """\
 Compute the surface gradient dZ/dx, dZ/dy of the build surface from four detector images
@@ -79,7 +79,7 @@ def add_parser(subparsers):
                      help="model: per-pixel fit of the 1st-event model (default); eq26: the paper's Eq. 26")
     mod.add_argument("--iterations", type=int, default=None, metavar="N",
                      help="Levenberg-Marquardt iterations of the model fit (default 10)")
-    mod.add_argument("--noise", type=positive_float, default=None, metavar="SIGMA",
+    mod.add_argument("--noise", type=noise_level, default=None, metavar="SIGMA",
                      help="noise (std) of the corrected images for the uncertainty; default: estimated")
     mod.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its share of later "

@@ -11,7 +11,8 @@ import numpy as np
 from ..errors import EloInputError
 from ..budget import check_inversion
 from ..schema import BEAM_FWHM, scattering_note
-from ._args import add_scan_arguments, add_yes, model_inputs, positive_float, scan_files, scan_inputs
+from ._args import (add_scan_arguments, add_yes, fwhm_arg, model_inputs, noise_level, positive_float, scan_files,
+                    scan_inputs)
 
 DESCRIPTION = """\
 Solve for the height map itself: the heights whose modelled images (the renderer's 1st event with
@@ -55,7 +56,7 @@ validation/REPORT.md, rows D1-D4), floating (1 = a part cut off by bands of misf
 cliff's ramp, e.g. a raised part's cliff: its offset is not measured); the geometry, the solver's
 history, the local refinement's regions and height_error_rms_mm in the header, with the object's
 and the flat's own relative noise (noise_object, noise_flat; the summary line says the flat's
-share). .npy/.tif: the height alone.
+share). .npy/.tif: the height alone, NaN where the mask says untrusted.
 """
 
 EPILOG = """\
@@ -93,9 +94,9 @@ def add_parser(subparsers):
                      help="stop after the step that passes S seconds")
     sol.add_argument("--alpha", type=float, default=None, metavar="A",
                      help="weight of the curvature regulariser (default 30 x noise^2)")
-    sol.add_argument("--noise", type=positive_float, default=None, metavar="SIGMA",
+    sol.add_argument("--noise", type=noise_level, default=None, metavar="SIGMA",
                      help="noise (std) of the corrected images; default: estimated from the images")
-    sol.add_argument("--fwhm", type=float, default=None, metavar="MM",
+    sol.add_argument("--fwhm", type=fwhm_arg, default=None, metavar="MM",
                      help="beam profile FWHM in mm (default: the header's beam_fwhm_mm, else 0)")
     sol.add_argument("--uncertainty-probes", type=int, default=None, metavar="N",
                      help="noise draws propagated through the solution for the height_error channel (the "
@@ -137,10 +138,15 @@ def run(args) -> int:
         raise EloInputError(f"--uncertainty-probes {args.uncertainty_probes}: must be >= 0")
     if args.scales is not None and args.scales < 1:
         raise EloInputError(f"--scales {args.scales}: must be >= 1")
-    for flag in ("tol", "alpha", "fwhm", "discrepancy"):
+    for flag in ("tol", "alpha", "discrepancy"):
         v = getattr(args, flag)
         if v is not None and not (np.isfinite(v) and v >= 0):
             raise EloInputError(f"--{flag} {v}: must be a finite number >= 0")
+    from ..analysis.height_solver import MAX_ALPHA
+
+    if args.alpha is not None and args.alpha > MAX_ALPHA:
+        raise EloInputError(f"--alpha {args.alpha:g}: must be at most {MAX_ALPHA:g} (default 30 x noise^2, at most 30; "
+                            "a larger weight flattens any relief)")
     if args.no_flat:
         raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
 

@@ -6,7 +6,7 @@ import argparse
 import math
 
 from ..errors import EloInputError
-from ._args import number, positive_int
+from ._args import material_arg, number, positive_int
 
 HELP = "turn a height map (.exr/.tif/.gsf/.npy/.csv) into a triangle mesh (PLY) for a scene"
 
@@ -50,7 +50,7 @@ def add_parser(subparsers):
     p.add_argument("--tolerance", type=number, metavar="MM", help="drop whole rows/columns that linear interpolation reproduces within MM (exact for flat margins)")
     p.add_argument("--base", type=number, metavar="Z_MM", help="close the mesh with side walls and a bottom at z = Z_MM (watertight solid; not needed to render)")
     p.add_argument("--scene", metavar="SCENE.xml", help="also write a scene XML rendering this mesh with the four detectors")
-    p.add_argument("--material", help="material of the object in --scene: preset (Ti-6Al-4V, 316L, Cu, ...) or composition 'Ti:0.9,Al:0.06,V:0.04' (default Ti-6Al-4V)")
+    p.add_argument("--material", type=material_arg, help="material of the object in --scene: preset (Ti-6Al-4V, 316L, Cu, ...) or composition 'Ti:0.9,Al:0.06,V:0.04' (default Ti-6Al-4V)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(run=run)
     return p

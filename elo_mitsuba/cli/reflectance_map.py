@@ -8,7 +8,7 @@ import numpy as np
 
 from ..constants import DETECTOR_NAMES, TABLE1_LAYOUTS, WORK_DISTANCE_MM
 from ..errors import EloInputError
-from ._args import length_mm, positive_float
+from ._args import length_mm, material_arg, positive_float
 
 DESCRIPTION = f"""\
 Draw the reflectance maps of Sec. 4.3 (Figs. 12-13): the scattering function g_BSE of Eq. 13
@@ -62,7 +62,7 @@ def add_parser(subparsers):
     p.add_argument("--detector", choices=DETECTOR_NAMES, default="right", help="which detector (default right)")
     p.add_argument("--at", type=_xy_arg, default=(0.0, 0.0), metavar="X,Y",
                    help="surface position in mm the detector is seen from (default 0,0)")
-    p.add_argument("--material", default=None, help="preset or composition, e.g. Ti-6Al-4V or 'Ti:0.9,Al:0.1'")
+    p.add_argument("--material", type=material_arg, default=None, help="preset or composition, e.g. Ti-6Al-4V or 'Ti:0.9,Al:0.1'")
     p.add_argument("--beam", choices=("vertical", "pivot"), default="vertical",
                    help="vertical beam (paper) or deflected from the gun pivot at --wd")
     p.add_argument("--wd", "--work-distance", dest="work_distance", type=length_mm, default=None, metavar="MM",
@@ -78,6 +78,7 @@ def add_parser(subparsers):
 def run(args) -> int:
     from ..analysis import beam_directions, detector_pq, layout_geometry, reflectance_map, zeta_deg
     from ..analysis.plots import plot_reflectance_maps
+    from ..analysis.reflectance import MAX_PQ
     from ..files import atomic_write, check_output
     from ..physics import get_material
 
@@ -92,6 +93,9 @@ def run(args) -> int:
         layout = layout_parameters(args.layout)
         args.dh, args.dw = (_both(args.layout, args.dh, "--dh", layout["dh"]),
                             _both(args.layout, args.dw, "--dw", layout["dw"]))
+    if args.range > MAX_PQ:
+        raise EloInputError(f"--range {args.range:g}: must be at most {MAX_PQ:g} (|p|, |q| of a facet 89.94 degrees "
+                            "from level; the default 3 is 71.6 degrees)")
     if args.zeta is not None and (args.dh is not None or args.dw is not None):
         raise EloInputError("give either --zeta or --dh/--dw, not both")
     if args.work_distance is not None and args.beam != "pivot":
