@@ -37,6 +37,9 @@ def resolve_scene_path(scene: str | Path) -> Path:
     if not isinstance(scene, (str, os.PathLike)):
         raise EloInputError(f"scene {scene!r} ({type(scene).__name__}): give an XML path or a shipped scene name "
                             f"({', '.join(shipped_scenes())})")
+    if not str(scene).strip():  # Path("") is the working folder
+        raise EloInputError(f"scene {str(scene)!r} is empty; give an XML path or a shipped scene name "
+                            f"({', '.join(shipped_scenes())})")
     path = Path(scene)
     if path.is_file():
         return path

@@ -315,6 +315,7 @@ API_CASES = [
     ("load_scene int", lambda: em.load_scene(123), "scene 123 (int)"),
     ("load_scene None", lambda: em.load_scene(None), "scene None"),
     ("load_scene unknown", lambda: em.load_scene("nope"), "neither an XML file nor a shipped scene"),
+    ("load_scene empty", lambda: em.load_scene(""), "scene '' is empty; give an XML path"),  # was "a folder"
     ("load_scene bad value", lambda: em.load_scene("flat_plate", dh="abc"), "parameter dh='abc'"),
     ("load_scene unknown parameter", lambda: em.load_scene("flat_plate", colour=1), "'colour' is not declared"),
     ("load_scene bad layout", lambda: em.load_scene("flat_plate", detector_layout="zeta99"), "zeta99"),
