@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .error_estimate import DETERMINISTIC
+from .errors import EloInputError
 from .exr import write_exr
 from .schema import error_channel, event_channel
 
@@ -213,6 +214,9 @@ class RenderResult:
         >>> print(result.negligible_events(threshold=1e-6))
         None
         """
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 <= threshold <= 1:
+            raise EloInputError(f"threshold={threshold!r}: must be a share of the signal from 0 to 1 "
+                                f"(default {NEGLIGIBLE_EVENT_SHARE:g})")
         shares = self.event_shares() if shares is None else shares
         n = len(shares)
         while n > 1 and shares[n - 1]["p99"] < threshold:

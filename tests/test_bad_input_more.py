@@ -406,12 +406,22 @@ def _pq_grid(p_range):
     return pq_grid(p_range, (-1.0, 1.0), 3)
 
 
+def _two_events():
+    from elo_mitsuba.result import RenderResult
+
+    e1, e2 = np.full((2, 2), 0.03), np.full((2, 2), 1e-6)
+    return RenderResult({"right": e1 + e2, "right.e1": e1, "right.e2": e2}, {"events": 2})
+
+
 API_CASES = [
     # bounds of the analysis's own parameters, as the command line has them
     ("check_noise 1e-300", lambda: _noise(1e-300), "noise=1e-300: must be a number from 1e-09 to 1"),
     ("invert_heights alpha 1e300", lambda: _invert(alpha=1e300), "alpha=1e+300: must be a number from 0 to 1e+06"),
     ("invert_heights fwhm 1e-300", lambda: _invert(fwhm_mm=1e-300), "beam FWHM 1e-300 mm (--fwhm): must be 0 (a single"),
     ("pq_grid beyond 1e3", lambda: _pq_grid((-1e300, 1e300)), "p_range=(-1e+300, 1e+300): must be lo < hi within +-1000"),
+    ("negligible_events threshold text", lambda: _two_events().negligible_events("a"),
+     "threshold='a': must be a share of the signal from 0 to 1"),
+    ("negligible_events threshold nan", lambda: _two_events().negligible_events(float("nan")), "threshold=nan"),
     ("pq_grid reversed", lambda: _pq_grid((1.0, -1.0)), "p_range=(1.0, -1.0): must be lo < hi"),
     ("configure beam_current without volts", lambda: _scene().configure(beam_current=2e-3),
      "beam_current=0.002 scales volts only"),
