@@ -28,7 +28,7 @@ from .constants import MAX_SEED, MAX_SPP
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
 from .grid import ORIENTATION
-from .error_estimate import METHOD, combine_channels, split_render
+from .error_estimate import DETERMINISTIC, METHOD, combine_channels, split_render
 from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, check_scene_options, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
@@ -631,6 +631,11 @@ class EloScene:
         result = RenderResult(channels, meta, errors)
         meta["notes"] += [f"detector {n!r} received no electron anywhere in the scan ({NO_SIGNAL_CAUSES})"
                           for n in result.dark_detectors]  # a fact of the geometry or a mistake in it: never silent
+        if spp > 1 and summary and all(s.get("status") == DETERMINISTIC for s in summary.values()):
+            # e.g. the 1st event by the quadrature under a single-ray beam, with nothing to scatter twice
+            meta["notes"].append(f"every channel came out deterministic (the two halves of the {spp} spp agree to "
+                                 f"rounding: nothing in this render is drawn at random); spp 1 gives the same images "
+                                 f"in about 1/{spp} of the time")
         return result
 
 

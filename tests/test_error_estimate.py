@@ -100,6 +100,21 @@ def test_deterministic_channels_are_reported_as_such(mi, tmp_path):
     assert np.all(channels["right.err"] == 0) and meta["error_estimate"]["channels"]["right"]["status"] == DETERMINISTIC
 
 
+def test_more_spp_on_a_deterministic_render_gets_a_note(mi):
+    """An explicit spp > 1 where nothing is drawn at random (the quadrature, a single-ray beam, no
+    later events) costs spp times the work for the same images: the render says so. Where the
+    beam has a profile the samples matter, and nothing is said."""
+    note = "every channel came out deterministic"
+    plate = em.load_scene("flat_plate", res=4)
+    four = plate.render(spp=4, quality="default", progress=False)
+    one = plate.render(spp=1, progress=False)
+    assert any(n.startswith(note) and "1/4 of the time" in n for n in four.metadata["notes"])
+    assert not any(n.startswith(note) for n in one.metadata["notes"])
+    assert all(np.array_equal(four.channels[k], one.channels[k]) for k in one.channels)  # what the note claims
+    blurred = em.load_scene("flat_plate", res=4, fwhm=0.3).render(spp=4, quality="default", progress=False)
+    assert not any(n.startswith(note) for n in blurred.metadata["notes"])
+
+
 @pytest.mark.parametrize("fwhm", [0.0, 0.27])
 def test_presets_do_not_filter_on_relief_and_are_unbiased_on_flanks(mi, fwhm):
     """Corrugated sheet in the chamber at 0.156 mm pixels (flanks 4.5 px wide): e2 averaged over
