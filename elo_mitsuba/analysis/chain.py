@@ -440,7 +440,7 @@ def gradient(scan: Scan, *, method: str = "model", geometry=None, iterations: in
 
 
 def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection: str | None = None,
-            work_distance_mm: float | None = None, min_component_size: int | None = None) -> dict:
+            work_distance_mm: float | None = None, min_component_size: int | None = None, progress=None) -> dict:
     """The height map of a gradient by normal integration, with how far it can be trusted: the
     ``reconstruct`` command's computation.
 
@@ -463,6 +463,8 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
         becomes a bowl.
     min_component_size : int, optional
         ``masked`` solver: trusted regions with fewer pixels are dropped.
+    progress : callable, optional
+        ``robust``: called after each reweighted solve (:func:`~.integrate.integrate_robust`).
 
     Returns
     -------
@@ -494,7 +496,7 @@ def heights(dzdx, dzdy, field_mm, *, mask=None, method: str = "auto", projection
         if mask is not None:
             gx, gy = np.where(mask, 0.0, gx), np.where(mask, 0.0, gy)
     kw = {} if min_component_size is None else {"min_component_size": min_component_size}
-    height, mask_out = integrate_gradient(gx, gy, field_mm, method=method, mask=mask, **kw)
+    height, mask_out = integrate_gradient(gx, gy, field_mm, method=method, mask=mask, progress=progress, **kw)
     # the resolution test re-solves on sub-lattices; 'robust' by 'masked', its least-squares core
     # (its reweighting at twice the pitch would give up other pairs and measure that instead)
     check = "masked" if method == "robust" else method

@@ -35,6 +35,7 @@ i.e. *against* the row index. All returned heights are finite; masked pixels hol
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -147,9 +148,9 @@ def integrate_fft(dzdx, dzdy, field_mm, *, mirror: bool = True) -> np.ndarray:
     wc = 2 * np.pi * sfft.fftfreq(ww)[None, :]
     denom = wc * wc + wr * wr
     denom[0, 0] = 1.0
-    zhat = (-1j * wc * sfft.fft2(gc) - 1j * wr * sfft.fft2(gr)) / denom
+    zhat = (-1j * wc * sfft.fft2(gc, workers=-1) - 1j * wr * sfft.fft2(gr, workers=-1)) / denom
     zhat[0, 0] = 0.0
-    z = np.real(sfft.ifft2(zhat))[:h, :w]
+    z = np.real(sfft.ifft2(zhat, workers=-1))[:h, :w]
     return z - z.mean()
 
 
@@ -196,9 +197,9 @@ def integrate_dct(dzdx, dzdy, field_mm) -> np.ndarray:
     rhs = _divergence_rhs(gc, gr)
     lam = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[:, None] + (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, :]
     lam[0, 0] = 1.0
-    zhat = sfft.dctn(rhs, type=2, norm="ortho") / lam
+    zhat = sfft.dctn(rhs, type=2, norm="ortho", workers=-1) / lam
     zhat[0, 0] = 0.0  # the free constant: zero mean
-    return sfft.idctn(zhat, type=2, norm="ortho")
+    return sfft.idctn(zhat, type=2, norm="ortho", workers=-1)
 
 
 def _solve_direct(lap, rhs, comp):
@@ -231,7 +232,10 @@ def _solve_pcg(lap, rhs, valid, tol, x0=None, maxiter=2000):
     def precondition(r):
         full = np.zeros(valid.shape)
         full[valid] = r
-        return sfft.idctn(sfft.dctn(full, type=2, norm="ortho") / lam, type=2, norm="ortho")[valid]
+        # every core (the transforms along one axis are independent rows: the same bits as one core):
+        # 2.2x on 2 cores at 1500², where the preconditioner is half of a robust integration
+        return sfft.idctn(sfft.dctn(full, type=2, norm="ortho", workers=-1) / lam, type=2, norm="ortho",
+                          workers=-1)[valid]
 
     m = LinearOperator(lap.shape, matvec=precondition, dtype=float)
     z, info = cg(lap, rhs, x0=x0, M=m, rtol=tol, atol=0.0, maxiter=maxiter)
@@ -356,7 +360,7 @@ def _trusted_domain(dzdx, dzdy, mask, min_component_size):
 
 def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None = None,
                      iterations: int = ROBUST_ITERATIONS, tol: float = ROBUST_TOL, min_component_size: int = 1,
-                     direct_limit: int = 40_000, return_weights: bool = False):
+                     direct_limit: int = 40_000, return_weights: bool = False, progress=None):
     """Discontinuity-preserving integration: the Cauchy estimator of the pair misfits, minimised by
     iteratively reweighted least squares (Quéau, Durou & Aujol, "Variational methods for normal
     integration", J. Math. Imaging Vis. 60, 2018, the non-convex estimators of their Sec. 5).
@@ -402,6 +406,10 @@ def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None 
     return_weights : bool
         Also return the final pair weights as two arrays (H, W-1) (pairs along +x) and (H-1, W)
         (pairs along rows), 0 where a pair does not enter.
+    progress : callable, optional
+        Called after each reweighted solve with a dict: ``iteration``, ``iterations`` (the most
+        there will be), ``energy`` (the Cauchy energy) and ``seconds`` (since the start); at 1500²
+        a solve takes about 2 s.
 
     Returns
     -------
@@ -455,6 +463,7 @@ def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None 
                 return _solve_direct(lap, rhs, comp)
             return _solve_pcg(lap, rhs, valid, ROBUST_CG_TOL, x0=z0)
 
+        t0 = time.perf_counter()
         w = np.ones(target.size)
         z = solve(w, None)  # least squares: the start
         r = d @ z - target
@@ -464,12 +473,15 @@ def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None 
             floor = 1e-9 * max(float(np.sqrt(np.mean(target ** 2))), 1e-12)
             lam = max(ROBUST_SCALE * 1.4826 * float(np.median(np.abs(r))), floor)
         energy = float(np.sum(np.log1p((r / lam) ** 2)))
-        for _ in range(int(iterations)):
+        for k in range(int(iterations)):
             w = 1.0 / (1.0 + (r / lam) ** 2)
             z = solve(w, z)
             r = d @ z - target
             # IRLS decreases the Cauchy energy at every step (a majorise-minimise iteration)
             previous, energy = energy, float(np.sum(np.log1p((r / lam) ** 2)))
+            if progress is not None:
+                progress({"iteration": k + 1, "iterations": int(iterations), "energy": energy,
+                          "seconds": time.perf_counter() - t0})
             if previous - energy <= tol * previous:
                 break
         counts = np.bincount(comp)
@@ -487,7 +499,7 @@ def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None 
 
 
 def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
-                       min_component_size: int = 1):
+                       min_component_size: int = 1, progress=None):
     """Height map from a gradient field with the chosen solver (module docstring).
 
     Parameters
@@ -506,6 +518,9 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
         True = untrusted.
     min_component_size : int
         For ``"masked"`` and ``"robust"``: smaller trusted components are masked too.
+    progress : callable, optional
+        ``"robust"``: called after each reweighted solve (:func:`integrate_robust`); the other
+        solvers are one solve each.
 
     Returns
     -------
@@ -532,7 +547,7 @@ def integrate_gradient(dzdx, dzdy, field_mm, *, method: str = "auto", mask=None,
     if method == "masked":
         return integrate_masked(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size)
     if method == "robust":
-        return integrate_robust(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size)
+        return integrate_robust(dzdx, dzdy, field_mm, bad, min_component_size=min_component_size, progress=progress)
     if method == "dct":
         z = integrate_dct(np.where(bad, 0.0, dzdx), np.where(bad, 0.0, dzdy), field_mm)
     elif method == "fft":
