@@ -53,8 +53,9 @@ METHODS = ("dct", "fft", "masked", "robust")
 #: spread. 2.385 is the constant that gives the Cauchy M-estimator 95 % efficiency at Gaussian
 #: residuals (Holland & Welsch 1977): on a noisy but smooth gradient it is nearly least squares.
 ROBUST_SCALE = 2.385
-#: ``"robust"``: at most this many reweighted solves, stopping when no height moves by more than
-#: ``ROBUST_TOL`` x lambda.
+#: ``"robust"``: at most this many reweighted solves, stopping when one lowers the Cauchy energy by
+#: less than ``ROBUST_TOL`` of it (on a noise-free 1500² render of the melt plate the energy still
+#: fell 0.4 % at the 30th, from 4.7 % at the 2nd: there the cap ends it, after 68 s on 2 cores).
 ROBUST_ITERATIONS = 30
 ROBUST_TOL = 1e-3
 #: ``"robust"``: relative residual of each conjugate-gradient solve (started from the previous
@@ -397,7 +398,7 @@ def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None 
     iterations : int
         At most this many reweighted solves after the least-squares start.
     tol : float
-        Stop when no height moves by more than ``tol`` times lambda in one iteration.
+        Stop when a reweighted solve lowers the Cauchy energy by less than ``tol`` of it.
     min_component_size : int
         Trusted components with fewer pixels are masked too.
     direct_limit : int
