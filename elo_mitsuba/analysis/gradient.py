@@ -137,7 +137,7 @@ def raw_gradient(mx, my, d_h=None, d_w=None):
     --------
     >>> import numpy as np
     >>> mx = np.array([[-0.0467]])
-    >>> [round(float(g[0, 0]) + 0.0, 4) for g in raw_gradient(mx, np.zeros((1, 1)))]
+    >>> [round(float(g[0, 0]), 4) + 0.0 for g in raw_gradient(mx, np.zeros((1, 1)))]
     [0.0467, 0.0]
     >>> round(float(raw_gradient(mx, np.zeros((1, 1)), 272.0, 127.0)[0][0, 0]), 3)
     0.1

@@ -234,7 +234,7 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     >>> result = model_gradient(images, flats, ScanGeometry.nominal(shape, field, d_h, d_w))
     >>> type(result).__name__, result.dzdx.shape, bool(result.mask.any())
     ('ModelGradientResult', (4, 4), False)
-    >>> round(float(result.dzdx.mean()), 2), round(float(result.dzdy.mean()) + 0.0, 2)
+    >>> round(float(result.dzdx.mean()), 2), round(float(result.dzdy.mean()), 2) + 0.0
     (0.1, 0.0)
     """
     from ..arguments import fraction, real_array, shown, whole_number
