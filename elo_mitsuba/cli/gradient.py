@@ -80,7 +80,7 @@ def add_parser(subparsers):
     mod.add_argument("--iterations", type=int, default=None, metavar="N",
                      help="Levenberg-Marquardt iterations of the model fit (default 10)")
     mod.add_argument("--noise", type=noise_level, default=None, metavar="SIGMA",
-                     help="noise (std) of the corrected images for the uncertainty; default: estimated")
+                     help="noise (std) of the corrected images for the uncertainty, 1e-9 to 1 (e.g. 0.01); default: estimated")
     mod.add_argument("--second-event", metavar="SIM_FLAT.exr",
                      help="a render of the flat plate in the chamber with --events >= 2: its share of later "
                           "events is taken out of the flat and the object images (the model is 1st-event only)")

@@ -21,7 +21,8 @@ optionally fixed later events) reproduce the four STSA-corrected images best. St
 model gradient integrated (or --init), then Gauss-Newton on every height at once, so the four
 images must come from one surface; a robust (Huber) misfit and a small curvature regulariser
 (weight --alpha, default 30 x the noise variance). A step is kept only if it lowers the
-objective: the result never fits worse than its start. A start that already reproduces the
+objective (misfit and regulariser): the result's objective never exceeds its start's, though its
+misfit can rise where a large --alpha flattens the relief. A start that already reproduces the
 images to within their noise is kept (--discrepancy: the steps would fit the noise); otherwise it
 stops when a step gains < --tol, after --iterations steps or after --time-budget seconds.
 Then, region by region: where the misfit averaged over 7x7 pixels exceeds what noise reaches, the
@@ -93,9 +94,9 @@ def add_parser(subparsers):
     sol.add_argument("--time-budget", type=positive_float, default=None, metavar="S",
                      help="stop after the step that passes S seconds")
     sol.add_argument("--alpha", type=float, default=None, metavar="A",
-                     help="weight of the curvature regulariser (default 30 x noise^2)")
+                     help="weight of the curvature regulariser, 0 to 1e6 (default 30 x noise^2)")
     sol.add_argument("--noise", type=noise_level, default=None, metavar="SIGMA",
-                     help="noise (std) of the corrected images; default: estimated from the images")
+                     help="noise (std) of the corrected images, 1e-9 to 1 (e.g. 0.01); default: estimated from the images")
     sol.add_argument("--fwhm", type=fwhm_arg, default=None, metavar="MM",
                      help="beam profile FWHM in mm (default: the header's beam_fwhm_mm, else 0)")
     sol.add_argument("--uncertainty-probes", type=int, default=None, metavar="N",
