@@ -40,6 +40,19 @@ MAX_NOISE = 1.0
 #: below it says nothing about the images, and 1e-300 overflowed the misfit's chi^2 (a warning, then
 #: uncertainties of 0).
 MIN_NOISE_GIVEN = 1e-9
+#: How messages state :func:`is_noise_level`'s range.
+NOISE_RANGE = (f"a number from {MIN_NOISE_GIVEN:g} to {MAX_NOISE:g} (corrected units: a standard deviation of "
+               "images about 1")
+
+
+def is_noise_level(level: float) -> bool:
+    """Whether a float is a noise level a user may give (:data:`MIN_NOISE_GIVEN` to
+    :data:`MAX_NOISE`): the one test of :func:`check_noise` and the command line's ``--noise``.
+
+    >>> is_noise_level(0.01), is_noise_level(1e-300), is_noise_level(2.0), is_noise_level(float("nan"))
+    (True, False, False, False)
+    """
+    return bool(np.isfinite(level)) and MIN_NOISE_GIVEN <= level <= MAX_NOISE
 
 
 def check_noise(noise, what: str = "noise") -> float:
@@ -59,9 +72,8 @@ def check_noise(noise, what: str = "noise") -> float:
         level = float(noise)
     except (TypeError, ValueError):
         level = float("nan")
-    if not (np.isfinite(level) and MIN_NOISE_GIVEN <= level <= MAX_NOISE) or isinstance(noise, bool):
-        raise EloInputError(f"{what}={shown(noise)}: must be a number from {MIN_NOISE_GIVEN:g} to {MAX_NOISE:g} "
-                            "(corrected units: a standard deviation of images about 1)")
+    if not is_noise_level(level) or isinstance(noise, bool):
+        raise EloInputError(f"{what}={shown(noise)}: must be {NOISE_RANGE})")
     return level
 
 

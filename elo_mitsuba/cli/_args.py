@@ -65,12 +65,11 @@ def field_arg(text: str) -> tuple[float, float]:
 
 def noise_level(text: str) -> float:
     """``--noise``: a noise level of the corrected images (:func:`~elo_mitsuba.analysis.noise.check_noise`)."""
-    from ..analysis.noise import MAX_NOISE, MIN_NOISE_GIVEN
+    from ..analysis.noise import NOISE_RANGE, is_noise_level
 
     v = number(text)
-    if not (math.isfinite(v) and MIN_NOISE_GIVEN <= v <= MAX_NOISE):
-        raise argparse.ArgumentTypeError(f"{text!r}: must be a number from {MIN_NOISE_GIVEN:g} to {MAX_NOISE:g} "
-                                         "(corrected units: a standard deviation of images about 1, e.g. 0.01)")
+    if not is_noise_level(v):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be {NOISE_RANGE}, e.g. 0.01)")
     return v
 
 
