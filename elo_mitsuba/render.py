@@ -40,7 +40,7 @@ from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, MAX_LENGTH_MM, PROJECTION, SCATTERING, UNITS,
                      WORK_DISTANCE, grid_header, signal_units)
 from .scene_files import (check_detector_placement, check_detectors_apart, declared_parameters, detector_up,
-                          explain_mitsuba_error, resolve_scene_path, scene_values)
+                          explain_mitsuba_error, not_finite, resolve_scene_path, scene_values)
 
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
@@ -55,15 +55,6 @@ _NEEDS_THE_SCENE = {"front_only", "detector_sampling", "quadrature_triangles"}
 
 
 # ---- the scene ----------------------------------------------------------------------------------------
-def _not_finite(value) -> bool:
-    """True for a value that reads as a number but is not finite (``inf``, ``-inf``, ``nan``), also in
-    Mitsuba's float32 (beyond 3.4e38: -D dh=1e40 made the detectors' geometry inf)."""
-    try:
-        return not abs(float(str(value))) <= float(np.finfo(np.float32).max)
-    except ValueError:
-        return False  # text (a material's name, a file): not a number at all
-
-
 class EloScene:
     """A loaded ELO scene, rendered again and again without reloading or recompiling.
 
@@ -109,7 +100,7 @@ class EloScene:
                 f"{self.path}: parameter {unknown[0]!r} is not declared by this scene (it declares: {allowed})"
             )
         for k, v in values.items():  # Mitsuba would take inf and nan, and fail far from the cause
-            if _not_finite(v):
+            if not_finite(v):
                 raise EloInputError(f"{self.path}: parameter {k}={str(v)!r} is not a finite number (-D {k}=...): "
                                     "the scene's parameters are lengths (mm), angles and counts")
         self.mi = ensure_variant(variant)

@@ -9,6 +9,7 @@ errors into one line, and writes new scenes around a user's mesh.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import xml.etree.ElementTree as ET
@@ -54,6 +55,50 @@ def resolve_scene_path(scene: str | Path) -> Path:
     raise EloInputError(f"scene {str(scene)!r} is neither an XML file nor a shipped scene ({names})")
 
 
+#: Largest float32: Mitsuba reads every number of a scene as float32, so 1e40 becomes inf.
+_FLOAT32_MAX = 3.4028234663852886e38
+#: The numeric attributes of Mitsuba's XML elements, by tag: a literal there must be a finite
+#: number (Mitsuba takes "nan" and "inf" and fails far from them, and reads an empty float as 0).
+_NUMBER_ATTRIBUTES = {
+    "float": ("value",), "point": ("value", "x", "y", "z"), "vector": ("value", "x", "y", "z"),
+    "rgb": ("value",), "translate": ("value", "x", "y", "z"), "scale": ("value", "x", "y", "z"),
+    "rotate": ("value", "x", "y", "z", "angle"), "lookat": ("origin", "target", "up"), "matrix": ("value",),
+}
+
+
+def not_finite(value) -> bool:
+    """True for a value that reads as a number but is not finite (``inf``, ``-inf``, ``nan``), also in
+    Mitsuba's float32 (beyond 3.4e38: -D dh=1e40 made the detectors' geometry inf).
+
+    >>> not_finite("nan"), not_finite("1e40"), not_finite("272"), not_finite("Ti-6Al-4V")
+    (True, True, False, False)
+    """
+    try:
+        return not abs(float(str(value))) <= _FLOAT32_MAX
+    except ValueError:
+        return False  # text (a material's name, a file): not a number at all
+
+
+def _check_numbers(path: Path, node) -> None:
+    """A literal number of a scene element that Mitsuba would take and fail far from, or read as 0:
+    refused in one line naming the element (values with a ``$parameter`` are checked as parameters)."""
+    for attribute in _NUMBER_ATTRIBUTES.get(node.tag, ()):
+        raw = node.get(attribute)
+        if raw is None or "$" in raw:
+            continue
+        name = f" name={node.get('name')!r}" if node.get("name") else ""
+        element = f"<{node.tag}{name} {attribute}={raw!r}>"
+        parts = [p for p in re.split(r"[\s,]+", raw.strip()) if p]
+        if not parts:
+            raise EloInputError(f"{path}: {element} is empty (Mitsuba would read it as 0); give it a number")
+        bad = [p for p in parts if not_finite(p)]
+        if bad:
+            what = "beyond float32 (Mitsuba's numbers reach 3.4e38)" if math.isfinite(float(bad[0])) else \
+                "not a finite number"
+            raise EloInputError(f"{path}: {element} holds {bad[0]!r}, {what}; Mitsuba would take it and fail far "
+                                "from it")
+
+
 def declared_parameters(path: Path, values: Mapping[str, str] | None = None) -> dict[str, str]:
     """The ``<default name=... value=...>`` parameters of a scene file and the files it includes.
 
@@ -81,6 +126,10 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int, chai
             if not (node.get("value") or "").strip() and node.get("name") not in values:
                 raise EloInputError(f"{path}: <default name={node.get('name')!r}> has no value (Mitsuba would read "
                                     f"it as 0); give it one, or pass -D {node.get('name')}=...")
+            if not_finite(node.get("value")) and node.get("name") not in values:
+                raise EloInputError(f"{path}: <default name={node.get('name')!r}> is {node.get('value')!r}, not a finite "
+                                    f"number: the scene's parameters are lengths (mm), angles and counts; give it "
+                                    f"one, or pass -D {node.get('name')}=...")
             declared.setdefault(node.get("name"), node.get("value"))
         elif node.tag == "include" and node.get("filename") and depth < 8:
             pattern = node.get("filename")
@@ -105,6 +154,8 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int, chai
             _check_ply(path, node, {**declared, **values})
         elif node.tag == "sampler":
             _check_sample_count(path, node, {**declared, **values})
+        elif node.tag in _NUMBER_ATTRIBUTES:
+            _check_numbers(path, node)
 
 
 def _check_ply(path: Path, node, known: Mapping) -> None:
@@ -311,19 +362,25 @@ def explain_mitsuba_error(exc: Exception, path: Path, values: Mapping[str, str] 
                     f"(-D {names[0]}=...)")
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     where = ""
-    m = re.search(r"\(line (\d+), col (\d+)\)", text)
-    if m:
-        where = f" line {m.group(1)}"
+    # Mitsuba names the file of every include it was in; the innermost is where the cause is
+    places = list(re.finditer(r"(?:While loading|Error while loading|At) (\S.*?) \(line (\d+), col \d+\): ", text))
+    nested = places if len(places) > 1 else []
+    if places:
+        inner, line = places[-1].group(1), places[-1].group(2)
+        same = Path(inner).resolve() == Path(path).resolve() if inner != "string" else True
+        where = f" line {line}" if same else f": in {inner} line {line}"
     # innermost Python error ("EloInputError: ...") if a plugin of ours refused a value
     for ln in reversed(lines):
         mm = re.match(r"^(?:\w+\.)*(\w*Error): (.*)$", ln)
         if mm and mm.group(2):
             return f"{path}{where}: {mm.group(2)}"
+    if len(nested) > 1:
+        return f"{path}{where}: {text[nested[-1].end():].strip().splitlines()[0]}"
     first = lines[0] if lines else type(exc).__name__
     if first.endswith(":") and len(lines) > 1:  # e.g. "unreferenced property ...:" + "- name" lines
         first = first + " " + " ".join(ln.lstrip("- ") for ln in lines[1:4])
     first = re.sub(r"^\[[\w.]+:\d+\]\s*", "", first)
-    first = re.sub(r"^(At|While loading) .*?\(line \d+, col \d+\): ", "", first)
+    first = re.sub(r"^(At|While loading|Error while loading) .*?\(line \d+, col \d+\): ", "", first)
     first = re.sub(r"^(At|While loading) .*?: ", "", first)
     if "unused parameters" in text.lower():
         unused = ", ".join(re.findall(r"\$(\w+)=", text))

@@ -32,6 +32,8 @@ class SceneChecks:
         """Raise :class:`EloInputError` on what no render may use; return the notes on the meshes.
         ``keys`` (:class:`~._shapes.GeometryKey`) and ``geometry`` (its key of ``scene``): where the
         shapes are, the keys of what is checked once (a mesh given new vertices is checked again)."""
+        for emitter in scene.emitters():
+            check_emitter(emitter)
         for name, shape in detectors:
             check_collector(name, shape)
             # a plate backscatters by g_BSE (copper) or keeps what arrives, nothing else; Mitsuba's
@@ -64,6 +66,17 @@ class SceneChecks:
                     "triangles, a surface smoothed over its edges (a sharp relief loses its slopes); for facets add "
                     "<boolean name=\"face_normals\" value=\"true\"/> to its <shape>")
         return notes
+
+
+def check_emitter(emitter):
+    """An emitter marks a detector only on a shape (an area emitter); any other (point, constant,
+    directional, ...) would be a setting that is not applied: the beam is the only source of
+    electrons and nothing else collects them."""
+    if emitter.get_shape() is None:
+        kind = str(emitter).split("[", 1)[0].strip() or type(emitter).__name__
+        raise EloInputError(f"emitter {emitter.id() or '(no id)'!r} ({kind}) is not on a shape, and the renderer does not use it: "
+                            "the beam is the only source of electrons, and a detector is a shape marked with "
+                            "<emitter type=\"area\"/>; remove it")
 
 
 def check_collector(name, shape):

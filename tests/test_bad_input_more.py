@@ -131,6 +131,20 @@ def d(tmp_path_factory):
     portable = portable_scene_text(scenes_dir() / "flat_plate.xml")
     (d / "empty_default.xml").write_text(re.sub(r'<default name="wd" value="[^"]*"/>', '<default name="wd" value=""/>',
                                                 portable))
+    # the scene-file sweep (2026-12-06): numbers Mitsuba takes and fails far from, or reads as 0;
+    # emitters that are not detectors; errors inside an included file
+    (d / "nan_default.xml").write_text(re.sub(r'<default name="wd" value="[^"]*"/>', '<default name="wd" value="nan"/>',
+                                              portable))
+    plate_scene("empty_float.xml", shapes='<shape type="rectangle" id="baffle"><transform name="to_world"><translate '
+                                          'x="200" z="50"/></transform><bsdf type="diffuse"><float name="reflectance" '
+                                          'value=""/></bsdf></shape>')
+    plate_scene("nan_translate.xml", shapes='<shape type="rectangle" id="baffle"><transform name="to_world">'
+                                            '<translate x="0" y="0" z="nan"/></transform><bsdf type="elo_bse"/></shape>')
+    plate_scene("point_emitter.xml", shapes='<emitter type="point"><point name="position" value="0, 0, 100"/></emitter>')
+    plate_scene("constant_emitter.xml", shapes='<emitter type="constant"/>')
+    (d / "bad_part.xml").write_text('<scene version="3.0.0">\n<shape type="sphere" id="ball">\n'
+                                    '<float name="bogus" value="1"/></shape></scene>')
+    plate_scene("include_error.xml", shapes='<include filename="bad_part.xml"/>')
     for name, options in (("own_sampling", '<string name="detector_sampling" value="stratified"/>'
                                            '<integer name="detector_samples" value="16"/>'),
                           ("volts_unused", '<float name="beam_current" value="0.01"/>')):
@@ -259,6 +273,18 @@ CLI_CASES = [
      "included file 'nothere.xml' not found (an include is relative to the scene's folder"),
     ("render an empty default", ["render", "{d}/empty_default.xml", "-o", "{d}/new.exr"],
      "<default name='wd'> has no value (Mitsuba would read it as 0)"),
+    ("render a default of nan in the scene file", ["render", "{d}/nan_default.xml", "-o", "{d}/new.exr"],
+     "nan_default.xml: <default name='wd'> is 'nan', not a finite number"),
+    ("render an empty float (Mitsuba reads it as 0)", ["render", "{d}/empty_float.xml", "-o", "{d}/new.exr"],
+     "empty_float.xml: <float name='reflectance' value=''> is empty (Mitsuba would read it as 0)"),
+    ("render a transform of nan", ["render", "{d}/nan_translate.xml", "-o", "{d}/new.exr"],
+     "nan_translate.xml: <translate z='nan'> holds 'nan', not a finite number"),
+    ("render a point emitter (not applied)", ["render", "{d}/point_emitter.xml", "-o", "{d}/new.exr"],
+     "emitter '(no id)' (PointLight) is not on a shape, and the renderer does not use it"),
+    ("render a constant emitter (not applied)", ["render", "{d}/constant_emitter.xml", "-o", "{d}/new.exr"],
+     "(ConstantBackgroundEmitter) is not on a shape"),
+    ("render an error in an included file", ["render", "{d}/include_error.xml", "-o", "{d}/new.exr"],
+     "include_error.xml: in {d}/bad_part.xml line 2: Found 1 unreferenced property in shape plugin of type \"sphere\""),
     ("render a lobe given as text", ["render", "{d}/lobe_text.xml", "-o", "{d}/new.exr"],
      "elo_bse: lobe='false'; must be true or false"),
     ("render a scene without a sensor", ["render", "{d}/no_sensor.xml", "-o", "{d}/new.exr"],
@@ -340,7 +366,7 @@ CLI_CASES = [
     ("render detector plates that reflect", ["render", "{d}/sx_reflect/flat_plate.xml", "-o", "{d}/new.exr"],
      "detector 'right' has a SmoothDiffuse BSDF that reflects, which the renderer does not apply"),
     ("render a detector scaled beyond float32", ["render", "{d}/sx/flat_plate.xml", "-o", "{d}/new.exr"],
-     "detector 'right' has area nan mm^2"),
+     "detectors.xml: <scale value='1e300'> holds '1e300', beyond float32 (Mitsuba's numbers reach 3.4e38)"),
 ]
 
 
