@@ -72,6 +72,71 @@ def surfaces_seen_from_behind(surfaces, sensor, probe):
     return found
 
 
+#: Directions per probe point of :func:`surfaces_met_from_behind`, cosine-weighted about the normal
+#: where the beam lands (a Hammersley set: the same rays in every run).
+LEAVING_DIRECTIONS = 16
+#: :func:`surfaces_met_from_behind` names a surface whose back takes at least this share of the
+#: electrons leaving the field and at least :data:`BACK_MAJORITY` of those reaching the surface (a
+#: slab of two faces with open edges lets a few electrons in between: they are not named).
+BACK_SHARE_OF_ALL = 1e-3
+BACK_MAJORITY = 0.5
+
+
+def surfaces_met_from_behind(scene, surfaces, probe) -> list[dict]:
+    """The planes of the scattering ``surfaces`` whose back the electrons leaving the scan field
+    meet: a wall or shield that faces away from the field (a rectangle turned outward by its
+    look-at, a mesh wound inside out). g_BSE sends nothing back from a surface's back, so such a
+    plane absorbs what it should scatter, and events >= 2 come out too small with no other sign
+    (a wall of the chamber turned outward took 16 % of the 2nd event of the detector beside it).
+
+    Rays leave :func:`beam_probe`'s hits (``probe()``) in :data:`LEAVING_DIRECTIONS`
+    cosine-weighted directions about the normal there. Hits are grouped by shape and plane (the
+    geometric normal to 1e-3 and its offset to 1 mm: Mitsuba merges the walls of a chamber into
+    one mesh, so a shape alone would not say which wall). Returns one dict per plane named:
+    ``name`` (the shape's id, "" for none), ``normal``, ``point`` (the mean of the hits on its back, mm),
+    ``share`` (of all the probe's rays that end on its back) and ``own`` (of those reaching
+    the plane); a plane is named when ``share`` >= :data:`BACK_SHARE_OF_ALL` and ``own`` >=
+    :data:`BACK_MAJORITY`.
+    """
+    if not surfaces:
+        return []
+    si = probe()
+    valid = np.flatnonzero(np.asarray(si.is_valid(), dtype=bool))
+    if valid.size == 0:
+        return []
+    k = LEAVING_DIRECTIONS
+    u = (np.arange(k) + 0.5) / k
+    v = np.array([int(f"{i:b}"[::-1], 2) / 2.0 ** len(f"{i:b}") if i else 0.0 for i in range(k)])  # radical inverse
+    at = dr.gather(type(si), si, mi.UInt32(np.repeat(valid, k).astype(np.uint32)))
+    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(np.tile(u, valid.size).astype(np.float32)),
+                                                            mi.Float(np.tile(v, valid.size).astype(np.float32))))
+    ray = at.spawn_ray(mi.Frame3f(at.n).to_world(local))
+    hit = scene.ray_intersect(ray)
+    reached = np.asarray(hit.is_valid(), dtype=bool)
+    n = np.asarray(hit.n, dtype=np.float64).reshape(3, -1).T if reached.any() else np.zeros((reached.size, 3))
+    p = np.asarray(hit.p, dtype=np.float64).reshape(3, -1).T if reached.any() else np.zeros((reached.size, 3))
+    d = np.asarray(ray.d, dtype=np.float64).reshape(3, -1).T
+    back = reached & (np.sum(n * d, axis=1) > -BACK_COS)
+    keys = np.asarray(dr.reinterpret_array(mi.UInt32, hit.shape))
+    found = []
+    for shape in surfaces:
+        mine = reached & (keys == shape_key(shape))
+        if np.count_nonzero(mine & back) < BACK_SHARE_OF_ALL * reached.size:
+            continue
+        # planes: normal to 1e-3, offset to 1 mm
+        plane = np.c_[np.round(n[mine] * 1e3), np.round(np.sum(n[mine] * p[mine], axis=1))].astype(np.int64)
+        groups, which = np.unique(plane, axis=0, return_inverse=True)
+        behind = back[mine]
+        for g in range(len(groups)):
+            in_g = which.ravel() == g
+            count = np.count_nonzero(behind & in_g)
+            if count >= BACK_SHARE_OF_ALL * reached.size and count >= BACK_MAJORITY * np.count_nonzero(in_g):
+                found.append({"name": shape.id(), "normal": (groups[g, :3] / 1e3).tolist(),
+                              "point": p[mine][behind & in_g].mean(axis=0).round(1).tolist(),
+                              "share": count / reached.size, "own": count / np.count_nonzero(in_g)})
+    return found
+
+
 #: Where a probe ray misses, it is cast again this fraction of the probe's pitch aside: a ray aimed
 #: exactly at a mesh's vertex or edge can slip through the crack between its triangles (the melt
 #: plate's vertices lie on the probe's grid: 3 % of its rays missed a plate that covers the field).

@@ -114,7 +114,7 @@ from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import (beam_probe, detectors_in_beam, field_missed, may_meet_beam, relief_under_beam,
-                      surfaces_seen_from_behind)
+                      surfaces_met_from_behind, surfaces_seen_from_behind)
 from ._scene_checks import SceneChecks
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
@@ -155,6 +155,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._occlusion = (None, None)  # (geometry and beam, unblockable_regions) of the last set-up
         self._near = (None, None)  # (geometry, beam, scattering law; near_share) of the last call
         self._behind = (None, ([], 0.0))  # (geometry and beam; surfaces_seen_from_behind, field_missed)
+        self._met_behind = (None, [])  # (geometry and beam; surfaces_met_from_behind)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -239,6 +240,20 @@ class EloIntegrator(mi.SamplingIntegrator):
                     "clockwise seen from the gun: a mesh oriented inconsistently); wind them counter-clockwise "
                     "seen from above (trimesh.repair.fix_normals; a surface upside down as a whole: <boolean "
                     "name=\"flip_normals\" value=\"true\"/>)")
+            if self.events > 1 and self.bounce_possible:  # a wall turned away matters to events >= 2 only
+                if self._met_behind[0] != key:
+                    scattering = [s for s in scatterers if is_elo_bse(s.bsdf())]
+                    self._met_behind = (key, surfaces_met_from_behind(scene, scattering, probe))
+                for plane in self._met_behind[1]:
+                    n, p = (", ".join(f"{v:g}" for v in plane[k]) for k in ("normal", "point"))
+                    self.notes.append(
+                        f"{'surface ' + repr(plane['name']) if plane['name'] else 'a surface'}, its plane of normal "
+                        f"({n}) about ({p}) mm: "
+                        f"{100 * plane['own']:.3g} % of the electrons leaving the scan field that reach it arrive at "
+                        f"its back ({100 * plane['share']:.2g} % of all that leave), where g_BSE sends nothing back: "
+                        "it absorbs them, and events >= 2 come out too small. A wall or shield turned away from the "
+                        "field? Turn its front towards the field (a look-at target on the field's side, or <boolean "
+                        "name=\"flip_normals\" value=\"true\"/>); a slab needs both faces and its rims")
         if self.events > 1 and not self.bounce_possible:
             self.notes.append(
                 "events >= 2 are exactly zero: the only scattering surface is one plane (no chamber, "

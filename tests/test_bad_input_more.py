@@ -812,6 +812,25 @@ def test_a_detector_in_the_beams_path_is_said_in_a_note():
     assert abs(share - expected) < 2.0, (share, expected)  # the probe's 65 x 65 grid
 
 
+def test_a_wall_turned_away_from_the_field_is_said_in_a_note(tmp_path):
+    """A chamber wall whose front faces out of the chamber (its look-at target on the outer side)
+    absorbs every electron that reaches it, silently: the right detector's 2nd event fell by 16 %
+    (32², `default`). The render names its plane (x = 350 mm, normal +x) in a note."""
+    import shutil
+
+    from elo_mitsuba.scene_files import scenes_dir
+
+    shutil.copytree(scenes_dir(), tmp_path / "s", ignore=shutil.ignore_patterns("meshes", "*.py", "*.md"))
+    chamber = tmp_path / "s" / "parts" / "chamber.xml"
+    text = chamber.read_text()
+    assert text.count('target="349, -60, 275"') == 1
+    chamber.write_text(text.replace('target="349, -60, 275"', 'target="351, -60, 275"'))
+    notes = [n for n in em.load_scene(tmp_path / "s" / "athene_flat.xml", res=4).render(
+        quality="draft", progress=False).metadata["notes"] if "arrive at its back" in n]
+    assert len(notes) == 1 and notes[0].startswith("a surface, its plane of normal (1, 0, 0) about (350, "), notes
+    assert " mm: 100 % of the electrons leaving the scan field that reach it arrive at its back" in notes[0]
+
+
 def test_images_of_another_lobe_than_the_models_get_a_note(d, capsys):
     """The header records each surface's g_BSE lobe; gradient, invert and calibrate say when it is
     not the paper's, which their models assume (a 25 deg lobe biased the corrugated sheet's median

@@ -1,5 +1,6 @@
 """The shipped heat-shield scene (scenes_xml/shield_chamber.xml, issue 26): the shield sits where
-its file says, it leaves the 1st event of the default layout alone (every line of sight passes its
+its file says, it is a closed slab (rims included: no electron from the field meets the back of a
+face), it leaves the 1st event of the default layout alone (every line of sight passes its
 opening) and takes part of the chamber's 2nd event away; a lower layout looks through the ring.
 """
 
@@ -41,6 +42,23 @@ def test_shipped_and_the_shield_is_where_documented(scenes):
             assert z_down == pytest.approx(102.0, abs=1e-3) and np.ravel(down.n)[2] == pytest.approx(1.0), (x, y)
         else:
             assert z_up > 300 and z_down == pytest.approx(0.0, abs=1e-3), (x, y, z_up, z_down)
+
+
+def test_the_slab_is_closed_rims_face_out_and_nothing_is_met_from_behind(scenes):
+    """Rays from the axis to the inner rims at mid-height meet them facing the axis; and no plane of
+    a shipped chamber scene is met from behind by electrons leaving the field (without the inner
+    rims, 1.1 % of them entered the slab and ended on the back of its upper face)."""
+    mi = em.ensure_variant()
+    scene = scenes[0].scene
+    for target, normal in (((100, 0, 101), (-1, 0, 0)), ((-100, 30, 100.5), (1, 0, 0)), ((20, 100, 101.8), (0, -1, 0)),
+                           ((0, -100, 101), (0, 1, 0))):
+        o = mi.Point3f(0.0, 0.0, 0.01)
+        hit = scene.ray_intersect(mi.Ray3f(o, mi.Vector3f(np.subtract(target, (0, 0, 0.01)) /
+                                                          np.linalg.norm(np.subtract(target, (0, 0, 0.01))))))
+        assert np.allclose(np.ravel(hit.p), target, atol=1e-3) and np.allclose(np.ravel(hit.n), normal), target
+    for name in ("shield_chamber", "athene_flat", "melt_chamber", "corrugated_chamber"):
+        render = em.load_scene(name, res=4).render(quality="draft", progress=False)
+        assert not [n for n in render.metadata["notes"] if "arrive at its back" in n], name
 
 
 def test_default_layout_first_event_unshadowed_second_event_reduced(scenes):
