@@ -82,14 +82,14 @@ BACK_SHARE_OF_ALL = 1e-3
 BACK_MAJORITY = 0.5
 
 
-def surfaces_met_from_behind(scene, surfaces, probe) -> list[dict]:
+def surfaces_met_from_behind(scene, surfaces, sensor, probe) -> list[dict]:
     """The planes of the scattering ``surfaces`` whose back the electrons leaving the scan field
     meet: a wall or shield that faces away from the field (a rectangle turned outward by its
     look-at, a mesh wound inside out). g_BSE sends nothing back from a surface's back, so such a
     plane absorbs what it should scatter, and events >= 2 come out too small with no other sign
     (a wall of the chamber turned outward took 16 % of the 2nd event of the detector beside it).
 
-    Rays leave :func:`beam_probe`'s hits (``probe()``) in :data:`LEAVING_DIRECTIONS`
+    Rays leave :func:`beam_probe`'s hits (``probe()``, the beam of ``sensor``) in :data:`LEAVING_DIRECTIONS`
     cosine-weighted directions about the normal there. Hits are grouped by shape and plane (the
     geometric normal to 1e-3 and its offset to 1 mm: Mitsuba merges the walls of a chamber into
     one mesh, so a shape alone would not say which wall). Returns one dict per plane named:
@@ -98,7 +98,7 @@ def surfaces_met_from_behind(scene, surfaces, probe) -> list[dict]:
     the plane); a plane is named when ``share`` >= :data:`BACK_SHARE_OF_ALL` and ``own`` >=
     :data:`BACK_MAJORITY`.
     """
-    if not surfaces:
+    if not surfaces or not all(hasattr(sensor, k) for k in ("wd", "field", "field_y")):  # no beam: no probe
         return []
     si = probe()
     valid = np.flatnonzero(np.asarray(si.is_valid(), dtype=bool))

@@ -243,7 +243,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             if self.events > 1 and self.bounce_possible:  # a wall turned away matters to events >= 2 only
                 if self._met_behind[0] != key:
                     scattering = [s for s in scatterers if is_elo_bse(s.bsdf())]
-                    self._met_behind = (key, surfaces_met_from_behind(scene, scattering, probe))
+                    self._met_behind = (key, surfaces_met_from_behind(scene, scattering, beam, probe))
                 for plane in self._met_behind[1]:
                     n, p = (", ".join(f"{v:g}" for v in plane[k]) for k in ("normal", "point"))
                     self.notes.append(
