@@ -80,6 +80,8 @@ LEAVING_DIRECTIONS = 16
 #: slab of two faces with open edges lets a few electrons in between: they are not named).
 BACK_SHARE_OF_ALL = 1e-3
 BACK_MAJORITY = 0.5
+#: At most this many planes named per shape (the ones whose back takes the most).
+MAX_PLANES = 3
 
 
 def surfaces_met_from_behind(scene, surfaces, sensor, probe) -> list[dict]:
@@ -92,8 +94,10 @@ def surfaces_met_from_behind(scene, surfaces, sensor, probe) -> list[dict]:
     Rays leave :func:`beam_probe`'s hits (``probe()``, the beam of ``sensor``) in :data:`LEAVING_DIRECTIONS`
     cosine-weighted directions about the normal there. Hits are grouped by shape and plane (the
     geometric normal to 1e-3 and its offset to 1 mm: Mitsuba merges the walls of a chamber into
-    one mesh, so a shape alone would not say which wall). Returns one dict per plane named:
-    ``name`` (the shape's id, "" for none), ``normal``, ``point`` (the mean of the hits on its back, mm),
+    one mesh, so a shape alone would not say which wall). A shape met mostly from behind is named
+    once, as a whole (a sphere, a cylinder's mesh); else at most :data:`MAX_PLANES` of its planes.
+    Returns one dict per plane or shape named: ``name`` (the shape's id, "" for none), ``normal``
+    (None for a curved surface), ``point`` (the mean of the hits on its back, mm),
     ``share`` (of all the probe's rays that end on its back) and ``own`` (of those reaching
     the plane); a plane is named when ``share`` >= :data:`BACK_SHARE_OF_ALL` and ``own`` >=
     :data:`BACK_MAJORITY`.
@@ -121,19 +125,30 @@ def surfaces_met_from_behind(scene, surfaces, sensor, probe) -> list[dict]:
     found = []
     for shape in surfaces:
         mine = reached & (keys == shape_key(shape))
-        if np.count_nonzero(mine & back) < BACK_SHARE_OF_ALL * reached.size:
+        behind = back[mine]
+        if np.count_nonzero(behind) < BACK_SHARE_OF_ALL * reached.size:
             continue
         # planes: normal to 1e-3, offset to 1 mm
         plane = np.c_[np.round(n[mine] * 1e3), np.round(np.sum(n[mine] * p[mine], axis=1))].astype(np.int64)
         groups, which = np.unique(plane, axis=0, return_inverse=True)
-        behind = back[mine]
-        for g in range(len(groups)):
-            in_g = which.ravel() == g
-            count = np.count_nonzero(behind & in_g)
-            if count >= BACK_SHARE_OF_ALL * reached.size and count >= BACK_MAJORITY * np.count_nonzero(in_g):
-                found.append({"name": shape.id(), "normal": (groups[g, :3] / 1e3).tolist(),
-                              "point": p[mine][behind & in_g].mean(axis=0).round(1).tolist(),
-                              "share": count / reached.size, "own": count / np.count_nonzero(in_g)})
+        which = which.ravel()
+        per_plane = np.bincount(which[behind], minlength=len(groups))
+
+        def entry(where, normal):
+            count = np.count_nonzero(behind & where)
+            return {"name": shape.id(), "normal": normal, "point": p[mine][behind & where].mean(axis=0).round(1).tolist(),
+                    "share": count / reached.size, "own": count / np.count_nonzero(where)}
+
+        if np.count_nonzero(behind) >= BACK_MAJORITY * behind.size:  # the shape as a whole: named once
+            top = int(np.argmax(per_plane))
+            flat = per_plane[top] >= 0.9 * np.count_nonzero(behind)  # one plane, or curved (a sphere, a mesh)
+            found.append(entry(np.ones(behind.size, bool), (groups[top, :3] / 1e3).tolist() if flat else None))
+            continue
+        # shapes Mitsuba merged (a chamber's walls are one mesh): the planes whose back takes the most
+        for g in np.argsort(-per_plane)[:MAX_PLANES]:
+            in_g = which == g
+            if per_plane[g] >= BACK_SHARE_OF_ALL * reached.size and per_plane[g] >= BACK_MAJORITY * np.count_nonzero(in_g):
+                found.append(entry(in_g, (groups[g, :3] / 1e3).tolist()))
     return found
 
 

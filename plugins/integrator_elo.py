@@ -245,12 +245,13 @@ class EloIntegrator(mi.SamplingIntegrator):
                     scattering = [s for s in scatterers if is_elo_bse(s.bsdf())]
                     self._met_behind = (key, surfaces_met_from_behind(scene, scattering, beam, probe))
                 for plane in self._met_behind[1]:
-                    n, p = (", ".join(f"{v:g}" for v in plane[k]) for k in ("normal", "point"))
+                    n, p = (", ".join(f"{v:g}" for v in plane[k] or ()) for k in ("normal", "point"))
                     self.notes.append(
-                        f"{'surface ' + repr(plane['name']) if plane['name'] else 'a surface'}, its plane of normal "
-                        f"({n}) about ({p}) mm: "
+                        f"{'surface ' + repr(plane['name']) if plane['name'] else 'a surface'}, "
+                        + (f"its plane of normal ({n}) " if plane["normal"] is not None else "")
+                        + f"about ({p}) mm: "
                         f"{100 * plane['own']:.3g} % of the electrons leaving the scan field that reach it arrive at "
-                        f"its back ({100 * plane['share']:.2g} % of all that leave), where g_BSE sends nothing back: "
+                        f"its back ({100 * plane['share']:.3g} % of all that leave), where g_BSE sends nothing back: "
                         "it absorbs them, and events >= 2 come out too small. A wall or shield turned away from the "
                         "field? Turn its front towards the field (a look-at target on the field's side, or <boolean "
                         "name=\"flip_normals\" value=\"true\"/>); a slab needs both faces and its rims")

@@ -815,7 +815,8 @@ def test_a_detector_in_the_beams_path_is_said_in_a_note():
 def test_a_wall_turned_away_from_the_field_is_said_in_a_note(tmp_path):
     """A chamber wall whose front faces out of the chamber (its look-at target on the outer side)
     absorbs every electron that reaches it, silently: the right detector's 2nd event fell by 16 %
-    (32², `default`). The render names its plane (x = 350 mm, normal +x) in a note."""
+    (32², `default`). The render names its plane (x = 350 mm, normal +x) in a note; a steel dome
+    whose normals point out is named once, as a whole (its e2 was exactly 0)."""
     import shutil
 
     from elo_mitsuba.scene_files import scenes_dir
@@ -829,6 +830,16 @@ def test_a_wall_turned_away_from_the_field_is_said_in_a_note(tmp_path):
         quality="draft", progress=False).metadata["notes"] if "arrive at its back" in n]
     assert len(notes) == 1 and notes[0].startswith("a surface, its plane of normal (1, 0, 0) about (350, "), notes
     assert " mm: 100 % of the electrons leaving the scan field that reach it arrive at its back" in notes[0]
+    # a curved surface is named once, as a whole: a steel dome round the plate, its normals outward
+    dome = ('<shape type="sphere" id="dome"><float name="radius" value="800"/><bsdf type="elo_bse"><string '
+            'name="material" value="316L"/></bsdf></shape>')
+    plate = tmp_path / "s" / "flat_plate.xml"
+    plate.write_text(plate.read_text().replace('<include filename="parts/detectors.xml"/>',
+                                               '<include filename="parts/detectors.xml"/>' + dome))
+    notes = [n for n in em.load_scene(plate, res=4, events=2).render(quality="draft", progress=False).metadata["notes"]
+             if "arrive at its back" in n]
+    assert len(notes) == 1 and notes[0].startswith("surface 'dome', about ("), notes
+    assert "100 % of the electrons leaving the scan field that reach it arrive at its back (100 % of all" in notes[0]
 
 
 def test_images_of_another_lobe_than_the_models_get_a_note(d, capsys):
