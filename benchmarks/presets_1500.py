@@ -1,0 +1,73 @@
+"""The presets at the paper's resolution on the chamber scenes (issue 26's targets): each scene in
+its own process, ``default`` and ``reference`` interleaved over three rounds at events 1 + 2; per
+preset the first render (kernels compiled, tables built), the faster of the warm ones, the
+render's own error estimate (two independent halves; RMS over pixels, worst detector) of the total
+and of e2, and the process's peak resident memory.
+
+    python -m benchmarks.presets_1500                                  # the four chamber scenes
+    python -m benchmarks.presets_1500 --scenes shield_chamber --res 512
+
+Prints a Markdown table (benchmarks/RESULTS.md, section Far field).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+
+SCENES = ("athene_flat", "shield_chamber", "melt_chamber", "corrugated_chamber")
+PRESETS = ("default", "reference")
+ROUNDS = 3
+
+
+def measure(scene: str, res: int) -> list[dict]:
+    """One scene in this process: a row per preset."""
+    import resource
+
+    import elo_mitsuba as em
+
+    loaded = em.load_scene(scene, res=res)
+    runs: dict[str, list] = {}
+    for round_ in range(ROUNDS):
+        for preset in PRESETS:
+            t = time.perf_counter()
+            result = loaded.render(quality=preset, progress=False, events=2, seed=round_ + 1)
+            seconds = time.perf_counter() - t
+            est = result.metadata["error_estimate"]["channels"]
+            total = max(v["rms_rel"] for k, v in est.items() if "." not in k)
+            e2 = max(v["rms_rel"] for k, v in est.items() if k.endswith(".e2"))
+            runs.setdefault(preset, []).append((seconds, total, e2))
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return [{"scene": scene, "preset": p, "first": v[0][0], "warm": min(x[0] for x in v[1:]), "total": v[-1][1],
+             "e2": v[-1][2], "peak_mb": peak} for p, v in runs.items()]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.presets_1500", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="shipped scenes (default: the chamber scenes)")
+    ap.add_argument("--res", type=int, default=1500, help="film side in pixels (default 1500)")
+    ap.add_argument("--one", help=argparse.SUPPRESS)  # the worker: one scene, JSON rows on stdout
+    args = ap.parse_args(argv)
+    if args.one:
+        print(json.dumps(measure(args.one, args.res)))
+        return 0
+    print(f"| scene, {args.res}² | preset | warm time | first render | total | e2 | peak memory |")
+    print("|---|---|---|---|---|---|---|")
+    for scene in args.scenes:
+        out = subprocess.run([sys.executable, "-m", "benchmarks.presets_1500", "--one", scene, "--res", str(args.res)],
+                             capture_output=True, text=True)
+        if out.returncode != 0:
+            print(f"python -m benchmarks.presets_1500: error: {scene}: {out.stderr.strip().splitlines()[-1]}",
+                  file=sys.stderr)
+            return 2
+        for row in json.loads(out.stdout.strip().splitlines()[-1]):
+            print(f"| {row['scene']} | {row['preset']} | {row['warm']:.2f} s | {row['first']:.2f} s | "
+                  f"{100 * row['total']:.3f} % | {100 * row['e2']:.2f} % | {row['peak_mb']:.0f} MB |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
