@@ -26,7 +26,8 @@ Four solvers, chosen after the survey of Quéau, Durou and Aujol, "Normal integr
   add a jump that no wall's gradient holds. Not chosen by ``"auto"``: on the hills and the melt
   plate it equals least squares within 4 %, on rendered cliffs it lowers the error spread over the
   relief beside them from 3.0 to 2.3 µm RMS (``python -m validation.study_steps``), at 2.5-4
-  times the time of ``"masked"`` (15-25 s at 1500² on 2 cores).
+  times the time of ``"masked"`` (15-25 s at 1500² on 2 cores; up to 85 s where it runs to its
+  :data:`ROBUST_ITERATIONS` solves).
 
 Orientation as everywhere (:mod:`elo_mitsuba.grid`); dZ/dy is the derivative along +y,
 i.e. *against* the row index. All returned heights are finite; masked pixels hold 0.

@@ -29,7 +29,8 @@ Solvers (Queau, Durou & Aujol 2018 survey the field):
           shadowed on every side stays short, and a part cut off by masked pixels all round
           gets its own zero mean, as with 'masked'. Its integrability residual runs above least
           squares' (the misfit is gathered on the pairs it gives up). Equals 'masked' on smooth
-          surfaces; 2.5-4x its time (15-25 s at 1500x1500 on 2 cores)
+          surfaces; 2.5-4x its time (15-25 s at 1500x1500 on 2 cores, up to 85 s where it
+          runs to its 30 reweighted solves)
   auto    'masked' if any pixel is masked, else 'dct' (default; never 'robust')
 
 Output by suffix (elo_mitsuba.heightmap): .exr (channels height and mask, 1 = no height; geometry
