@@ -362,20 +362,22 @@ def explain_mitsuba_error(exc: Exception, path: Path, values: Mapping[str, str] 
                     f"(-D {names[0]}=...)")
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     where = ""
+    m = re.search(r"\(line (\d+), col (\d+)\)", text)
+    if m:
+        where = f" line {m.group(1)}"
     # Mitsuba names the file of every include it was in; the innermost is where the cause is
     places = list(re.finditer(r"(?:While loading|Error while loading|At) (\S.*?) \(line (\d+), col \d+\): ", text))
-    nested = places if len(places) > 1 else []
     if places:
         inner, line = places[-1].group(1), places[-1].group(2)
-        same = Path(inner).resolve() == Path(path).resolve() if inner != "string" else True
+        same = inner == "string" or Path(inner).resolve() == Path(path).resolve()
         where = f" line {line}" if same else f": in {inner} line {line}"
     # innermost Python error ("EloInputError: ...") if a plugin of ours refused a value
     for ln in reversed(lines):
         mm = re.match(r"^(?:\w+\.)*(\w*Error): (.*)$", ln)
         if mm and mm.group(2):
             return f"{path}{where}: {mm.group(2)}"
-    if len(nested) > 1:
-        return f"{path}{where}: {text[nested[-1].end():].strip().splitlines()[0]}"
+    if len(places) > 1:
+        return f"{path}{where}: {text[places[-1].end():].strip().splitlines()[0]}"
     first = lines[0] if lines else type(exc).__name__
     if first.endswith(":") and len(lines) > 1:  # e.g. "unreferenced property ...:" + "- name" lines
         first = first + " " + " ".join(ln.lstrip("- ") for ln in lines[1:4])
