@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
+
+from .harness import DETS, estimated_rel, run_module
 
 SCENES = ("athene_flat", "shield_chamber", "melt_chamber", "corrugated_chamber")
 PRESETS = ("default", "reference")
@@ -28,6 +29,7 @@ def measure(scene: str, res: int) -> list[dict]:
     import resource
 
     import elo_mitsuba as em
+    from elo_mitsuba.schema import event_channel
 
     loaded = em.load_scene(scene, res=res)
     runs: dict[str, list] = {}
@@ -36,9 +38,8 @@ def measure(scene: str, res: int) -> list[dict]:
             t = time.perf_counter()
             result = loaded.render(quality=preset, progress=False, events=2, seed=round_ + 1)
             seconds = time.perf_counter() - t
-            est = result.metadata["error_estimate"]["channels"]
-            total = max(v["rms_rel"] for k, v in est.items() if "." not in k)
-            e2 = max(v["rms_rel"] for k, v in est.items() if k.endswith(".e2"))
+            total = max(estimated_rel(result, d) for d in DETS)
+            e2 = max(estimated_rel(result, event_channel(d, 2)) for d in DETS)
             runs.setdefault(preset, []).append((seconds, total, e2))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return [{"scene": scene, "preset": p, "first": v[0][0], "warm": min(x[0] for x in v[1:]), "total": v[-1][1],
@@ -49,21 +50,21 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.presets_1500", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="shipped scenes (default: the chamber scenes)")
     ap.add_argument("--res", type=int, default=1500, help="film side in pixels (default 1500)")
-    ap.add_argument("--one", help=argparse.SUPPRESS)  # the worker: one scene, JSON rows on stdout
+    ap.add_argument("--one", help=argparse.SUPPRESS)  # the worker: one scene, a RESULT line on stdout
     args = ap.parse_args(argv)
     if args.one:
-        print(json.dumps(measure(args.one, args.res)))
+        print("RESULT " + json.dumps(measure(args.one, args.res)))
         return 0
+    from elo_mitsuba.scene_files import shipped_scenes
+
+    unknown = [s for s in args.scenes if s not in shipped_scenes()]
+    if unknown or not 8 <= args.res <= 4000:  # before minutes of work
+        ap.error(f"--scenes {unknown[0]}: not a shipped scene ({', '.join(shipped_scenes())})" if unknown else
+                 f"--res {args.res}: must be 8 to 4000 pixels")
     print(f"| scene, {args.res}² | preset | warm time | first render | total | e2 | peak memory |")
     print("|---|---|---|---|---|---|---|")
     for scene in args.scenes:
-        out = subprocess.run([sys.executable, "-m", "benchmarks.presets_1500", "--one", scene, "--res", str(args.res)],
-                             capture_output=True, text=True)
-        if out.returncode != 0:
-            print(f"python -m benchmarks.presets_1500: error: {scene}: {out.stderr.strip().splitlines()[-1]}",
-                  file=sys.stderr)
-            return 2
-        for row in json.loads(out.stdout.strip().splitlines()[-1]):
+        for row in run_module("benchmarks.presets_1500", ["--one", scene, "--res", str(args.res)]):
             print(f"| {row['scene']} | {row['preset']} | {row['warm']:.2f} s | {row['first']:.2f} s | "
                   f"{100 * row['total']:.3f} % | {100 * row['e2']:.2f} % | {row['peak_mb']:.0f} MB |", flush=True)
     return 0
