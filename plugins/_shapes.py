@@ -38,7 +38,8 @@ def is_planar(shape):
     return bool(np.max(np.abs((v - a) @ (normal / length))) <= 1e-7 * extent)
 
 
-def _to_world(shape):
+def to_world_matrix(shape):
+    """The 4 x 4 to_world matrix of a rectangle or disk (numpy, float64)."""
     return np.array(mi.traverse(shape)["to_world"].matrix, dtype=float).reshape(-1, 4, 4)[0]
 
 
@@ -51,7 +52,7 @@ def cover_triangles(shape):
         f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
         return v[f]
     if stype in (mi.ShapeType.Disk, mi.ShapeType.Rectangle):
-        m = _to_world(shape)
+        m = to_world_matrix(shape)
         sq = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) @ m[:3, :3].T + m[:3, 3]
         return np.array([[sq[0], sq[1], sq[2]], [sq[0], sq[2], sq[3]]])
     bb = shape.bbox()

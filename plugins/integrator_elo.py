@@ -114,7 +114,7 @@ from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import (beam_probe, detectors_in_beam, field_missed, may_meet_beam, relief_under_beam,
-                      surfaces_met_from_behind, surfaces_seen_from_behind)
+                      surfaces_met_from_behind, surfaces_overlapping, surfaces_seen_from_behind)
 from ._scene_checks import SceneChecks
 from .bsdf_elo_bse import collected_fraction, eval_world, is_elo_bse, lobe_probability, scene_tables, world_setup
 
@@ -154,7 +154,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._geometry_key = GeometryKey()
         self._occlusion = (None, None)  # (geometry and beam, unblockable_regions) of the last set-up
         self._near = (None, None)  # (geometry, beam, scattering law; near_share) of the last call
-        self._behind = (None, ([], 0.0))  # (geometry and beam; surfaces_seen_from_behind, field_missed)
+        self._behind = (None, ([], 0.0, []))  # (geometry and beam; surfaces_seen_from_behind, field_missed, surfaces_overlapping)
         self._met_behind = (None, [])  # (geometry and beam; surfaces_met_from_behind)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
         self._n_shadow = None  # shadow rays cast, while count_rays traces
@@ -227,8 +227,15 @@ class EloIntegrator(mi.SamplingIntegrator):
             blockers = [sh for _, sh in detectors if may_meet_beam(sh, beam)]
             key = (tuple(self._geometry_key.entry(sh) for sh in scatterers + blockers), _beam_key(beam))
             if self._behind[0] != key:
-                self._behind = (key, (surfaces_seen_from_behind(scatterers, beam, probe), field_missed(scene, beam, probe)))
-            behind, missed = self._behind[1]
+                self._behind = (key, (surfaces_seen_from_behind(scatterers, beam, probe), field_missed(scene, beam, probe),
+                                      surfaces_overlapping(scatterers + blockers, beam, probe)))
+            behind, missed, overlapping = self._behind[1]
+            for pair in overlapping:
+                self.notes.append(
+                    f"{pair['names'][0]} and {pair['names'][1]} lie in one plane and overlap over about "
+                    f"{100 * pair['share']:.3g} % of the scan field (about ({', '.join(f'{v:g}' for v in pair['point'])}) mm): "
+                    "the ray tracer meets either there, point by point, so those pixels mix the two; cut "
+                    "the one below out of the other (a floor is a frame around the plate, not a sheet under it)")
             if missed > 0:
                 self.notes.append(
                     f"the beam meets no surface over about {100 * missed:.3g} % of the scan field (a field wider "

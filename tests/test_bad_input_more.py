@@ -844,6 +844,40 @@ def test_a_wall_turned_away_from_the_field_is_said_in_a_note(tmp_path):
     assert 95 < of_all < 99, notes[0]  # all but those that reach the detectors (97.5 %)
 
 
+def test_surfaces_overlapping_in_one_plane_are_said_in_a_note(tmp_path):
+    """A floor frame moved onto the plate (x in [-25, 225] mm): the ray tracer returns the floor or
+    the plate at the same depth, and the pixels there mix 316L and Ti-6Al-4V without a sign (the
+    1st event changed by 8 %). The render names both surfaces, their materials and where; no
+    shipped scene has such a pair, nor does a floor frame that only touches the plate's edge."""
+    import shutil
+
+    from elo_mitsuba.plugins._relief import beam_probe, surfaces_overlapping
+    from elo_mitsuba.scene_files import scenes_dir, shipped_scenes
+
+    shutil.copytree(scenes_dir(), tmp_path / "s", ignore=shutil.ignore_patterns("*.py", "*.md"))
+    chamber = tmp_path / "s" / "parts" / "chamber.xml"
+    text = chamber.read_text()
+    frame = '<lookat origin="225, 0, 0" target="225, 0, 1" up="0, 1, 0"/>'
+    assert text.count(frame) == 1
+    for scene, origin in (("athene_flat", 100), ("melt_chamber", 100)):
+        chamber.write_text(text.replace(frame, frame.replace("225, 0, 0", f"{origin}, 0, 0").replace("225, 0, 1", f"{origin}, 0, 1")))
+        notes = [n for n in em.load_scene(tmp_path / "s" / f"{scene}.xml", res=4).render(
+            quality="draft", progress=False).metadata["notes"] if "lie in one plane" in n]
+        assert len(notes) == 1, (scene, notes)
+        assert notes[0].startswith("a surface without an id (316L) and ") and "(Ti-6Al-4V)" in notes[0], notes
+        share = float(re.search(r"overlap over about ([0-9.]+) % of the scan field", notes[0]).group(1))
+        assert 30 < share < 85, notes[0]  # of the field's 81 % under the frame, where the floor is met
+    # the shipped scenes; and a 200 mm field, whose probe rows and columns at +-100 mm lie on the
+    # edges the plate shares with the floor frame: an edge shared is not an overlap
+    for name, field in [(name, 80) for name in shipped_scenes()] + [("athene_flat", 200)]:
+        loaded = em.load_scene(name, res=4, field=field).scene
+        beam = loaded.sensors()[0]
+        si = beam_probe(loaded, beam)
+        if field == 200:
+            assert np.count_nonzero(np.isclose(np.abs(np.ravel(si.p[0])), 100.0, atol=1e-4)) >= 100
+        assert surfaces_overlapping(list(loaded.shapes()), beam, lambda: si) == [], name
+
+
 def test_images_of_another_lobe_than_the_models_get_a_note(d, capsys):
     """The header records each surface's g_BSE lobe; gradient, invert and calibrate say when it is
     not the paper's, which their models assume (a 25 deg lobe biased the corrugated sheet's median
