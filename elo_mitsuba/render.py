@@ -590,6 +590,9 @@ class EloScene:
         done = p = 0
         t0 = time.perf_counter()
         saved = self.integrator.options
+        # a 1st event that every pass computes alike is traced in the first pass only: the later
+        # passes (the error estimate's other half, further passes of many samples) take its planes
+        first = None
         try:
             for (n_half, options), sizes in zip(halves, passes):
                 if options is not None:
@@ -597,7 +600,10 @@ class EloScene:
                 acc = None
                 for n in each_pass(sizes):
                     # (channels, H, W) float32, straight from the film's storage
-                    planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n)
+                    planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n,
+                                                              first=first)
+                    if first is None and self.integrator.first_event_fixed and self.integrator.traced_events() > 1:
+                        first = self.integrator.first_event_planes(planes)
                     if acc is None and n == n_half:
                         acc = planes  # one pass: its own mean
                     else:

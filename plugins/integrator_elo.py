@@ -157,6 +157,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._behind = (None, ([], 0.0, []))  # (geometry and beam; surfaces_seen_from_behind, field_missed, surfaces_overlapping)
         self._met_behind = (None, [])  # (geometry and beam; surfaces_met_from_behind)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
+        self._first_given = False  # while a pass renders whose 1st event render_planes was given
+        self.first_event_fixed = False  # see _prepare_scene
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
         self._far_mean_table = None  # its tabulated mean (_far_field.MeanTable, option far_table), or None
@@ -277,6 +279,10 @@ class EloIntegrator(mi.SamplingIntegrator):
             if self._occlusion[0] != key:
                 self._occlusion = (key, unblockable_regions(scene, beam, detectors))
             self._unblockable_regions = self._occlusion[1]
+        #: whether every pass computes the 1st event alike (nothing drawn at random): the quadrature
+        #: under a single-ray beam, with one ray per triangle or no shadow ray cast anywhere in the
+        #: field (every beam hit unblockable for every detector: a flat plate, also in the chamber)
+        self.first_event_fixed = self._first_event_fixed(beam, probe)
         if self._far_on() and self.traced_events() > 1 and beam is not None:
             self._update_far_field(scene, beam)
             if self.far_table:
@@ -302,6 +308,17 @@ class EloIntegrator(mi.SamplingIntegrator):
         """The geometry classes in use (:class:`._geometry_classes.GeometryClasses`: ``index``,
         ``counts``), or None without ``bounce_share``."""
         return self._classes if self._shares_bounces() else None
+
+    def _first_event_fixed(self, beam, probe):
+        if beam is None or self.detector_sampling != "quadrature" or getattr(beam, "fwhm", None) != 0:
+            return False
+        if self.quadrature_visibility == "triangle":
+            return True
+        if not all(self._unblockable_regions):
+            return False
+        si = probe()  # a single-ray beam: the probe's grid is the field's, with its edges
+        hit = si.is_valid()
+        return all(bool(dr.all(~hit | unblockable(si, regions))) for regions in self._unblockable_regions)
 
     def _update_classes(self, scene, sensor):
         """Sort the pixels into geometry classes (``bounce_share``, :mod:`._geometry_classes`)
@@ -519,8 +536,13 @@ class EloIntegrator(mi.SamplingIntegrator):
             buffer = type(buffer)(np.ascontiguousarray(planes).ravel())
         return film_tensor(buffer, planes.shape[0], h, w, first=total)
 
-    def render_planes(self, scene, sensor=0, seed=0, spp=0):
+    def render_planes(self, scene, sensor=0, seed=0, spp=0, first=None):
         """Render and return the channels of :meth:`channel_names` as planes.
+
+        ``first``: the 1st event's planes of an earlier pass of the same render
+        (:meth:`first_event_planes`), where every pass computes it alike (:attr:`first_event_fixed`):
+        this pass does not trace it again and takes these (events >= 2 draw the same random numbers
+        either way: each event's planes are bit for bit the same, their totals to float32 rounding).
 
         Returns
         -------
@@ -534,14 +556,20 @@ class EloIntegrator(mi.SamplingIntegrator):
         scene_spp = sampler.sample_count()
         try:
             with dr.suspend_grad():
-                return self._render_planes(scene, sensor, seed, spp)
+                return self._render_planes(scene, sensor, seed, spp, first)
         finally:
             self._in_render = False
+            self._first_given = False
             # the base class's render(spp=n) leaves the sampler at n; the scene's own count must
             # survive for the next render that relies on it (render(), mi.render without spp)
             sampler.set_sample_count(scene_spp)
 
-    def _render_planes(self, scene, sensor, seed, spp):
+    def first_event_planes(self, planes):
+        """A copy of the 1st event's planes (detectors' order) in ``planes`` of :meth:`render_planes`."""
+        names = self.channel_names()
+        return np.stack([planes[names.index(event_channel(d, 1) if self.events > 1 else d)] for d, _ in self.detectors])
+
+    def _render_planes(self, scene, sensor, seed, spp, first=None):
         sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         self.prepare_scene(scene, sensor_obj)
         # the block selection of bounce_fraction: a fresh uniform shift per seed (unbiased)
@@ -557,11 +585,16 @@ class EloIntegrator(mi.SamplingIntegrator):
             n_spp = int(sensor_obj.sampler().sample_count())
             key = int(np.random.default_rng([seed_value, 28]).integers(1 << 32))
             self._spread = self._classes.ranks() + (dr.opaque(mi.UInt32, n_spp), dr.opaque(mi.UInt32, key))
+        self._first_given = first is not None
         try:
             planes, buffer = self._pass_planes(scene, sensor, sensor_obj, seed, spp, aovs)
         finally:
             self._spread = None
+            self._first_given = False
         index = {name: i for i, name in enumerate(aovs)}
+        if first is not None:
+            for d, (name, _) in enumerate(self.detectors):
+                planes[index[event_channel(name, 1) if self.events > 1 else name]] = first[d]
         if self.count_rays:
             self.ray_counts = {"intersections": float(np.mean(planes[index[COUNT_CHANNELS[0]]])),
                                "shadow_rays": float(np.mean(planes[index[COUNT_CHANNELS[1]]]))}
@@ -588,6 +621,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                 paths *= self._classes.pixels_per_class()
             if self.bounce_min > 0:
                 self._top_up(planes, index, scene, sensor, sensor_obj, seed_value, paths)
+            self._totals(planes, index)
+        elif first is not None and self.events > 1:
             self._totals(planes, index)
         sensor_obj.sampler().seed(0, 1)  # as mi.render: the sampler's state no longer depends on the render
         return planes[:len(self.channel_names())], buffer
@@ -654,8 +689,12 @@ class EloIntegrator(mi.SamplingIntegrator):
         # electrons scatter only on surfaces that are not detectors (detectors absorb)
         alive &= si.is_valid() & ~si.shape.is_emitter()
         bsdf = si.bsdf(ray)
-        if self._top_up_pass is not None:  # top-up pass of bounce_min: events >= 2 only
+        if self._top_up_pass is not None or self._first_given:  # events >= 2 only (the 1st given)
             first = [mi.Float(0.0) for _ in range(n_det)]
+            if self._first_given and self.detector_sampling == "quadrature" and self.quadrature_visibility != "triangle":
+                for _ in range(n_det):  # the numbers its shadow rays take: later events draw the same ones
+                    sampler.next_1d(alive)
+                    sampler.next_2d(alive)
         elif self.detector_sampling == "quadrature":
             first = self._quadrature(scene, sampler, si, bsdf, ctx, ray, alive)
         else:

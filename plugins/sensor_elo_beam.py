@@ -138,7 +138,7 @@ class EloBeam(mi.Sensor):
         """Build-plane point (x, y) in mm the sample aims at (grid point + beam profile offset)."""
         res = mi.Vector2f(self.resolution[0], self.resolution[1])
         scaled = film_sample * res
-        pixel = dr.floor(scaled)
+        pixel = self._film_pixel(scaled)
         centre = (pixel + 0.5) / res  # on the scan grid (up to _AIM_NUDGE)
         x, y = film_to_plane(centre.x, centre.y, self._field.x, self._field.y)
         x = x + self.aim_offset_mm[0]
@@ -149,6 +149,27 @@ class EloBeam(mi.Sensor):
             x += offset.x
             y += offset.y
         return x, y
+
+    def _film_pixel(self, scaled):
+        """The pixel whose sample ``scaled`` (film position x resolution) is.
+
+        Mitsuba's render passes pixel + u (u uniform in [0, 1)) scaled to [0, 1], in float32,
+        and puts the sample into the pixel itself (box filter). The sum and the scalings round: u
+        within a few ulp of 1 reads as the next pixel (at 1500² about 1 in 10^4 pixels per
+        render, each then aimed at its neighbour's scan point). Its render lays the lanes out
+        pixel by pixel, spp each, rows first; a wavefront of that shape takes the pixel from the
+        lane where it is the floor's or one next to it (anything else: the floor's, e.g. a call
+        with positions of its own)."""
+        pixel = dr.floor(scaled)
+        w, h = self.resolution
+        n = dr.width(scaled)
+        if not dr.is_jit_v(type(scaled)) or n < w * h or n % (w * h):
+            return pixel
+        lane = dr.arange(mi.UInt32, n) // dr.opaque(mi.UInt32, n // (w * h))
+        row = lane // dr.opaque(mi.UInt32, w)
+        mine = mi.Vector2f(mi.Float(lane - row * w), mi.Float(row))
+        near = (dr.abs(mine.x - pixel.x) <= 1.0) & (dr.abs(mine.y - pixel.y) <= 1.0)
+        return dr.select(near, mine, pixel)
 
     def sample_ray(self, time, sample1, sample2, sample3, active=True):
         x, y = self.beam_target(sample2)

@@ -169,3 +169,42 @@ def test_render_warns_when_the_estimate_is_above_the_preset(mi):
     from elo_mitsuba.options import QUALITY_ACCURACY
 
     assert (worst > QUALITY_ACCURACY["draft"]) == any(line.startswith("note:") for line in lines)
+
+
+@pytest.mark.parametrize("spp", [1, 4])
+def test_a_deterministic_first_event_is_traced_once_and_the_images_are_the_same(mi, monkeypatch, spp):
+    """Where the 1st event is deterministic (the quadrature with one ray per triangle, a single-ray
+    beam), a render traces it in its first pass only; the later passes (the error estimate's other
+    half, further passes) take its planes. Each event's channels are bit for bit those of a render
+    that traces it in every pass (events >= 2 draw the same numbers either way), the totals and
+    errors the same to float32 rounding (a pass of several samples sums its events in another
+    order); under a beam profile every pass traces it."""
+    scene = em.load_scene("athene_flat", res=16)
+    cls = type(scene.integrator)
+    given = []
+    original = cls.render_planes
+
+    def spy(self, *args, first=None, **kwargs):
+        given.append(first is not None)
+        return original(self, *args, first=first, **kwargs)
+
+    monkeypatch.setattr(cls, "render_planes", spy)
+    reused = scene.render(quality="default", spp=spp, progress=False)
+    assert given[0] is False and all(given[1:]) and len(given) >= 2, given
+    given.clear()
+    monkeypatch.setattr(cls, "first_event_fixed", property(lambda self: False, lambda self, value: None), raising=False)
+    traced = scene.render(quality="default", spp=spp, progress=False)
+    assert not any(given)
+    assert set(reused.channels) == set(traced.channels) and set(reused.errors) == set(traced.errors)
+    for name in traced.channels:
+        if "." in name:  # an event
+            assert np.array_equal(reused.channels[name], traced.channels[name]), name
+        else:
+            np.testing.assert_allclose(reused.channels[name], traced.channels[name], rtol=1e-6, atol=0, err_msg=name)
+    for name in traced.errors:
+        np.testing.assert_allclose(reused.errors[name], traced.errors[name], rtol=1e-5, atol=1e-12, err_msg=name)
+    monkeypatch.undo()
+    monkeypatch.setattr(cls, "render_planes", spy)
+    given.clear()
+    em.load_scene("athene_flat", res=16, fwhm=0.3).render(quality="default", progress=False)
+    assert len(given) >= 2 and not any(given)

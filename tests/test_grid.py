@@ -46,6 +46,32 @@ def test_beam_aims_at_the_pixel_axes(mi):
     np.testing.assert_allclose(np.array(y).reshape(h, w), np.broadcast_to(ys[:, None] + dy, (h, w)), atol=1e-5)
 
 
+@pytest.mark.parametrize("spp", [1, 3])
+def test_every_sample_aims_at_its_own_pixel_at_the_edges_of_the_pixel(mi, spp):
+    """Mitsuba's render passes pixel + u, u uniform in [0, 1), scaled to [0, 1] in float32, and puts
+    the sample into the pixel itself (box filter). With u within half a float32 step of 1 (2^-13
+    of a pixel from column 1024 on) the sum rounds to the next pixel, and the scalings round too
+    (at 1500² a render aimed 148 pixels at their neighbour's scan point). The beam aims at the lane's own pixel: the render's lanes are pixels row by row, spp each
+    (Mitsuba's wavefront), as here; a sample off by more than one pixel is taken as given."""
+    w, h, field = 1500, 3, 80.0
+    sensor = mi.load_dict({"type": "elo_beam", "field": field,
+                           "film": {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"}}})
+    xs, ys = pixel_axes((h, w), (field, field * h / w))
+    dx, dy = sensor.aim_offset_mm
+    lane = np.arange(w * h * spp) // spp
+    col, row = (lane % w).astype(np.float32), (lane // w).astype(np.float32)
+    scale = np.float32(1.0) / np.array([w, h], np.float32)
+    for u in (np.nextafter(np.float32(1), np.float32(0)), np.float32(0)):
+        pos_x, pos_y = col + u, row + u  # float32, as Mitsuba adds them
+        assert u == 0 or np.count_nonzero(pos_x == col + 1) > 0.5 * w * spp  # the sum rounds up
+        x, y = sensor.beam_target(mi.Point2f(mi.Float(pos_x * scale[0]), mi.Float(pos_y * scale[1])))
+        np.testing.assert_allclose(np.array(x), xs[lane % w] + dx, rtol=0, atol=1e-4, err_msg=str(u))
+        np.testing.assert_allclose(np.array(y), ys[lane // w] + dy, rtol=0, atol=1e-4, err_msg=str(u))
+    # positions of its own (not a wavefront): the pixel they fall in
+    x, _ = sensor.beam_target(mi.Point2f(mi.Float(np.float32([0.25, 0.75])), mi.Float(np.float32([0.5, 0.5]))))
+    np.testing.assert_allclose(np.array(x), xs[[375, 1125]] + dx, rtol=0, atol=1e-4)
+
+
 @pytest.mark.parametrize("quality", ["default", "reference"])
 def test_four_detectors_see_a_flat_plate_as_rotations_at_the_pixel_centres(mi, quality):
     """Row E3's symmetry at the renderer's own precision: the presets' 1st event is a deterministic
