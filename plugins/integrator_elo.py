@@ -157,7 +157,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._behind = (None, ([], 0.0, []))  # (geometry and beam; surfaces_seen_from_behind, field_missed, surfaces_overlapping)
         self._met_behind = (None, [])  # (geometry and beam; surfaces_met_from_behind)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
-        self._first_given = False  # while a pass renders whose 1st event render_planes was given
+        self._first_traced = dr.opaque(mi.Bool, True)  # off while a pass renders whose 1st event render_planes was given
         self.first_event_fixed = False  # see _prepare_scene
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -559,7 +559,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                 return self._render_planes(scene, sensor, seed, spp, first)
         finally:
             self._in_render = False
-            self._first_given = False
+            self._first_traced = dr.opaque(mi.Bool, True)
             # the base class's render(spp=n) leaves the sampler at n; the scene's own count must
             # survive for the next render that relies on it (render(), mi.render without spp)
             sampler.set_sample_count(scene_spp)
@@ -585,12 +585,14 @@ class EloIntegrator(mi.SamplingIntegrator):
             n_spp = int(sensor_obj.sampler().sample_count())
             key = int(np.random.default_rng([seed_value, 28]).integers(1 << 32))
             self._spread = self._classes.ranks() + (dr.opaque(mi.UInt32, n_spp), dr.opaque(mi.UInt32, key))
-        self._first_given = first is not None
+        if first is not None and not self.first_event_fixed:
+            raise ValueError("render_planes: first given where the 1st event is not the same in every pass")
+        self._first_traced = dr.opaque(mi.Bool, first is None)
         try:
             planes, buffer = self._pass_planes(scene, sensor, sensor_obj, seed, spp, aovs)
         finally:
             self._spread = None
-            self._first_given = False
+            self._first_traced = dr.opaque(mi.Bool, True)
         index = {name: i for i, name in enumerate(aovs)}
         if first is not None:
             for d, (name, _) in enumerate(self.detectors):
@@ -689,12 +691,17 @@ class EloIntegrator(mi.SamplingIntegrator):
         # electrons scatter only on surfaces that are not detectors (detectors absorb)
         alive &= si.is_valid() & ~si.shape.is_emitter()
         bsdf = si.bsdf(ray)
-        if self._top_up_pass is not None or self._first_given:  # events >= 2 only (the 1st given)
+        if self._top_up_pass is not None:  # top-up pass of bounce_min: events >= 2 only
             first = [mi.Float(0.0) for _ in range(n_det)]
-            if self._first_given and self.detector_sampling == "quadrature" and self.quadrature_visibility != "triangle":
-                for _ in range(n_det):  # the numbers its shadow rays take: later events draw the same ones
-                    sampler.next_1d(alive)
-                    sampler.next_2d(alive)
+        elif self.detector_sampling == "quadrature" and self.first_event_fixed and traced > 1 and not counting:
+            # traced in a render's first pass only (render_planes' first): one kernel for every
+            # pass, the branch skipped where the opaque flag is off (no second kernel to compile);
+            # its shadow rays' numbers are drawn either way, so later events draw the same ones
+            rand = self._quadrature_numbers(sampler, alive)
+            first = list(dr.if_stmt((si, ray, alive, rand), alive & self._first_traced,
+                                    lambda si, ray, alive, rand: tuple(
+                                        self._quadrature(scene, None, si, si.bsdf(ray), ctx, ray, alive, rand)),
+                                    lambda *args: tuple(mi.Float(0.0) for _ in range(n_det))))
         elif self.detector_sampling == "quadrature":
             first = self._quadrature(scene, sampler, si, bsdf, ctx, ray, alive)
         else:
@@ -1107,9 +1114,19 @@ class EloIntegrator(mi.SamplingIntegrator):
             out.append(acc)
         return out
 
-    def _quadrature(self, scene, sampler, si, bsdf, ctx, ray, alive):
+    def _quadrature_numbers(self, sampler, alive):
+        """The random numbers :meth:`_quadrature` draws (per detector, for its sampled shadow ray:
+        the triangle, then the point in it), in its order; none with one ray per triangle."""
+        if self.quadrature_visibility == "triangle":
+            return []
+        return [(sampler.next_1d(alive), sampler.next_2d(alive)) for _ in self.detectors]
+
+    def _quadrature(self, scene, sampler, si, bsdf, ctx, ray, alive, rand=None):
         """Appendix A (Eq. A2): sum over detector triangles of Omega_p (Eq. A1, corrected) times
-        g_BSE at the centroid direction; occlusion by one sampled ray or one per triangle."""
+        g_BSE at the centroid direction; occlusion by one sampled ray or one per triangle. The
+        random numbers from ``sampler``, or drawn before (``rand``, :meth:`_quadrature_numbers`)."""
+        if rand is None:
+            rand = self._quadrature_numbers(sampler, alive)
         p = si.p
         omegas, dirs, per_det = [], [], []
         for d, (verts, tris) in enumerate(self._quadrature_geometry):
@@ -1155,8 +1172,8 @@ class EloIntegrator(mi.SamplingIntegrator):
             for w in ws[1:]:
                 total = total + w
             # pick triangle j with probability w_j / total, a uniform point in it, one ray
-            u = sampler.next_1d(alive) * total
-            bary = mi.warp.square_to_uniform_triangle(sampler.next_2d(alive))
+            u = rand[d][0] * total
+            bary = mi.warp.square_to_uniform_triangle(rand[d][1])
             target = mi.Point3f(0.0)
             cum = mi.Float(0.0)
             for j, ((a, b, c), _) in enumerate(tris):
