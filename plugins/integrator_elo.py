@@ -154,10 +154,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._geometry_key = GeometryKey()
         self._occlusion = (None, None)  # (geometry and beam, unblockable_regions) of the last set-up
         self._near = (None, None)  # (geometry, beam, scattering law; near_share) of the last call
-        self._behind = (None, ([], 0.0, []))  # (geometry and beam; surfaces_seen_from_behind, field_missed, surfaces_overlapping)
+        # (geometry and beam; surfaces_seen_from_behind, field_missed, surfaces_overlapping)
+        self._behind = (None, ([], 0.0, []))
         self._met_behind = (None, [])  # (geometry and beam; surfaces_met_from_behind)
         self._top_up_pass = None  # (pixel mask, spp) while the top-up pass of bounce_min renders
-        self._first_traced = dr.opaque(mi.Bool, True)  # off while a pass renders whose 1st event render_planes was given
+        self._first_traced = dr.opaque(mi.Bool, True)  # off in a pass whose 1st event render_planes was given
         self.first_event_fixed = False  # see _prepare_scene
         self._n_shadow = None  # shadow rays cast, while count_rays traces
         self._far = None  # the far-field table (_far_field.FarFieldTable) of the last geometry, or None
@@ -229,13 +230,15 @@ class EloIntegrator(mi.SamplingIntegrator):
             blockers = [sh for _, sh in detectors if may_meet_beam(sh, beam)]
             key = (tuple(self._geometry_key.entry(sh) for sh in scatterers + blockers), _beam_key(beam))
             if self._behind[0] != key:
-                self._behind = (key, (surfaces_seen_from_behind(scatterers, beam, probe), field_missed(scene, beam, probe),
+                self._behind = (key, (surfaces_seen_from_behind(scatterers, beam, probe),
+                                      field_missed(scene, beam, probe),
                                       surfaces_overlapping(scatterers + blockers, beam, probe)))
             behind, missed, overlapping = self._behind[1]
             for pair in overlapping:
+                where = ", ".join(f"{v:g}" for v in pair["point"])
                 self.notes.append(
                     f"{pair['names'][0]} and {pair['names'][1]} lie in one plane and overlap over about "
-                    f"{100 * pair['share']:.3g} % of the scan field (about ({', '.join(f'{v:g}' for v in pair['point'])}) mm): "
+                    f"{100 * pair['share']:.3g} % of the scan field (about ({where}) mm): "
                     "the ray tracer meets either there, point by point, so those pixels mix the two; cut "
                     "the one below out of the other (a floor is a frame around the plate, not a sheet under it)")
             if missed > 0:
