@@ -602,7 +602,7 @@ class EloScene:
                     # (channels, H, W) float32, straight from the film's storage
                     planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n,
                                                               first=first)
-                    if first is None and self.integrator.first_event_fixed and self.integrator.traced_events() > 1:
+                    if first is None and self.integrator.reuses_first_event():
                         first = self.integrator.first_event_planes(planes)
                     if acc is None and n == n_half:
                         acc = planes  # one pass: its own mean

@@ -256,7 +256,8 @@ def surfaces_overlapping(surfaces, sensor, probe) -> list[dict]:
         idx = np.flatnonzero(near)
         if stype == mi.ShapeType.Disk:  # its square cover would reach beyond the rim
             m = to_world_matrix(other)
-            local = p[idx] @ np.linalg.inv(m)[:3, :3].T + np.linalg.inv(m)[:3, 3]
+            inv = np.linalg.inv(m)
+            local = p[idx] @ inv[:3, :3].T + inv[:3, 3]
             normal = np.cross(m[:3, 0], m[:3, 1])
             normal = normal / np.linalg.norm(normal)
             dist = np.abs((p[idx] - m[:3, 3]) @ normal)

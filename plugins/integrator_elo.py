@@ -312,6 +312,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         ``counts``), or None without ``bounce_share``."""
         return self._classes if self._shares_bounces() else None
 
+    def reuses_first_event(self):
+        """Whether a render's later passes take the 1st event of its first (render_planes' ``first``):
+        where it is the same in every pass and later events are traced (rays not counted)."""
+        return self.first_event_fixed and self.traced_events() > 1 and not self.count_rays
+
     def _first_event_fixed(self, beam, probe):
         if beam is None or self.detector_sampling != "quadrature" or getattr(beam, "fwhm", None) != 0:
             return False
@@ -588,7 +593,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             n_spp = int(sensor_obj.sampler().sample_count())
             key = int(np.random.default_rng([seed_value, 28]).integers(1 << 32))
             self._spread = self._classes.ranks() + (dr.opaque(mi.UInt32, n_spp), dr.opaque(mi.UInt32, key))
-        if first is not None and not self.first_event_fixed:
+        if first is not None and not self.reuses_first_event():
             raise ValueError("render_planes: first given where the 1st event is not the same in every pass")
         self._first_traced = dr.opaque(mi.Bool, first is None)
         try:
@@ -696,7 +701,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         bsdf = si.bsdf(ray)
         if self._top_up_pass is not None:  # top-up pass of bounce_min: events >= 2 only
             first = [mi.Float(0.0) for _ in range(n_det)]
-        elif self.detector_sampling == "quadrature" and self.first_event_fixed and traced > 1 and not counting:
+        elif self.detector_sampling == "quadrature" and self.reuses_first_event():
             # traced in a render's first pass only (render_planes' first): one kernel for every
             # pass, the branch skipped where the opaque flag is off (no second kernel to compile);
             # its shadow rays' numbers are drawn either way, so later events draw the same ones
