@@ -1,12 +1,23 @@
 """Occlusion analysis (set-up time): where shadow rays provably cannot be blocked.
 
-Per detector, the scan region on a horizontal planar surface from which nothing in the scene can
-block the view of the detector: no triangle of any other shape (or of the bounding box of a
-non-mesh shape) can cut the convex hull of that region and the detector. Shadow rays from there
-are not cast (flat plate, also inside the chamber); any other surface point casts them as usual.
-numpy (scipy for hulls of many points), once per render; :func:`unblockable` is the kernel's test.
+Per detector, the scan region on a surface from which nothing in the scene can block the view of
+the detector; shadow rays from there are not cast, any other surface point casts them as usual.
+numpy (scipy for hulls of many points), once per geometry; :func:`unblockable` is the kernel's test.
+
+* A horizontal planar surface (flat plate, also inside the chamber): no triangle of any other shape
+  (or of the bounding box of a non-mesh shape) cuts the convex hull of the scan region and the
+  detector.
+* Shallow relief (the melt plate): a mesh that is the graph of a continuous function z = h(x, y)
+  over its bounding rectangle (:func:`relief_graph`), with |grad h| <= s on every triangle. A ray
+  from a point p of the relief towards the detector rises at tan(elevation) > s; along its path
+  h(p + t u) <= h(p) + s t stays below it, so the relief cannot block it, and the other shapes
+  cannot when none cuts the hull of the scan region's box (its xy extent x [z_min, z_max]) and
+  the detector. The elevation is bounded below by (lowest detector point - z_max) / (largest
+  horizontal distance between the box and the detector). Steeper relief (flanks, cliffs,
+  overhangs) keeps its shadow rays.
 """
 
+import hashlib
 import itertools
 
 import drjit as dr
@@ -81,10 +92,24 @@ def _all_separated(points, tris, tol):
     return True
 
 
+def _scan_box(sensor, z_low, lo, hi):
+    """(xmin, xmax, ymin, ymax) of the beam's hits at heights >= ``z_low`` (a margin for the beam
+    profile and rounding), within the xy extent ``lo``-``hi`` of a surface, or None."""
+    if not all(hasattr(sensor, a) for a in ("wd", "field", "field_y")) or not sensor.wd > z_low:
+        return None
+    scale = (sensor.wd - z_low) / sensor.wd if getattr(sensor, "projection", "perspective") == "perspective" else 1.0
+    margin = 5.0 * getattr(sensor, "fwhm", 0.0) + 1e-3 * max(sensor.field, sensor.field_y)
+    hx, hy = (0.5 * sensor.field + margin) * scale, (0.5 * sensor.field_y + margin) * scale
+    box = (max(-hx, lo[0]), min(hx, hi[0]), max(-hy, lo[1]), min(hy, hi[1]))
+    if box[0] >= box[1] or box[2] >= box[3]:
+        return None
+    return box
+
+
 def _beam_region(shape, sensor):
     """(z0, xmin, xmax, ymin, ymax) of the first-event points on a horizontal plane ``shape``
     (rectangle, disk or planar mesh with normal +-z), or None."""
-    if not is_planar(shape) or not all(hasattr(sensor, a) for a in ("wd", "field", "field_y")):
+    if not is_planar(shape):
         return None
     tris = cover_triangles(shape)
     n = np.cross(tris[0, 1] - tris[0, 0], tris[0, 2] - tris[0, 0])
@@ -92,26 +117,109 @@ def _beam_region(shape, sensor):
     if abs(abs(n[2]) - 1.0) > 1e-9:
         return None
     z0 = float(tris[0, 0, 2])
-    if not sensor.wd > z0:
+    box = _scan_box(sensor, z0, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
+    return None if box is None else (z0,) + box
+
+
+def relief_graph(vertices, faces):
+    """(xmin, xmax, ymin, ymax, zmin, zmax, slope) of a triangle mesh (``vertices`` V x 3,
+    ``faces`` F x 3) that is the graph of a continuous function z = h(x, y) over its bounding
+    rectangle, ``slope`` the largest |grad h| of its triangles; None for any other mesh.
+
+    The test: every triangle faces the same way along z (none vertical or degenerate); every edge
+    is shared by two triangles in opposite directions (vertices matched by their coordinates) or
+    is a boundary edge on one side of the rectangle; and the triangles' projected areas sum to
+    the rectangle's. Then the projection is one-to-one inside the rectangle (a local
+    homeomorphism whose boundary runs once round it) and covers it, so h is single-valued and,
+    being piecewise linear, Lipschitz with constant ``slope`` along any segment.
+    """
+    v = np.asarray(vertices, np.float64).reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f) == 0:
         return None
-    scale = (sensor.wd - z0) / sensor.wd if getattr(sensor, "projection", "perspective") == "perspective" else 1.0
-    margin = 5.0 * getattr(sensor, "fwhm", 0.0) + 1e-3 * max(sensor.field, sensor.field_y)
-    hx, hy = (0.5 * sensor.field + margin) * scale, (0.5 * sensor.field_y + margin) * scale
-    lo, hi = tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0)
-    box = (max(-hx, lo[0]), min(hx, hi[0]), max(-hy, lo[1]), min(hy, hi[1]))
-    if box[0] >= box[1] or box[2] >= box[3]:
+    tris = v[f]
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    if not (np.all(n[:, 2] > 0) or np.all(n[:, 2] < 0)):
         return None
-    return (z0,) + box
+    used = tris.reshape(-1, 3)
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    size = max(1.0, float(np.max(hi - lo)))
+    pos, vid = np.unique(v, axis=0, return_inverse=True)  # vertices of equal coordinates are one
+    vid = vid.reshape(-1)[f]
+    a = vid.reshape(-1)
+    b = vid[:, [1, 2, 0]].reshape(-1)
+    key = np.minimum(a, b) * (len(pos) + 1) + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    key, a, b = key[order], a[order], b[order]
+    _, first, count = np.unique(key, return_index=True, return_counts=True)
+    if np.any(count > 2):
+        return None
+    pair = first[count == 2]
+    if not np.all(a[pair] == b[pair + 1]):  # a shared edge runs both ways: one orientation
+        return None
+    single = first[count == 1]
+    pa, pb = pos[a[single], :2], pos[b[single], :2]
+    tol = 1e-9 * size
+    on_side = np.zeros(len(single), bool)
+    for axis, value in ((0, lo[0]), (0, hi[0]), (1, lo[1]), (1, hi[1])):
+        on_side |= (np.abs(pa[:, axis] - value) <= tol) & (np.abs(pb[:, axis] - value) <= tol)
+    if not np.all(on_side):
+        return None
+    area = (hi[0] - lo[0]) * (hi[1] - lo[1])
+    if not area > 0 or abs(0.5 * float(np.sum(np.abs(n[:, 2]))) - area) > 1e-9 * area:
+        return None
+    slope = float(np.max(np.hypot(n[:, 0], n[:, 1]) / np.abs(n[:, 2])))
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(lo[2]), float(hi[2]), slope
+
+
+#: relief_graph of the meshes seen lately, by their vertices and faces: a detector sweep repeats the
+#: analysis at every point, and the test of a 0.12 M-triangle plate takes about 0.08 s
+_GRAPHS = {}
+
+
+def _relief_region(shape, sensor):
+    """(zmin, zmax, slope, xmin, xmax, ymin, ymax) of the scanned part of a relief mesh that is a
+    graph over its rectangle (:func:`relief_graph`), or None."""
+    if shape.shape_type() != mi.ShapeType.Mesh or is_planar(shape):
+        return None
+    v = np.array(shape.vertex_positions_buffer(), dtype=np.float32)
+    f = np.array(shape.faces_buffer(), dtype=np.uint32)
+    key = hashlib.blake2b(v.tobytes() + f.tobytes(), digest_size=16).digest()
+    if key not in _GRAPHS:
+        if len(_GRAPHS) >= 16:
+            _GRAPHS.pop(next(iter(_GRAPHS)))
+        _GRAPHS[key] = relief_graph(v, f)
+    graph = _GRAPHS[key]
+    if graph is None:
+        return None
+    x0, x1, y0, y1, z0, z1, slope = graph
+    box = _scan_box(sensor, z0, (x0, y0), (x1, y1))
+    return None if box is None else (z0, z1, slope) + box
+
+
+def _rises_above(slope, box, z_top, cover):
+    """True where every ray from the box (xy extent ``box``, heights <= ``z_top``) to a point of
+    the detector's ``cover`` (triangles) rises more steeply than ``slope``."""
+    x0, x1, y0, y1 = box
+    pts = cover.reshape(-1, 3)
+    rise = float(pts[:, 2].min()) - z_top
+    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    run = float(np.max(np.linalg.norm(pts[None, :, :2] - corners[:, None, :], axis=-1)))
+    return rise > 0 and rise > slope * run * (1.0 + 1e-9)
 
 
 def unoccluded_regions(scene, sensor, detectors):
-    """Per detector: [(shape, (z0, xmin, xmax, ymin, ymax))] of scan regions on horizontal planar
-    surfaces from which nothing in the scene can block the view of the detector, so that
-    shadow rays from there are not needed (e.g. the flat plate, also inside the chamber)."""
+    """Per detector: [(shape, (z, xmin, xmax, ymin, ymax))] of scan regions on horizontal planar
+    surfaces and on shallow relief from which nothing in the scene can block the view of the
+    detector, so that shadow rays from there are not needed (e.g. the flat plate, also inside the
+    chamber; the melt plate)."""
     shapes = {shape_key(sh): sh for sh in scene.shapes()}
-    regions = [(k, sh, _beam_region(sh, sensor)) for k, sh in shapes.items() if not sh.is_emitter()]
-    regions = [(k, sh, r) for k, sh, r in regions if r is not None]
-    covers = {k: cover_triangles(sh) for k, sh in shapes.items()} if regions else {}
+    planes = [(k, sh, _beam_region(sh, sensor)) for k, sh in shapes.items() if not sh.is_emitter()]
+    planes = [(k, sh, r) for k, sh, r in planes if r is not None]
+    reliefs = [(k, sh, _relief_region(sh, sensor)) for k, sh in shapes.items()
+               if not sh.is_emitter() and not any(k == p[0] for p in planes)]
+    reliefs = [(k, sh, r) for k, sh, r in reliefs if r is not None]
+    covers = {k: cover_triangles(sh) for k, sh in shapes.items()} if planes or reliefs else {}
     out = []
     for _, det in detectors:
         free = []
@@ -119,15 +227,27 @@ def unoccluded_regions(scene, sensor, detectors):
             out.append(free)
             continue
         dk = shape_key(det)
-        for k, sh, (z0, x0, x1, y0, y1) in regions:
+        for k, sh, (z0, x0, x1, y0, y1) in planes:
             pts = np.vstack([[[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0]], covers[dk].reshape(-1, 3)])
-            tol = 1e-6 * max(1.0, float(np.ptp(pts, axis=0).max()))
-            others = [covers[o] for o in shapes if o not in (k, dk)]
-            tris = np.concatenate(others) if others else np.zeros((0, 3, 3))
-            if _all_separated(pts, tris, tol):
+            if _separated_from_others(pts, covers, (k, dk)):
+                free.append((sh, (z0, x0, x1, y0, y1)))
+        for k, sh, (z0, z1, slope, x0, x1, y0, y1) in reliefs:
+            if not _rises_above(slope, (x0, x1, y0, y1), z1, covers[dk]):
+                continue
+            box = [[x, y, z] for z in (z0, z1) for x, y in ((x0, y0), (x1, y0), (x1, y1), (x0, y1))]
+            pts = np.vstack([box, covers[dk].reshape(-1, 3)])
+            if _separated_from_others(pts, covers, (k, dk)):
                 free.append((sh, (z0, x0, x1, y0, y1)))
         out.append(free)
     return out
+
+
+def _separated_from_others(pts, covers, own):
+    """:func:`_all_separated` for the hull of ``pts`` and the triangles of every shape but ``own``."""
+    tol = 1e-6 * max(1.0, float(np.ptp(pts, axis=0).max()))
+    others = [covers[o] for o in covers if o not in own]
+    tris = np.concatenate(others) if others else np.zeros((0, 3, 3))
+    return _all_separated(pts, tris, tol)
 
 
 def unblockable_regions(scene, sensor, detectors):

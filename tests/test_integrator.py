@@ -163,6 +163,116 @@ def test_occlusion_analysis_skips_only_unblockable_rays():
     assert integ2._unblockable_regions[0] == [] and all(integ2._unblockable_regions[1:])
 
 
+def _grid(height, n=12, half=2.0):
+    """(vertices, faces) of a regular grid over [-half, half]^2, z = height(x, y), faces up."""
+    c = np.linspace(-half, half, n + 1)
+    x, y = np.meshgrid(c, c, indexing="xy")
+    v = np.c_[x.ravel(), y.ravel(), height(x, y).ravel()]
+    i = np.arange(n * (n + 1)).reshape(n, n + 1)[:, :n].ravel()
+    faces = np.r_[np.c_[i, i + 1, i + n + 2], np.c_[i, i + n + 2, i + n + 1]]
+    return v, faces
+
+
+def test_relief_graph_is_a_graph_test():
+    """relief_graph accepts a mesh only where it is z = h(x, y) over its whole bounding
+    rectangle, and gives h's largest slope: a plane's gradient exactly; refused: a flipped
+    triangle (a fold), a hole, two stacked sheets, a vertical wall."""
+    from elo_mitsuba.plugins._occlusion import relief_graph
+
+    v, f = _grid(lambda x, y: 0.3 * x - 0.1 * y + 1.0)
+    x0, x1, y0, y1, z0, z1, slope = relief_graph(v, f)
+    assert (x0, x1, y0, y1) == (-2.0, 2.0, -2.0, 2.0)
+    assert (z0, z1) == pytest.approx((1.0 - 0.8, 1.0 + 0.8), abs=1e-12)
+    assert slope == pytest.approx(np.hypot(0.3, 0.1), rel=1e-12)
+    bumps = _grid(lambda x, y: 0.05 * np.sin(3.0 * x) * np.cos(2.0 * y))
+    assert 0.0 < relief_graph(*bumps)[6] <= 0.15 + 1e-9  # |grad| <= 0.05 * hypot(3, 2) < 0.15
+    assert relief_graph(v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)) is not None  # unshared vertices
+    flipped = f.copy()
+    flipped[7] = flipped[7, [0, 2, 1]]
+    assert relief_graph(v, flipped) is None
+    assert relief_graph(v, np.delete(f, [30, 30 + len(f) // 2], axis=0)) is None  # a hole inside
+    # the hole's cell moved up over another cell: the projected areas add up to the rectangle's,
+    # the hole's edges give it away
+    loose = v[f[[40, 40 + len(f) // 2]]].reshape(-1, 3) + [0.0, 0.0, 1.0]
+    moved = np.r_[np.delete(f, [30, 30 + len(f) // 2], axis=0), len(v) + np.arange(6).reshape(2, 3)]
+    assert relief_graph(np.r_[v, loose], moved) is None
+    stacked = np.r_[v, v + [0.0, 0.0, 5.0]]
+    assert relief_graph(stacked, np.r_[f, f + len(v)]) is None
+    wall = np.r_[v, [[2.0, -2.0, 0.0], [2.0, 2.0, 0.0]]]  # not one-to-one: vertices above one another
+    assert relief_graph(wall, np.r_[f, [[len(v), len(v) + 1, 12 * 13 + 12]]]) is None
+
+
+def _relief_scene(tmp_path, amplitude, wavelength, dh, res=8):
+    """flat_scene with the plate a sinusoidal relief (60 mm square, ridges along y) of slope up
+    to 2 pi amplitude / wavelength, detectors at height dh."""
+    import trimesh
+
+    v, f = _grid(lambda x, y: amplitude * np.sin(2 * np.pi * x / wavelength), n=240, half=30.0)
+    path = tmp_path / f"relief_{amplitude:g}_{dh:g}.ply"
+    trimesh.Trimesh(v, f, process=False).export(path)
+    scene = flat_scene(mi, res=res, field=40.0, dh=dh)
+    scene["plate"] = {"type": "ply", "filename": str(path), "bsdf": {"type": "elo_bse", "material": "Ti-6Al-4V"}}
+    return scene
+
+
+def _blocked_share(scene, count=4096, seed=3):
+    """Share of rays from random relief points to random points of each detector that Mitsuba's
+    ray tracer finds blocked (independent of the analysis)."""
+    rng = np.random.default_rng(seed)
+    shapes = {s.id(): s for s in scene.shapes()}
+    plate = shapes["plate"]
+    v = np.array(plate.vertex_positions_buffer()).reshape(-1, 3)
+    f = np.array(plate.faces_buffer()).reshape(-1, 3)
+    inner = np.all(np.abs(v[f][:, :, :2]) <= 21.0, axis=(1, 2))  # the scanned field and its rim
+    tri = v[f[inner][rng.integers(inner.sum(), size=count)]]
+    a, b = rng.random((2, count, 1))
+    fold = a + b > 1
+    a, b = np.where(fold, 1 - a, a), np.where(fold, 1 - b, b)
+    p = tri[:, 0] + a * (tri[:, 1] - tri[:, 0]) + b * (tri[:, 2] - tri[:, 0])
+    out = {}
+    for name in DETECTORS:
+        u = rng.random((2, count)).astype(np.float32)
+        ps = shapes[name].sample_position(0.0, mi.Point2f(u[0], u[1]))  # points on the disc itself
+        q = np.array(ps.p, dtype=np.float64).T
+        d = q - p
+        dist = np.linalg.norm(d, axis=1)
+        origin = p + 1e-4 * np.array([0.0, 0.0, 1.0])
+        ray = mi.Ray3f(mi.Point3f(*origin.T.astype(np.float32)), mi.Vector3f(*(d / dist[:, None]).T.astype(np.float32)))
+        ray.maxt = mi.Float((0.999 * dist).astype(np.float32))
+        out[name] = float(np.mean(np.array(scene.ray_test(ray))))
+    return out
+
+
+def test_occlusion_analysis_on_shallow_relief(tmp_path):
+    """A relief whose slope stays below every detector's elevation cannot hide a detector: the
+    analysis skips its shadow rays (the 1st event is then the same in every pass), Mitsuba's ray
+    tracer finds none of 4096 random relief-to-detector rays per detector blocked, and the render
+    is bit for bit the one that casts them. Steeper relief under low detectors keeps its rays, and
+    the tracer finds them blocked."""
+    shallow = _relief_scene(tmp_path, amplitude=0.4, wavelength=6.0, dh=272.0)  # slope 0.42 < tan 52 deg
+    img, integ = render(shallow, spp=2, seed=4, detector_sampling="quadrature")
+    assert all(integ._unblockable_regions) and integ.first_event_fixed
+    assert all(share == 0.0 for share in _blocked_share(mi.load_dict(shallow)).values())
+    off, integ_off = render(shallow, spp=2, seed=4, detector_sampling="quadrature", occlusion_analysis=False)
+    assert not any(integ_off._unblockable_regions)
+    for name in DETECTORS:
+        assert np.array_equal(img[name], off[name]), name
+    steep = _relief_scene(tmp_path, amplitude=1.2, wavelength=6.0, dh=60.0)  # slope 1.26 > tan 17 deg
+    _, integ_steep = render(steep, spp=1, detector_sampling="quadrature")
+    assert not any(integ_steep._unblockable_regions) and not integ_steep.first_event_fixed
+    assert max(_blocked_share(mi.load_dict(steep)).values()) > 0.05
+
+
+def test_occlusion_analysis_proves_the_melt_plate_unblockable():
+    """The shipped melt plate (slopes <= 19 deg, detectors above 52 deg) is a graph the analysis
+    accepts: every detector unblockable from the scanned field, the 1st event the same in every
+    pass (traced once per render)."""
+    scene = em.load_scene("melt_chamber", res=8)
+    scene.render(quality="default", progress=False)
+    assert scene.integrator.unblockable_detectors() == list(DETECTORS)
+    assert scene.integrator.first_event_fixed and scene.integrator.reuses_first_event()
+
+
 def test_occlusion_hull_equals_qhull():
     """The occlusion analysis finds the facets of its small hulls by trying every triple of points
     (no scipy import at scene load): on random scan regions, tilted detectors and triangles it
