@@ -18,6 +18,8 @@ The relative error of a pixel is ``err / max(|value|, FLOOR x mean |value|)``, a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .options import half_budget
@@ -94,6 +96,29 @@ def describe(summary: dict) -> str:
     return f"{100 * summary['rms_rel']:.3g} % RMS (99 %: {100 * summary['p99_rel']:.3g} %)"
 
 
+def percentile_99(values: np.ndarray) -> float:
+    """``np.percentile(values, 99)`` (linear interpolation) of a flat array, found among the values
+    above a threshold read from every 64th value (about 2 % of them) instead of partitioning all:
+    at 1500^2 2 ms instead of 9 ms a channel. Falls back to the whole array where the threshold
+    leaves too few (ties)."""
+    v = np.asarray(values).reshape(-1)
+    n = v.size
+    if n < 4096:
+        return float(np.percentile(v, 99))
+    k = 0.99 * (n - 1)
+    lo = int(math.floor(k))
+    hi = min(lo + 1, n - 1)
+    sample = v[::64]
+    threshold = np.partition(sample, int(0.98 * (sample.size - 1)))[int(0.98 * (sample.size - 1))]
+    above = v >= threshold
+    below = n - int(np.count_nonzero(above))
+    if below > lo:  # the threshold lies above the order statistics sought: partition them all
+        return float(np.percentile(v, 99))
+    cand = np.partition(v[above], [lo - below, hi - below])
+    a, b = float(cand[lo - below]), float(cand[hi - below])
+    return a + (b - a) * (k - lo)
+
+
 def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float):
     """The mean of two halves of one channel, its per-pixel error and summary, in place.
 
@@ -156,7 +181,7 @@ def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float):
     rel = dr.select(denom > 0, e64 / denom, 0.0)
     dr.eval(rel)
     summary = {"status": ESTIMATED, "rms_rel": float(np.sqrt(reduce(dr.ReduceOp.Add, dr.square(rel)) / n)),
-               "p99_rel": float(np.percentile(np.asarray(rel), 99, overwrite_input=True)),
+               "p99_rel": percentile_99(np.asarray(rel)),
                "rms_abs": float(np.sqrt(reduce(dr.ReduceOp.Add, dr.square(e64)) / n))}
     return mean, err, summary
 

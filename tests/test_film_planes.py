@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import elo_mitsuba as em
-from elo_mitsuba.error_estimate import (DETERMINISTIC, ESTIMATED, combine_halves, halves_error, same_result,
+from elo_mitsuba.error_estimate import (DETERMINISTIC, ESTIMATED, combine_halves, halves_error, percentile_99, same_result,
                                         summarise)
 from elo_mitsuba.film import film_tensor, raw_planes
 
@@ -118,3 +118,25 @@ def test_combine_halves_reports_identical_halves_as_deterministic():
     _, err, summary = combine_halves(a.copy(), b.copy(), 0.5)
     assert err is None and summary["status"] == DETERMINISTIC
     assert same_result(a, b)
+
+
+def test_percentile_99_is_numpys():
+    """The 99th percentile found among the values above a sampled threshold is numpy's (linear
+    interpolation) also where the stride sample misleads: mostly zeros, heavy ties, values sorted
+    so that every 64th is the largest of its run, every 64th far above the rest, heavy tails, and sizes around the cut-over."""
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        n = int(rng.integers(1, 200000)) if trial > 4 else (1, 4095, 4096, 4097, 64 * 70)[trial]
+        x = rng.random(n)
+        kind = trial % 6
+        if kind == 5:
+            x[::64] += 10.0  # the sample holds only the largest: its threshold lies above the 99 %
+        elif kind == 1:
+            x[rng.random(n) < 0.99] = 0.0
+        elif kind == 2:
+            x = np.round(x * 3) / 3
+        elif kind == 3:
+            x = np.sort(x)[::-1].copy()
+        elif kind == 4:
+            x = rng.standard_cauchy(n) ** 2
+        assert percentile_99(x) == pytest.approx(np.percentile(x, 99), rel=1e-12, abs=0.0), (trial, n)
