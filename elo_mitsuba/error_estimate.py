@@ -219,7 +219,9 @@ def split_render(spp: int, integrator, beam_fwhm: float):
     1 spp, 1st event only, by the quadrature with a single-ray beam: with one ray per triangle
     (``triangle`` visibility) the result is deterministic (one render, no sampling error); with
     the sampled visibility two renders (partly occluded detectors are sampled; identical halves
-    are reported as deterministic). 1 spp of sampled detectors: one render, not estimated (one
+    are reported as deterministic), of which :meth:`elo_mitsuba.EloScene.render` keeps the first
+    alone where its set-up finds no shadow ray that could be blocked (the integrator's
+    ``first_event_fixed``). 1 spp of sampled detectors: one render, not estimated (one
     sample per pixel cannot be split).
 
     Parameters

@@ -615,6 +615,13 @@ class EloScene:
                     done += n
                     report(done, time.perf_counter() - t0)
                 sums.append(acc)
+                if (spp == 1 and len(halves) == 2 and self.integrator.traced_events() == 1
+                        and self.integrator.first_event_fixed):
+                    # the set-up of the first half found nothing drawn at random (a single-ray beam,
+                    # the quadrature, no shadow ray that could be blocked): the other half would be
+                    # this render again
+                    first_status = DETERMINISTIC
+                    break
         finally:
             self.integrator.configure(saved)
             report.end()
