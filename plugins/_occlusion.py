@@ -121,55 +121,92 @@ def _beam_region(shape, sensor):
     return None if box is None else (z0,) + box
 
 
+#: Faces per block of :func:`relief_graph`'s per-triangle arithmetic (bounded scratch memory).
+GRAPH_BLOCK = 1 << 20
+#: Most faces of a mesh whose vertices are not shared (one per triangle corner) that
+#: :func:`relief_graph` merges by their coordinates first; above it such a mesh keeps its shadow
+#: rays (the merge sorts every corner: seconds for millions of triangles).
+MERGE_MAX_FACES = 1 << 20
+
+
 def relief_graph(vertices, faces):
     """(xmin, xmax, ymin, ymax, zmin, zmax, slope) of a triangle mesh (``vertices`` V x 3,
     ``faces`` F x 3) that is the graph of a continuous function z = h(x, y) over its bounding
     rectangle, ``slope`` the largest |grad h| of its triangles; None for any other mesh.
 
     The test: every triangle faces the same way along z (none vertical or degenerate); every edge
-    is shared by two triangles in opposite directions (vertices matched by their coordinates) or
-    is a boundary edge on one side of the rectangle; and the triangles' projected areas sum to
-    the rectangle's. Then the projection is one-to-one inside the rectangle (a local
-    homeomorphism whose boundary runs once round it) and covers it, so h is single-valued and,
-    being piecewise linear, Lipschitz with constant ``slope`` along any segment.
+    is shared by two triangles in opposite directions or is a boundary edge on one side of the
+    rectangle (vertices of equal coordinates are one where the mesh does not share them); and the
+    triangles' projected areas sum to the rectangle's. Then the projection is one-to-one inside
+    the rectangle (a local homeomorphism whose boundary runs once round it) and covers it, so h is
+    single-valued and, being piecewise linear, Lipschitz with constant ``slope`` along any segment.
+    A vertex that no face uses but lies outside the faces' rectangle makes the areas disagree: None.
     """
     v = np.asarray(vertices, np.float64).reshape(-1, 3)
-    f = np.asarray(faces, np.int64).reshape(-1, 3)
-    if len(f) == 0:
+    f = np.asarray(faces).reshape(-1, 3)
+    if len(f) == 0 or not np.all(np.isfinite(v)) or not np.issubdtype(f.dtype, np.integer):
         return None
-    tris = v[f]
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    if not (np.all(n[:, 2] > 0) or np.all(n[:, 2] < 0)):
+    up = down = 0
+    area = slope = 0.0
+    for s in range(0, len(f), GRAPH_BLOCK):
+        t = f[s:s + GRAPH_BLOCK]
+        p0 = v[t[:, 0]]
+        e1, e2 = v[t[:, 1]] - p0, v[t[:, 2]] - p0
+        nz = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        up += int(np.count_nonzero(nz > 0))
+        down += int(np.count_nonzero(nz < 0))
+        nx = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
+        ny = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
+        area += 0.5 * float(np.sum(np.abs(nz)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = max(slope, float(np.max(np.hypot(nx, ny) / np.abs(nz))))
+    if not (up == len(f) or down == len(f)):
         return None
-    used = tris.reshape(-1, 3)
-    lo, hi = used.min(axis=0), used.max(axis=0)
-    size = max(1.0, float(np.max(hi - lo)))
-    pos, vid = np.unique(v, axis=0, return_inverse=True)  # vertices of equal coordinates are one
-    vid = vid.reshape(-1)[f]
-    a = vid.reshape(-1)
-    b = vid[:, [1, 2, 0]].reshape(-1)
-    key = np.minimum(a, b) * (len(pos) + 1) + np.maximum(a, b)
-    order = np.argsort(key, kind="stable")
-    key, a, b = key[order], a[order], b[order]
-    _, first, count = np.unique(key, return_index=True, return_counts=True)
-    if np.any(count > 2):
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    rect = (hi[0] - lo[0]) * (hi[1] - lo[1])
+    if not rect > 0 or abs(area - rect) > 1e-9 * rect:
         return None
-    pair = first[count == 2]
-    if not np.all(a[pair] == b[pair + 1]):  # a shared edge runs both ways: one orientation
+    sides = _edges_on_sides(f, v, lo, hi)
+    if sides is None and len(f) <= MERGE_MAX_FACES:
+        pos, vid = np.unique(v, axis=0, return_inverse=True)  # vertices of equal coordinates are one
+        if len(pos) < len(v):
+            sides = _edges_on_sides(vid.reshape(-1)[f], pos, lo, hi)
+    if not sides:
         return None
-    single = first[count == 1]
-    pa, pb = pos[a[single], :2], pos[b[single], :2]
-    tol = 1e-9 * size
-    on_side = np.zeros(len(single), bool)
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(lo[2]), float(hi[2]), slope
+
+
+def _edges_on_sides(f, v, lo, hi):
+    """True if every edge of faces ``f`` runs once each way (two triangles, one orientation) or is a
+    boundary edge on one side of the rectangle ``lo``-``hi``; False if an edge runs twice the same
+    way; None if a boundary edge lies elsewhere (a hole, or vertices the mesh does not share).
+    Edges are keyed a (V + 1) + b, built and looked up in blocks of faces (a 4.5 M-triangle mesh:
+    0.1 GB of keys, not a gigabyte of temporaries)."""
+    n = len(v) + 1
+
+    def keys(block, reverse=False):
+        a = block.astype(np.int64)
+        b = a[:, [1, 2, 0]]
+        return (b * n + a).reshape(-1) if reverse else (a * n + b).reshape(-1)
+
+    directed = np.empty(3 * len(f), np.int64)
+    for s in range(0, len(f), GRAPH_BLOCK):
+        directed[3 * s:3 * (s + len(f[s:s + GRAPH_BLOCK]))] = keys(f[s:s + GRAPH_BLOCK])
+    directed.sort()
+    if np.any(directed[1:] == directed[:-1]):
+        return False
+    lone = []
+    for s in range(0, len(f), GRAPH_BLOCK):
+        reverse = keys(f[s:s + GRAPH_BLOCK], reverse=True)
+        at = np.minimum(np.searchsorted(directed, reverse), len(directed) - 1)
+        lone.append(reverse[directed[at] != reverse])  # no twin: a boundary edge (b, a)
+    lone = np.concatenate(lone)
+    pa, pb = v[lone % n, :2], v[lone // n, :2]
+    tol = 1e-9 * max(1.0, float(np.max(hi - lo)))
+    on_side = np.zeros(len(pa), bool)
     for axis, value in ((0, lo[0]), (0, hi[0]), (1, lo[1]), (1, hi[1])):
         on_side |= (np.abs(pa[:, axis] - value) <= tol) & (np.abs(pb[:, axis] - value) <= tol)
-    if not np.all(on_side):
-        return None
-    area = (hi[0] - lo[0]) * (hi[1] - lo[1])
-    if not area > 0 or abs(0.5 * float(np.sum(np.abs(n[:, 2]))) - area) > 1e-9 * area:
-        return None
-    slope = float(np.max(np.hypot(n[:, 0], n[:, 1]) / np.abs(n[:, 2])))
-    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(lo[2]), float(hi[2]), slope
+    return True if np.all(on_side) else None
 
 
 #: relief_graph of the meshes seen lately, by their vertices and faces: a detector sweep repeats the

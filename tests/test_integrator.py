@@ -173,10 +173,11 @@ def _grid(height, n=12, half=2.0):
     return v, faces
 
 
-def test_relief_graph_is_a_graph_test():
+def test_relief_graph_is_a_graph_test(monkeypatch):
     """relief_graph accepts a mesh only where it is z = h(x, y) over its whole bounding
     rectangle, and gives h's largest slope: a plane's gradient exactly; refused: a flipped
     triangle (a fold), a hole, two stacked sheets, a vertical wall."""
+    from elo_mitsuba.plugins import _occlusion as occ
     from elo_mitsuba.plugins._occlusion import relief_graph
 
     v, f = _grid(lambda x, y: 0.3 * x - 0.1 * y + 1.0)
@@ -186,7 +187,10 @@ def test_relief_graph_is_a_graph_test():
     assert slope == pytest.approx(np.hypot(0.3, 0.1), rel=1e-12)
     bumps = _grid(lambda x, y: 0.05 * np.sin(3.0 * x) * np.cos(2.0 * y))
     assert 0.0 < relief_graph(*bumps)[6] <= 0.15 + 1e-9  # |grad| <= 0.05 * hypot(3, 2) < 0.15
-    assert relief_graph(v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)) is not None  # unshared vertices
+    unshared = (v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3))  # a vertex per corner
+    assert relief_graph(*unshared) is not None
+    monkeypatch.setattr(occ, "MERGE_MAX_FACES", len(f) - 1)  # too many to merge: refused, not guessed
+    assert relief_graph(*unshared) is None and relief_graph(v, f) is not None
     flipped = f.copy()
     flipped[7] = flipped[7, [0, 2, 1]]
     assert relief_graph(v, flipped) is None
@@ -247,7 +251,7 @@ def test_occlusion_analysis_on_shallow_relief(tmp_path):
     """A relief whose slope stays below every detector's elevation cannot hide a detector: the
     analysis skips its shadow rays (the 1st event is then the same in every pass), Mitsuba's ray
     tracer finds none of 4096 random relief-to-detector rays per detector blocked, and the render
-    is bit for bit the one that casts them. Steeper relief under low detectors keeps its rays, and
+    is the one that casts them. Steeper relief under low detectors keeps its rays, and
     the tracer finds them blocked."""
     shallow = _relief_scene(tmp_path, amplitude=0.4, wavelength=6.0, dh=272.0)  # slope 0.42 < tan 52 deg
     img, integ = render(shallow, spp=2, seed=4, detector_sampling="quadrature")
@@ -255,8 +259,9 @@ def test_occlusion_analysis_on_shallow_relief(tmp_path):
     assert all(share == 0.0 for share in _blocked_share(mi.load_dict(shallow)).values())
     off, integ_off = render(shallow, spp=2, seed=4, detector_sampling="quadrature", occlusion_analysis=False)
     assert not any(integ_off._unblockable_regions)
-    for name in DETECTORS:
-        assert np.array_equal(img[name], off[name]), name
+    for name in DETECTORS:  # to float32 rounding: a process's first render rounds a few pixels
+        # otherwise than later ones (measured 2.6e-7); a skipped ray that was blocked costs % here
+        np.testing.assert_allclose(img[name], off[name], rtol=1e-6, atol=0, err_msg=name)
     steep = _relief_scene(tmp_path, amplitude=1.2, wavelength=6.0, dh=60.0)  # slope 1.26 > tan 17 deg
     _, integ_steep = render(steep, spp=1, detector_sampling="quadrature")
     assert not any(integ_steep._unblockable_regions) and not integ_steep.first_event_fixed
