@@ -99,7 +99,7 @@ def describe(summary: dict) -> str:
 def percentile_99(values: np.ndarray) -> float:
     """``np.percentile(values, 99)`` (linear interpolation) of a flat array, found among the values
     above a threshold read from every 64th value (about 2 % of them) instead of partitioning all:
-    at 1500^2 2 ms instead of 9 ms a channel. Falls back to the whole array where the threshold
+    at 1500^2 3 ms instead of 9 ms a channel. Falls back to the whole array where the threshold
     leaves too few (ties)."""
     v = np.asarray(values).reshape(-1)
     n = v.size
