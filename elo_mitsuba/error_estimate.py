@@ -220,8 +220,8 @@ def split_render(spp: int, integrator, beam_fwhm: float):
     (``triangle`` visibility) the result is deterministic (one render, no sampling error); with
     the sampled visibility two renders (partly occluded detectors are sampled; identical halves
     are reported as deterministic), of which :meth:`elo_mitsuba.EloScene.render` keeps the first
-    alone where its set-up finds no shadow ray that could be blocked (the integrator's
-    ``first_event_fixed``). 1 spp of sampled detectors: one render, not estimated (one
+    alone where its set-up finds no shadow ray that could be blocked (:func:`first_half_suffices`).
+    1 spp of sampled detectors: one render, not estimated (one
     sample per pixel cannot be split).
 
     Parameters
@@ -250,6 +250,14 @@ def split_render(spp: int, integrator, beam_fwhm: float):
             return [(1, None)], DETERMINISTIC
         return [(1, integrator.options), (1, integrator.options)], None
     return [(1, None)], NOT_ESTIMATED
+
+
+def first_half_suffices(spp: int, integrator, halves) -> bool:
+    """Whether a render split by :func:`split_render` may stop after its first half: 1 spp of the
+    1st event alone where the set-up of that half found nothing drawn at random (a single-ray
+    beam, the quadrature, no shadow ray that could be blocked: the integrator's
+    ``first_event_fixed``), so that the other half would be the same render again."""
+    return spp == 1 and len(halves) == 2 and integrator.traced_events() == 1 and bool(integrator.first_event_fixed)
 
 
 def combine_channels(names, sums, counts, equal_halves: bool, forced_status):

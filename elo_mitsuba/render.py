@@ -28,7 +28,7 @@ from .constants import MAX_SEED, MAX_SPP
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
 from .grid import ORIENTATION
-from .error_estimate import DETERMINISTIC, METHOD, combine_channels, split_render
+from .error_estimate import DETERMINISTIC, METHOD, combine_channels, first_half_suffices, split_render
 from .sample_counts import each_pass, pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, check_scene_options, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
@@ -583,9 +583,8 @@ class EloScene:
         # progress counts samples of both halves (a half of a 1-spp render counts as one)
         work = sum(n for n, _ in halves)
         report = RenderProgress(work, n_passes, progress)
-        # film channels: 'Y' (sum over detectors) then the AOVs in our order; copied into one
-        # float32 channel-major array, so that peak memory stays near the film's own; the passes
-        # of each half are summed in float64
+        # film channels ('Y', then the AOVs in our order) as (channels, H, W) float32 straight from the
+        # film's storage (peak memory near the film's own); the passes of each half summed in float64
         sums = []
         done = p = 0
         t0 = time.perf_counter()
@@ -599,7 +598,6 @@ class EloScene:
                     self.integrator.configure(options)
                 acc = None
                 for n in each_pass(sizes):
-                    # (channels, H, W) float32, straight from the film's storage
                     planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n,
                                                               first=first)
                     if first is None and self.integrator.reuses_first_event():
@@ -615,11 +613,7 @@ class EloScene:
                     done += n
                     report(done, time.perf_counter() - t0)
                 sums.append(acc)
-                if (spp == 1 and len(halves) == 2 and self.integrator.traced_events() == 1
-                        and self.integrator.first_event_fixed):
-                    # the set-up of the first half found nothing drawn at random (a single-ray beam,
-                    # the quadrature, no shadow ray that could be blocked): the other half would be
-                    # this render again
+                if first_half_suffices(spp, self.integrator, halves):  # the other half: this render again
                     first_status = DETERMINISTIC
                     break
         finally:

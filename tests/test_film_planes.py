@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 import elo_mitsuba as em
-from elo_mitsuba.error_estimate import (DETERMINISTIC, ESTIMATED, combine_halves, halves_error, percentile_99, same_result,
-                                        summarise)
+from elo_mitsuba.error_estimate import (DETERMINISTIC, ESTIMATED, combine_halves, halves_error, percentile_99,
+                                        same_result, summarise)
 from elo_mitsuba.film import film_tensor, raw_planes
 
 mi = em.ensure_variant()
@@ -123,7 +123,8 @@ def test_combine_halves_reports_identical_halves_as_deterministic():
 def test_percentile_99_is_numpys():
     """The 99th percentile found among the values above a sampled threshold is numpy's (linear
     interpolation) also where the stride sample misleads: mostly zeros, heavy ties, values sorted
-    so that every 64th is the largest of its run, every 64th far above the rest, heavy tails, and sizes around the cut-over."""
+    so that every 64th is the largest of its run, every 64th far above the rest, heavy tails, and
+    sizes around the cut-over."""
     rng = np.random.default_rng(0)
     for trial in range(200):
         n = int(rng.integers(1, 200000)) if trial > 4 else (1, 4095, 4096, 4097, 64 * 70)[trial]
