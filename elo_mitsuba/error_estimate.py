@@ -160,8 +160,10 @@ def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float):
 
     x, y = load(a), load(b)
     dx, dy = f64(x), f64(y)
-    m = f32(w * dx + (1.0 - w) * dy)
-    e = f32(np.sqrt(w * (1.0 - w)) * dr.abs(dx - dy))
+    # the weights and the floor as opaque values: as literals each render would compile anew
+    wa, wb, k = (dr.opaque(f64, c) for c in (w, 1.0 - w, np.sqrt(w * (1.0 - w))))
+    m = f32(wa * dx + wb * dy)
+    e = f32(k * dr.abs(dx - dy))
     dr.eval(m, e)
 
     def reduce(op, v):
@@ -176,7 +178,7 @@ def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float):
     err = b if b.dtype == np.float32 else np.empty(b.shape, np.float32)
     err.reshape(-1)[...] = np.asarray(e)
     m64, e64 = f64(m), f64(e)
-    floor = FLOOR * reduce(dr.ReduceOp.Add, dr.abs(m64)) / n
+    floor = dr.opaque(f64, FLOOR * reduce(dr.ReduceOp.Add, dr.abs(m64)) / n)
     denom = dr.maximum(dr.abs(m64), floor)
     rel = dr.select(denom > 0, e64 / denom, 0.0)
     dr.eval(rel)
