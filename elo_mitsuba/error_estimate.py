@@ -1,4 +1,4 @@
-"""The per-render error estimate: two independent halves of the samples, A and B (numpy).
+"""The per-render error estimate: two independent halves of the samples, A and B (Dr.Jit, numpy).
 
 A render is the weighted mean ``w_a A + w_b B`` of two independent estimates with ``w_a + w_b = 1``
 (the halves' shares of the samples). For unbiased halves with variances s^2/w_a and s^2/w_b
@@ -126,7 +126,7 @@ def combine_halves(a: np.ndarray, b: np.ndarray, share_a: float):
     :func:`same_result`, :func:`halves_error` and :func:`summarise` (to rounding in the summary),
     in a few Dr.Jit kernels of the active Mitsuba variant (all cores; numpy's whole-image float64
     temporaries cost more than the arithmetic at 1500^2 x 12 channels, and its blocked passes ran
-    on one core: 0.33 s a render at 1500^2 against 0.2 s here, benchmarks/RESULTS.md).
+    on one core: 0.34 s a render at 1500^2 against 0.115 s here, benchmarks/RESULTS.md).
 
     Parameters
     ----------
