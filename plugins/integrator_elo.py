@@ -284,7 +284,8 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._unblockable_regions = self._occlusion[1]
         #: whether every pass computes the 1st event alike (nothing drawn at random): the quadrature
         #: under a single-ray beam, with one ray per triangle or no shadow ray cast anywhere in the
-        #: field (every beam hit unblockable for every detector: a flat plate, also in the chamber)
+        #: field (every beam hit unblockable for every detector: a flat plate, also in the chamber, or
+        #: relief too shallow to hide one, _occlusion.relief_graph)
         self.first_event_fixed = self._first_event_fixed(beam, probe)
         if self._far_on() and self.traced_events() > 1 and beam is not None:
             self._update_far_field(scene, beam)
