@@ -221,7 +221,9 @@ def _relief_region(shape, sensor):
         return None
     v = np.array(shape.vertex_positions_buffer(), dtype=np.float32)
     f = np.array(shape.faces_buffer(), dtype=np.uint32)
-    key = hashlib.blake2b(v.tobytes() + f.tobytes(), digest_size=16).digest()
+    digest = hashlib.blake2b(v, digest_size=16)
+    digest.update(f)
+    key = digest.digest()
     if key not in _GRAPHS:
         if len(_GRAPHS) >= 16:
             _GRAPHS.pop(next(iter(_GRAPHS)))
@@ -253,8 +255,7 @@ def unoccluded_regions(scene, sensor, detectors):
     shapes = {shape_key(sh): sh for sh in scene.shapes()}
     planes = [(k, sh, _beam_region(sh, sensor)) for k, sh in shapes.items() if not sh.is_emitter()]
     planes = [(k, sh, r) for k, sh, r in planes if r is not None]
-    reliefs = [(k, sh, _relief_region(sh, sensor)) for k, sh in shapes.items()
-               if not sh.is_emitter() and not any(k == p[0] for p in planes)]
+    reliefs = [(k, sh, _relief_region(sh, sensor)) for k, sh in shapes.items() if not sh.is_emitter()]
     reliefs = [(k, sh, r) for k, sh, r in reliefs if r is not None]
     covers = {k: cover_triangles(sh) for k, sh in shapes.items()} if planes or reliefs else {}
     out = []
