@@ -68,7 +68,8 @@ events 3: e3 10.4 -> 9.1 %; melt_chamber's e3, whose noise is not in the directi
 Model only what the scene requires. Scenes whose only scattering surface is one plane
 (``rectangle``, ``disk`` or a planar mesh) cannot scatter an electron twice: events >= 2 are
 then exactly zero, no bounce ray is traced and ``notes`` says so. Shadow rays that provably
-cannot be blocked are not cast (:mod:`._occlusion`).
+cannot be blocked are not cast: from the scanned surfaces (:mod:`._occlusion`) and, for events
+>= 2, from the walls, shields and other few-faced meshes (:mod:`._occlusion_tiles`).
 
 Outputs (one pass): for each detector ``<id>`` the total over the counted events and, when
 ``events > 1``, each event alone as ``<id>.e<k>``. Values are N_d/N_0, or detector voltages
@@ -110,6 +111,7 @@ from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, bu
                          near_share, reduce_table, scattering_key)
 from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
+from ._occlusion_tiles import WALL_TILES_MIN_PATHS, WallTiles
 from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
@@ -147,6 +149,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._plate_keys = []  # [(detector index, opaque shape id)] of the backscattering detectors
         self._g_tables = None  # g_BSE tables of the scene's elo_bse BSDFs (None: dispatch)
         self._unblockable_regions = []  # per detector, see _occlusion.unblockable_regions
+        self._wall_tiles = None  # _occlusion_tiles.WallTiles with a free cell, while events >= 2 are traced
+        self._tiles = (None, None)  # (geometry and detectors, WallTiles) of the last set-up
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
@@ -282,6 +286,8 @@ class EloIntegrator(mi.SamplingIntegrator):
             if self._occlusion[0] != key:
                 self._occlusion = (key, unblockable_regions(scene, beam, detectors))
             self._unblockable_regions = self._occlusion[1]
+        self._wall_tiles = None  # set by a render that traces enough paths (_use_wall_tiles)
+        self._tiles_key = (geometry, tuple(name for name, _ in detectors))
         #: whether every pass computes the 1st event alike (nothing drawn at random): the quadrature
         #: under a single-ray beam, with one ray per triangle or no shadow ray cast anywhere in the
         #: field (every beam hit unblockable for every detector: a flat plate, also in the chamber, or
@@ -581,6 +587,7 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _render_planes(self, scene, sensor, seed, spp, first=None):
         sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         self.prepare_scene(scene, sensor_obj)
+        self._use_wall_tiles(scene, sensor_obj, spp)
         # the block selection of bounce_fraction: a fresh uniform shift per seed (unbiased)
         seed_value = int(np.array(seed, dtype=np.uint64).ravel()[0]) if not isinstance(seed, int) else seed
         self._block_offset = dr.opaque(mi.Float, float(np.random.default_rng([seed_value, 7]).random()))
@@ -637,6 +644,22 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._totals(planes, index)
         sensor_obj.sampler().seed(0, 1)  # as mi.render: the sampler's state no longer depends on the render
         return planes[:len(self.channel_names())], buffer
+
+    def _use_wall_tiles(self, scene, sensor, spp):
+        """The walls' free cells (:mod:`._occlusion_tiles`) for a pass that traces at least
+        :data:`WALL_TILES_MIN_PATHS` continuation paths: once per geometry and detectors (a sweep
+        that moves no detector reuses them; a smaller render does not pay the analysis)."""
+        self._wall_tiles = None
+        if not (self.occlusion_analysis and self.traced_events() > 1):
+            return
+        size = sensor.film().crop_size()
+        n_spp = int(spp) if int(spp) > 0 else int(sensor.sampler().sample_count())
+        paths = int(size[0]) * int(size[1]) * n_spp * self.bounce_samples * self.bounce_fraction
+        if paths < WALL_TILES_MIN_PATHS:
+            return
+        if self._tiles[0] != self._tiles_key:
+            self._tiles = (self._tiles_key, WallTiles(scene, self.detectors))
+        self._wall_tiles = self._tiles[1] if self._tiles[1].any_free() else None
 
     def _pass_planes(self, scene, sensor, sensor_obj, seed, spp, names):
         """One render pass of the base class; the film channels ``names`` (of :meth:`aov_names`)
@@ -1078,6 +1101,9 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _visible(self, scene, si, target, test, d):
         """test & not occluded on the way from si to target (a point on detector d)."""
         skip = unblockable(si, self._unblockable_regions[d])
+        wall = self._wall_tiles.free(si, d) if self._wall_tiles is not None else None
+        if wall is not None:
+            skip = wall if skip is None else skip | wall
         cast = test if skip is None else test & ~skip
         return test & ~self._ray_test(scene, si.spawn_ray_to(target), cast)
 
