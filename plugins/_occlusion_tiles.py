@@ -44,10 +44,14 @@ from ._shapes import cover_triangles, is_planar, shape_key
 #: 39-41, 43-45 % in 0.16, 0.45, 1.7 s (where another detector, the radiation sheet or the shield
 #: hides a detector, the border of the free part is refined; the rest is decided at the first levels).
 TILE_LEVELS = 3
-#: A render pass tiles the walls only when it traces at least this many continuation paths
-#: (pixels x samples x paths per sample): the analysis costs 0.07-0.09 s on the shipped chambers
-#: and 0.45 s with the heat shield, once per geometry and detectors.
-WALL_TILES_MIN_PATHS = 1 << 21
+#: A render pass uses the walls' cells only when it traces at least this many continuation paths
+#: per candidate triangle and detector (:func:`worth_tiling`): the analysis grows with the triangles
+#: (0.07-0.09 s for the chamber's 30, 0.37 s with the heat shield's 62, once per geometry and
+#: detectors) and pays back per path. Measured warm, interleaved (benchmarks/RESULTS.md, Far field,
+#: "The walls' shadow rays"): 256^2 `default` (2.6 M paths a pass) athene_flat 0.94x and
+#: melt_chamber 0.83x the time, shield_chamber 0.98x (0.02 s saved, 0.37 s of analysis at every
+#: detector move: off at this threshold); 1500^2 `default` on athene_flat (1.2 M) 1.00x.
+PATHS_PER_TILED_FACE = 1 << 14
 #: Meshes with more faces are not tiled (their shadow rays are cast): the scanned relief is the
 #: scan regions' business (:mod:`._occlusion`), and the analysis grows with the faces.
 MAX_TILE_FACES = 128
@@ -108,26 +112,26 @@ def separated_batch(points, tris, own=None):
     near = np.all(tris.max(axis=1)[None] >= lo[:, None], axis=2) & np.all(tris.min(axis=1)[None] <= hi[:, None], axis=2)
     if own is not None:
         near[np.arange(len(points))[own >= 0], own[own >= 0]] = False
-    out = np.ones(len(points), bool)
-    rows = np.nonzero(np.any(near, axis=1))[0]
-    if len(rows) == 0:
-        return out
+    # only the (hull, blocker) pairs whose bounding boxes meet (a quarter of them on shield_chamber)
+    pb, po = np.nonzero(near)
+    if len(pb) == 0:
+        return np.ones(len(points), bool)
     tn = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     tlen = np.linalg.norm(tn, axis=1)
     tok = tlen > 0
     tn = tn / np.where(tok, tlen, 1.0)[:, None]
     toff = np.einsum("ok,ok->o", tn, tris[:, 0])
-    corners = tris.reshape(-1, 3)  # (3 O, 3)
-    o = len(tris)
-    for s in range(0, len(rows), BATCH):
-        r = rows[s:s + BATCH]
-        pl, va, t = planes[r], valid[r], tol[r][:, None, None]
-        d = (corners @ pl[..., :3].transpose(0, 2, 1) + pl[:, None, :, 3]).reshape(len(r), o, 3, -1)
-        sep = np.any(va[:, None, :] & np.all(d > t[..., None], axis=2), axis=2)  # (b, O)
-        side = (points[r] @ tn.T).transpose(0, 2, 1) - toff[None, :, None]  # (b, O, P)
-        sep |= tok[None] & (np.all(side >= -t, axis=2) | np.all(side <= t, axis=2))
-        out[r] = np.all(sep | ~near[r], axis=1)
-    return out
+    sep = np.empty(len(pb), bool)
+    for s in range(0, len(pb), 8 * BATCH):
+        b, o = pb[s:s + 8 * BATCH], po[s:s + 8 * BATCH]
+        pl, t = planes[b], tol[b][:, None, None]
+        d = np.einsum("pvk,pfk->pvf", tris[o], pl[..., :3]) + pl[:, None, :, 3]  # (pairs, 3, planes)
+        ok = np.any(valid[b] & np.all(d > t, axis=1), axis=1)
+        side = np.einsum("pqk,pk->pq", points[b], tn[o]) - toff[o][:, None]  # (pairs, points)
+        t = t[:, :, 0]
+        ok |= tok[o] & (np.all(side >= -t, axis=1) | np.all(side <= t, axis=1))
+        sep[s:s + 8 * BATCH] = ok
+    return np.bincount(pb[~sep], minlength=len(points)) == 0
 
 
 def _block_polygons(tris, i0, j0, size, n, margin):
@@ -184,6 +188,20 @@ def free_cells(tris, blockers, tri_blocker_index, det_points, levels=TILE_LEVELS
     return free
 
 
+def candidates(scene, detectors):
+    """The meshes whose triangles are tiled: no detector, 1 to :data:`MAX_TILE_FACES` faces."""
+    det_keys = {shape_key(det) for _, det in detectors}
+    return [sh for sh in scene.shapes() if sh.is_mesh() and shape_key(sh) not in det_keys
+            and 0 < sh.face_count() <= MAX_TILE_FACES]
+
+
+def worth_tiling(scene, detectors, paths):
+    """Whether a pass of ``paths`` continuation paths pays for the analysis of the walls
+    (:data:`PATHS_PER_TILED_FACE` per candidate triangle and detector)."""
+    faces = sum(sh.face_count() for sh in candidates(scene, detectors))
+    return faces > 0 and paths >= PATHS_PER_TILED_FACE * faces * len(detectors)
+
+
 class WallTiles:
     """The free cells of the candidate meshes per detector, as kernel arrays (:meth:`free`)."""
 
@@ -191,12 +209,10 @@ class WallTiles:
         self.levels = levels
         n = 1 << levels
         shapes = {shape_key(sh): sh for sh in scene.shapes()}
-        det_keys = {shape_key(det) for _, det in detectors}
-        candidates = [sh for k, sh in shapes.items() if sh.is_mesh() and k not in det_keys
-                      and 0 < sh.face_count() <= MAX_TILE_FACES]
-        tiled = {shape_key(sh) for sh in candidates}
+        tiled_meshes = candidates(scene, detectors)
+        tiled = {shape_key(sh) for sh in tiled_meshes}
         self.meshes, tris, base = [], [], 0
-        for sh in candidates:
+        for sh in tiled_meshes:
             self.meshes.append((dr.opaque(mi.UInt32, shape_key(sh)), dr.opaque(mi.UInt32, base)))
             tris.append(cover_triangles(sh))
             base += sh.face_count()

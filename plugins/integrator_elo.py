@@ -111,7 +111,7 @@ from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, bu
                          near_share, reduce_table, scattering_key)
 from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
-from ._occlusion_tiles import WALL_TILES_MIN_PATHS, WallTiles
+from ._occlusion_tiles import WallTiles, worth_tiling
 from ._shapes import GeometryKey, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
@@ -646,16 +646,16 @@ class EloIntegrator(mi.SamplingIntegrator):
         return planes[:len(self.channel_names())], buffer
 
     def _use_wall_tiles(self, scene, sensor, spp):
-        """The walls' free cells (:mod:`._occlusion_tiles`) for a pass that traces at least
-        :data:`WALL_TILES_MIN_PATHS` continuation paths: once per geometry and detectors (a sweep
-        that moves no detector reuses them; a smaller render does not pay the analysis)."""
+        """The walls' free cells (:mod:`._occlusion_tiles`) for a pass that traces enough
+        continuation paths to pay for them (:func:`._occlusion_tiles.worth_tiling`): once per
+        geometry and detectors (a sweep that moves no detector reuses them)."""
         self._wall_tiles = None
         if not (self.occlusion_analysis and self.traced_events() > 1):
             return
         size = sensor.film().crop_size()
         n_spp = int(spp) if int(spp) > 0 else int(sensor.sampler().sample_count())
         paths = int(size[0]) * int(size[1]) * n_spp * self.bounce_samples * self.bounce_fraction
-        if paths < WALL_TILES_MIN_PATHS:
+        if not worth_tiling(scene, self.detectors, paths):
             return
         if self._tiles[0] != self._tiles_key:
             self._tiles = (self._tiles_key, WallTiles(scene, self.detectors))
