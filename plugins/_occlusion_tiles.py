@@ -37,12 +37,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._shapes import cover_triangles, is_planar, shape_key
+from ._shapes import box_triangles, cover_triangles, is_planar, shape_key
 
 #: Cells per triangle side = 2^TILE_LEVELS. corrugated_chamber's walls: 73-74 % of their cells free
 #: at 2 levels (0.04 s), 77-80 % at 3 (0.07-0.09 s), 80-83 % at 4 (0.22 s); shield_chamber 33-36,
-#: 39-41, 43-45 % in 0.16, 0.45, 1.7 s (where another detector, the radiation sheet or the shield
-#: hides a detector, the border of the free part is refined; the rest is decided at the first levels).
+#: 39-41, 43-45 % in 0.16, 0.45, 1.7 s, measured before only overlapping pairs were tested (0.37 s
+#: at 3 levels since). Where another detector, the radiation sheet or the shield hides a detector
+#: the border of the free part is refined; the rest is decided at the first levels.
 TILE_LEVELS = 3
 #: A render pass uses the walls' cells only when it traces at least this many continuation paths
 #: per candidate triangle and detector (:func:`worth_tiling`): the analysis grows with the triangles
@@ -62,19 +63,9 @@ MAX_DETECTOR_POINTS = 8
 #: Cells are widened by this much (barycentric units) for the float32 rounding of the kernel's
 #: (b1, b2): about 1e-6 for a 700 mm wall.
 TILE_MARGIN = 1e-5
-#: Blocks tested at a time (bounds the (blocks, blockers, corners, planes) scratch to ~100 MB).
+#: Blocks whose hulls are built at a time; their (hull, blocker) pairs are tested 8 x BATCH at a time
+#: (scratch of a few MB).
 BATCH = 512
-
-_BOX_FACES = np.array([(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1),
-                       (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)])
-
-
-def _box_triangles(shape):
-    bb = shape.bbox()
-    lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()
-    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    return c[_BOX_FACES]
-
 
 def _hull_planes_batch(points):
     """Planes (B, F, 4) ``n . x + c`` (<= 0 inside) of the convex hulls of ``points`` (B, P, 3)
@@ -222,7 +213,7 @@ class WallTiles:
             self.flags = [None for _ in detectors]
             return
         others = {shape_key(sh): (cover_triangles(sh) if not (sh.is_mesh() and sh.face_count() > BOX_ABOVE_FACES)
-                                  else _box_triangles(sh))
+                                  else box_triangles(sh))
                   for k, sh in shapes.items() if k not in tiled}
         area = np.linalg.norm(np.cross(self.tris[:, 1] - self.tris[:, 0], self.tris[:, 2] - self.tris[:, 0]), axis=1)
         usable = area > 1e-12 * max(1.0, float(np.ptp(self.tris.reshape(-1, 3), axis=0).max())) ** 2

@@ -55,6 +55,11 @@ def cover_triangles(shape):
         m = to_world_matrix(shape)
         sq = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) @ m[:3, :3].T + m[:3, 3]
         return np.array([[sq[0], sq[1], sq[2]], [sq[0], sq[2], sq[3]]])
+    return box_triangles(shape)
+
+
+def box_triangles(shape):
+    """The 12 triangles of ``shape``'s bounding box."""
     bb = shape.bbox()
     lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()
     c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
