@@ -151,6 +151,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._unblockable_regions = []  # per detector, see _occlusion.unblockable_regions
         self._wall_tiles = None  # _occlusion_tiles.WallTiles with a free cell, while events >= 2 are traced
         self._tiles = (None, None)  # (geometry and detectors, WallTiles) of the last set-up
+        self._tiles_key = None  # the geometry and detectors of the last set-up (the key of _tiles)
         self._block_offset = dr.opaque(mi.Float, 0.5)  # per-render random shift of the block pattern
         self._roulette_key = dr.opaque(mi.UInt32, 0)  # per-render key of far_roulette's block numbers
         self._in_render = False
