@@ -225,9 +225,11 @@ class WallTiles:
                 self.cells.append(None)
                 self.flags.append(None)
                 continue
-            blockers = np.concatenate([self.tris] + [tri for k, tri in others.items() if k != dk])
-            index = np.arange(len(self.tris))
-            cells = free_cells(self.tris[usable], blockers, index[usable], det_points, levels)
+            # a triangle of no area blocks nothing (the tracer never hits it); as a blocker its
+            # corners on a tile's edge would refuse the cells along it
+            blockers = np.concatenate([self.tris[usable]] + [tri for k, tri in others.items() if k != dk])
+            index = np.arange(int(np.count_nonzero(usable)))
+            cells = free_cells(self.tris[usable], blockers, index, det_points, levels)
             full = np.zeros((len(self.tris), n, n), bool)
             full[usable] = cells
             self.cells.append(full)

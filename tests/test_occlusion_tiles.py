@@ -186,3 +186,29 @@ def test_the_analysis_runs_where_it_pays():
                               ("corrugated_chamber", 2.25e6 * 8, True)):
         scene = em.load_scene(name, res=4)
         assert ot.worth_tiling(scene.scene, scene.integrator.detectors, paths) == want, name
+
+
+def test_a_degenerate_triangle_gets_no_cell(tmp_path):
+    """A few-faced mesh with a zero-area triangle (two corners the same point) beside a plate: that
+    triangle is left out (no cell, no division by its zero area), the others are analysed, and the
+    kernel's dual bases are finite."""
+    ply = tmp_path / "ledge.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                   "200 0 10\n250 0 10\n200 50 10\n200 0 10\n3 0 1 2\n3 0 3 1\n")
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "elo", "events": 2},
+        "sensor": {"type": "elo_beam", "wd": 400.0, "field": 80.0,
+                   "film": {"type": "hdrfilm", "width": 4, "height": 4, "rfilter": {"type": "box"}}},
+        "ledge": {"type": "ply", "filename": str(ply), "bsdf": {"type": "elo_bse", "material": "316L"}},
+        "plate": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([40.0, 40.0, 1.0]),
+                  "bsdf": {"type": "elo_bse", "material": "Ti-6Al-4V"}},
+        "right": {"type": "disk", "emitter": {"type": "area"},
+                  "to_world": mi.ScalarTransform4f().look_at([127, 0, 272], [0, 0, 0], [0, 1, 0]).scale(25.0)}})
+    integ = scene.integrator()
+    integ.prepare_scene(scene, scene.sensors()[0])
+    tiles = ot.WallTiles(scene, integ.detectors)
+    per_triangle = tiles.cells[0].sum(axis=(1, 2))
+    area = np.linalg.norm(np.cross(tiles.tris[:, 1] - tiles.tris[:, 0], tiles.tris[:, 2] - tiles.tris[:, 0]), axis=1)
+    assert np.any(area == 0) and np.all(per_triangle[area == 0] == 0) and np.all(per_triangle[area > 0] == 36)
+    assert all(np.all(np.isfinite(np.array(a))) for a in (tiles._p0, tiles._g1, tiles._g2))
