@@ -46,13 +46,15 @@ from ._shapes import box_triangles, cover_triangles, is_planar, shape_key
 #: the border of the free part is refined; the rest is decided at the first levels.
 TILE_LEVELS = 3
 #: A render pass uses the walls' cells only when it traces at least this many continuation paths
-#: per candidate triangle and detector (:func:`worth_tiling`): the analysis grows with the triangles
-#: (0.07-0.09 s for the chamber's 30, 0.37 s with the heat shield's 62, once per geometry and
-#: detectors) and pays back per path. Measured warm, interleaved (benchmarks/RESULTS.md, Far field,
-#: "The walls' shadow rays"): 256^2 `default` (2.6 M paths a pass) athene_flat 0.94x and
-#: melt_chamber 0.83x the time, shield_chamber 0.98x (0.02 s saved, 0.37 s of analysis at every
-#: detector move: off at this threshold); 1500^2 `default` on athene_flat (1.2 M) 1.00x.
-PATHS_PER_TILED_FACE = 1 << 14
+#: per detector and per square of the candidate triangles' count (:func:`worth_tiling`): the
+#: analysis tests blocks of every triangle against every other, so it grows about as the square
+#: (0.07 s for the chamber's 30 triangles, 0.35 s with the heat shield's 62, once per geometry and
+#: detectors), and it pays back per path. Measured warm, interleaved (benchmarks/RESULTS.md, Far
+#: field, "The walls' shadow rays"): 1500^2 `default` (1.2 M paths a pass) melt_chamber 0.92x the
+#: time, athene_flat 0.98x; 256^2 `default` (2.6 M) athene_flat 0.94x, melt_chamber 0.83x,
+#: shield_chamber 0.98x (0.02 s saved against 0.35 s of analysis at every detector move of a
+#: sweep: off). Thresholds: 0.92 M paths for the chamber, 3.9 M with the shield.
+PATHS_PER_TILED_FACE_SQUARED = 256
 #: Meshes with more faces are not tiled (their shadow rays are cast): the scanned relief is the
 #: scan regions' business (:mod:`._occlusion`), and the analysis grows with the faces.
 MAX_TILE_FACES = 128
@@ -188,9 +190,9 @@ def candidates(scene, detectors):
 
 def worth_tiling(scene, detectors, paths):
     """Whether a pass of ``paths`` continuation paths pays for the analysis of the walls
-    (:data:`PATHS_PER_TILED_FACE` per candidate triangle and detector)."""
+    (:data:`PATHS_PER_TILED_FACE_SQUARED` per detector and square of the candidate triangles)."""
     faces = sum(sh.face_count() for sh in candidates(scene, detectors))
-    return faces > 0 and paths >= PATHS_PER_TILED_FACE * faces * len(detectors)
+    return faces > 0 and paths >= PATHS_PER_TILED_FACE_SQUARED * faces**2 * len(detectors)
 
 
 class WallTiles:

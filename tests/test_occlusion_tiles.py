@@ -147,7 +147,7 @@ def test_skipping_the_free_cells_rays_changes_no_pixel(monkeypatch):
     the free cells: every channel equals the render that casts all shadow rays to 1e-4 (measured
     3.9e-7 of the channel's largest value: grazing rays that the target detector's own plane
     stops); a skipped ray that was blocked costs percent (a path of 16 of a pixel, and its class)."""
-    monkeypatch.setattr(ot, "PATHS_PER_TILED_FACE", 0)
+    monkeypatch.setattr(ot, "PATHS_PER_TILED_FACE_SQUARED", 0)
     on, integ = _render(em.load_scene("corrugated_chamber", res=24), True)
     assert integ._wall_tiles is not None
     off, integ_off = _render(em.load_scene("corrugated_chamber", res=24), False)
@@ -160,7 +160,7 @@ def test_skipping_the_free_cells_rays_changes_no_pixel(monkeypatch):
 def test_wall_tiles_follow_the_detectors(monkeypatch):
     """A detector moved between renders: the cells are those of a fresh analysis of the new
     placement (never the old ones), and a render below the path threshold builds none."""
-    monkeypatch.setattr(ot, "PATHS_PER_TILED_FACE", 0)
+    monkeypatch.setattr(ot, "PATHS_PER_TILED_FACE_SQUARED", 0)
     scene = em.load_scene("corrugated_chamber", res=8)
     scene.render(quality="draft", events=2, progress=False)
     before = [c.copy() for c in scene.integrator._wall_tiles.cells]
@@ -171,21 +171,22 @@ def test_wall_tiles_follow_the_detectors(monkeypatch):
     for a, f in zip(after, fresh):
         np.testing.assert_array_equal(a, f)
     assert any(not np.array_equal(a, b) for a, b in zip(after, before))
-    monkeypatch.setattr(ot, "PATHS_PER_TILED_FACE", 1 << 40)
+    monkeypatch.setattr(ot, "PATHS_PER_TILED_FACE_SQUARED", 1 << 40)
     scene.render(quality="draft", events=2, progress=False)
     assert scene.integrator._wall_tiles is None
 
 
 def test_the_analysis_runs_where_it_pays():
     """The decisions the threshold was measured for (benchmarks/RESULTS.md, "The walls' shadow
-    rays"): a 256^2 `default` pass (2.6 M paths) uses the cells on athene_flat and melt_chamber
-    (0.94x, 0.83x the time) but not on shield_chamber (its 62 triangles' analysis, 0.37 s at
-    every detector move, against 0.02 s saved); 1500^2 `default` on athene_flat (1.2 M) does not."""
-    for name, paths, want in (("athene_flat", 2.6e6, True), ("melt_chamber", 2.6e6, True),
-                              ("shield_chamber", 2.6e6, False), ("athene_flat", 1.2e6, False),
-                              ("corrugated_chamber", 2.25e6 * 8, True)):
+    rays"): a 1500^2 `default` pass (1.2 M paths) uses the cells on melt_chamber (0.92x the time)
+    and athene_flat (0.98x); a 256^2 `default` pass (2.6 M) does not on shield_chamber (its 62
+    triangles' analysis, 0.35 s at every detector move, against 0.02 s saved); a draft pass at
+    1500^2 (0.05 M) nowhere."""
+    for name, paths, want in (("melt_chamber", 1.17e6, True), ("athene_flat", 1.17e6, True),
+                              ("shield_chamber", 2.62e6, False), ("shield_chamber", 1.05e7, True),
+                              ("athene_flat", 0.05e6, False), ("corrugated_chamber", 2.25e6 * 8, True)):
         scene = em.load_scene(name, res=4)
-        assert ot.worth_tiling(scene.scene, scene.integrator.detectors, paths) == want, name
+        assert ot.worth_tiling(scene.scene, scene.integrator.detectors, paths) == want, (name, paths)
 
 
 def test_a_degenerate_triangle_gets_no_cell(tmp_path):
