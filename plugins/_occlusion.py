@@ -48,22 +48,29 @@ def _hull_planes(points):
             return None
     if len(p) < 4:
         return None
-    i, j, k = np.array(list(itertools.combinations(range(len(p)), 3))).T
-    n = np.cross(p[j] - p[i], p[k] - p[i])
-    length = np.linalg.norm(n, axis=1)
-    size = max(1.0, float(np.ptp(p, axis=0).max()))
+    planes, facet = hull_planes_batch(p[None])
+    return planes[0][facet[0]] if np.any(facet) else None
+
+
+def hull_planes_batch(points):
+    """Planes (B, F, 4) ``n . x + c`` (<= 0 inside) through every triple of ``points`` (B, P, 3)
+    and which of them are facet planes of each hull (B, F): those with every point on their
+    inner side. A flat hull (all points on one plane) has none; so has a collinear one."""
+    i, j, k = np.array(list(itertools.combinations(range(points.shape[1]), 3))).T
+    n = np.cross(points[:, j] - points[:, i], points[:, k] - points[:, i])  # (B, F, 3)
+    length = np.linalg.norm(n, axis=2)
+    size = np.maximum(1.0, np.ptp(points, axis=1).max(axis=1))[:, None]  # (B, 1)
     eps = 1e-10 * size  # Qhull's own precision for such coordinates is ~1e-13 of the size
-    keep = length > eps * size
-    if not np.any(keep):
-        return None  # all points collinear
-    n, i = n[keep] / length[keep, None], i[keep]
-    c = -np.einsum("fk,fk->f", n, p[i])
-    d = p @ n.T + c  # (P, F): signed distances of every point from every candidate plane
-    below, above = np.all(d <= eps, axis=0), np.all(d >= -eps, axis=0)
-    if np.any(below & above):
-        return None  # every point on one plane: a flat hull
-    planes = np.concatenate([np.c_[n[below], c[below]], -np.c_[n[above], c[above]]])
-    return planes if len(planes) else None
+    ok = length > eps * size
+    n = n / np.where(ok, length, 1.0)[..., None]
+    c = -np.einsum("bfk,bfk->bf", n, points[:, i])
+    d = np.einsum("bpk,bfk->bpf", points, n) + c[:, None, :]  # (B, P, F): every point from every plane
+    below = np.all(d <= eps[:, :, None], axis=1)
+    above = np.all(d >= -eps[:, :, None], axis=1)
+    flat = np.any(ok & below & above, axis=1)
+    sign = np.where(below, 1.0, -1.0)
+    facet = ok & (below | above) & ~flat[:, None]
+    return np.concatenate([n * sign[..., None], (c * sign)[..., None]], axis=2), facet
 
 
 def _all_separated(points, tris, tol):

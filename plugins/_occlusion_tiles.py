@@ -31,12 +31,11 @@ The kernel's test (:meth:`WallTiles.free`) gathers the triangle's origin and dua
 cell and reads one flag per detector.
 """
 
-import itertools
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ._occlusion import hull_planes_batch
 from ._shapes import box_triangles, cover_triangles, is_planar, shape_key
 
 #: Cells per triangle side = 2^TILE_LEVELS. corrugated_chamber's walls: 73-74 % of their cells free
@@ -69,32 +68,11 @@ TILE_MARGIN = 1e-5
 #: (scratch of a few MB).
 BATCH = 512
 
-def _hull_planes_batch(points):
-    """Planes (B, F, 4) ``n . x + c`` (<= 0 inside) of the convex hulls of ``points`` (B, P, 3)
-    from every triple of points, and which are facet planes (B, F); a flat hull has none."""
-    b, p = points.shape[:2]
-    i, j, k = np.array(list(itertools.combinations(range(p), 3))).T
-    n = np.cross(points[:, j] - points[:, i], points[:, k] - points[:, i])  # (B, F, 3)
-    length = np.linalg.norm(n, axis=2)
-    size = np.maximum(1.0, np.ptp(points, axis=1).max(axis=1))[:, None]  # (B, 1)
-    eps = 1e-10 * size
-    ok = length > eps * size
-    n = n / np.where(ok, length, 1.0)[..., None]
-    c = -np.einsum("bfk,bfk->bf", n, points[:, i])
-    d = np.einsum("bpk,bfk->bpf", points, n) + c[:, None, :]  # (B, P, F)
-    below = np.all(d <= eps[:, :, None], axis=1)
-    above = np.all(d >= -eps[:, :, None], axis=1)
-    flat = np.any(ok & below & above, axis=1)
-    sign = np.where(below, 1.0, -1.0)
-    valid = ok & (below | above) & ~flat[:, None]
-    return np.concatenate([n * sign[..., None], (c * sign)[..., None]], axis=2), valid
-
-
 def separated_batch(points, tris, own=None):
     """(B,) True where no triangle of ``tris`` (O, 3, 3) can cut the convex hull of ``points``
     (B, P, 3); ``own`` (B,) the index of a triangle that does not count (-1: none). The test of
     :func:`._occlusion._all_separated`, for many hulls at once."""
-    planes, valid = _hull_planes_batch(points)
+    planes, valid = hull_planes_batch(points)
     # the facet planes first, the rest of the triples dropped (a hull of 9 points has ~14 facets
     # among its 84 triples)
     order = np.argsort(~valid, axis=1, kind="stable")[:, :max(1, int(valid.sum(axis=1).max()))]
@@ -272,7 +250,9 @@ class WallTiles:
         return on, (tri * n + mi.UInt32(i)) * n + mi.UInt32(j)
 
     def free(self, si, d, index=None):
-        """Lanes at a point of a free cell for detector ``d``, or None where none is free."""
+        """Lanes at a point of a free cell for detector ``d``, or None where none is free. The cell
+        lookup repeats for every detector and shadow ray; Dr.Jit's value numbering merges the
+        copies (corrugated_chamber's kernel: 16 413 operations with one lookup or two)."""
         flags = self.flags[d]
         if flags is None:
             return None
