@@ -19,16 +19,18 @@ scatters onto itself, side by side with the per-pixel paths before it, and its b
     python -m benchmarks.geometry_share --bias 8,6 --preset reference        # reference's bias
 
 * ``--classes N``: how far the classes themselves are from "same expected value", apart from the
-  estimator's noise: N per-pixel renders (`default`'s paths, no sharing), each replaced by its
-  class means as the shared render would be, for each probe count of ``--probes``: the RMS per pixel
-  of (class mean - own value)'s expectation (from two independent halves of the renders, so the
-  noise drops out), and in 5 mm block means (classes straddle them) the RMS bias (the noise of
+  estimator's noise: N per-pixel renders (`default`'s paths, no sharing), each shared in its
+  classes as the shared render would be (each pixel's view factor times its class's ratio), for
+  each probe count of ``--probes``: the RMS per pixel of (shared - own value)'s expectation (from
+  two independent halves of the renders, so the noise drops out; of the mean e2 and of the mean
+  total), and in 5 mm block means (classes straddle them) the RMS bias (the noise of
   the mean taken out) against one render's noise there, with mean z² over the blocks.
   ``--scene sawtooth`` is the sawtooth test plate (:mod:`elo_mitsuba.objects.sawtooth_plate`, no
   chamber): valleys ending at cliffs.
 
     python -m benchmarks.geometry_share --classes 144 --scene sawtooth --bias-res 256 --probes 16,32,64,128
     python -m benchmarks.geometry_share --classes 64 --scene sawtooth --bias-res 256 --fwhm 0.27 --probes 16/16,64/16,64/64
+    python -m benchmarks.geometry_share --classes 8 --bias-res 1500 --probes 64      # corrugated_chamber (2 min)
 
 * ``--paths KxS[/D],...``: what `default`'s path count buys (shared, one process): for each K
   continuation paths per sample, S samples per pixel and D detector points per later event
@@ -127,8 +129,10 @@ def bias(name, res, events, n_shared, n_per_pixel, fwhm=0.0, preset="default"):
 
 
 def class_bias(name, res, n, probes, fwhm=0.0):
-    """--classes: per probe count, the bias of replacing each pixel's e2 by its class mean."""
+    """--classes: per probe count, the bias of sharing each pixel's e2 in its class (its view factor
+    times the class's ratio, as the integrator does)."""
     import elo_mitsuba.plugins._geometry_classes as gc
+    from elo_mitsuba.plugins._shapes import bbox_centre
 
     scene = _load(name, res, fwhm)
     scene.set_events(2)
@@ -136,8 +140,13 @@ def class_bias(name, res, n, probes, fwhm=0.0):
     block = scene.integrator.options.bounce_share
     scene.configure(bounce_share=0.0)
     channels = [event_channel(d, 2) for d in DETS]
-    own = np.array([np.stack([scene.render(quality="custom", spp=spp, seed=9000 + k, progress=False).channels[c]
-                              for c in channels]).astype(np.float64) for k in range(n)])
+    own, totals = [], np.zeros(len(DETS))
+    for k in range(n):
+        r = scene.render(quality="custom", spp=spp, seed=9000 + k, progress=False)
+        own.append(np.stack([r.channels[c] for c in channels]).astype(np.float64))
+        totals += [float(np.mean(r.channels[d], dtype=np.float64)) / n for d in DETS]
+    own = np.array(own)
+    centres = dict(scene.integrator.detectors)
     b = max(1, int(round(BLOCK_MEAN_MM * own.shape[-1] / float(scene.sensor.field))))
     nb = own.shape[-1] // b
 
@@ -149,9 +158,13 @@ def class_bias(name, res, n, probes, fwhm=0.0):
         for count, footprint in probes:
             gc.PROBES, gc.FOOTPRINT_PROBES = count, footprint or kept[1]
             classes = gc.GeometryClasses(scene.scene, scene.sensor, block, None)
-            sums = np.stack([np.bincount(classes.flat, weights=x.ravel(), minlength=classes.counts.size)
-                             for x in own.reshape(-1, own.shape[-2] * own.shape[-1])])
-            shared = (sums / classes.counts)[:, classes.flat].reshape(own.shape)
+            views = classes.view_factors([bbox_centre(centres[d]) for d in DETS])
+            shared = np.empty_like(own)
+            for k in range(n):  # as the integrator shares: each detector's view factor times the class's ratio
+                for d in range(len(DETS)):
+                    plane = own[k, d].astype(np.float32)
+                    classes.share(plane, views[d])
+                    shared[k, d] = plane
             dev = shared - own
             half = n // 2
             pixel = np.mean(dev[:half].mean(0) * dev[half:2 * half].mean(0), axis=(-1, -2))  # E[bias^2] per channel
@@ -162,6 +175,7 @@ def class_bias(name, res, n, probes, fwhm=0.0):
             squared = np.maximum(0.0, np.mean(mean**2 - se**2, axis=(-1, -2)))  # the noise of the mean taken out
             rows.append({"probes": f"{count}/{gc.FOOTPRINT_PROBES}" if fwhm > 0 else str(count), "classes": int(classes.counts.size),
                          "pixel": float(np.max(np.sign(pixel) * np.sqrt(np.abs(pixel)) / scale)),
+                         "pixel_total": float(np.max(np.sign(pixel) * np.sqrt(np.abs(pixel)) / totals)),
                          "block": float(np.max(np.sqrt(squared) / scale)),
                          "ratio": float(np.max(np.sqrt(squared / np.mean(one**2, axis=(-1, -2))))),
                          "z2": float(np.max(np.mean((mean / np.maximum(se, 1e-300))**2, axis=(-1, -2))))})
@@ -276,11 +290,11 @@ def main(argv=None):
         block, b, rows = class_bias(a.scene, a.bias_res, a.classes, probes, a.fwhm)
         print(f"{a.scene} {a.bias_res}², e2, fwhm {a.fwhm:g} mm, {a.classes} per-pixel `default` renders each replaced "
               f"by its class means ({block:g} mm blocks); worst detector:\n")
-        print(f"| probes | classes | bias per pixel (of mean e2) | bias in {BLOCK_MEAN_MM:g} mm means (of mean e2) | "
-              "the same, of one render's noise there | mean z² over the blocks |")
-        print("|---|---|---|---|---|---|")
+        print(f"| probes | classes | bias per pixel (of mean e2) | the same, of the mean total | bias in {BLOCK_MEAN_MM:g} mm "
+              "means (of mean e2) | the same, of one render's noise there | mean z² over the blocks |")
+        print("|---|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['probes']} | {r['classes']} | {100 * r['pixel']:.2f} % | {100 * r['block']:.2f} % | "
+            print(f"| {r['probes']} | {r['classes']} | {100 * r['pixel']:.2f} % | {100 * r['pixel_total']:.3f} % | {100 * r['block']:.2f} % | "
                   f"{r['ratio']:.2f} | {r['z2']:.1f} |")
         return 0
     if a.bias:

@@ -390,7 +390,7 @@ QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
               "bounce_min": 0.0, "relief_paths": 4},
     "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 2400,
-                "bounce_min": 2.0, "relief_paths": 16},
+                "bounce_min": 2.0, "relief_paths": 8},
     "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 1.0, "bounce_budget": 9600,
                   "bounce_min": 8.0, "relief_paths": 32},
     "unbiased": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
@@ -424,7 +424,7 @@ RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: far field varies along y). Under a beam profile the classes also probe its footprint (1.5
 #: sigma along +-x, +-y); 0.27 mm FWHM, 256^2: bias 0-0.6 % of e2 on corrugated_chamber, 0-0.08 %
 #: of e2 and 0-1.3 % of e3 on melt_chamber at events 3 (one render's noise 3.7-30 %).
-SHARE_BLOCK_MM = 4.0
+SHARE_BLOCK_MM = 8.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 #: ... where the presets give relief per-pixel paths shared by geometry classes (``bounce_share``):

@@ -21,12 +21,16 @@ normal and :data:`FOOTPRINT_PROBES` probes are also taken at four points of it
 enter the class.
 
 A class is the pixels of one block with equal quantised normal and probe distances; the integrator
-replaces each pixel's events >= 2 by the mean over its class (``bounce_share``). Where the relief
-repeats (the corrugated sheet: every point of a flank line along its ridge), a class holds the
-points of a line and the average is unbiased but for what varies within the block (the far field,
-the beam's incidence: measured below the noise at 4 mm on corrugated_chamber, benchmarks/
-RESULTS.md, "Shared by geometry"); where no two points match, every pixel keeps its own value
-(no gain, no bias). A class can still join points whose probes agree but whose events >= 2 do
+replaces each pixel's events >= 2 by its class's (``bounce_share``): for each detector the pixel's
+view factor of it (cos / r^2 of the detector's centre from the beam's hit, over a level plane:
+:meth:`GeometryClasses.view_factors`) times the class's ratio of events to view factors. A detector
+sees the same relief from the block's near side under a larger solid angle, so a plain mean
+would tilt every class across its block: corrugated_chamber at 1500^2, 8 mm blocks, 0.97-1.15 % of
+e2 per pixel (RMS) plain, 0.58-0.75 % with the view factors; the 1st event of the flat plate
+shared so: 0.96 -> 0.03 % (tests/test_geometry_classes.py). Where the relief repeats (the
+corrugated sheet: every point of a flank line along its ridge), a class holds the points of a line
+and the average is unbiased but for what varies within the block otherwise (the far field, the
+beam's incidence); where no two points match, every pixel keeps its own value (no gain, no bias). A class can still join points whose probes agree but whose events >= 2 do
 not: a difference between the probe directions, such as how much of the facing flank a point on
 the sawtooth plate sees by its distance to the valley's end (16 probes left 7.2 % of e2 per
 pixel there, 64 leave 2.8 %: :data:`PROBES`). The bias that is left is measured (``python -m
@@ -56,11 +60,13 @@ from ._shapes import digest_geometry, shape_key
 PROBES = 64
 #: Probe directions at each of the four footprint points under a beam profile.
 FOOTPRINT_PROBES = 16
-#: Probe distances are binned in steps of 1/STEPS_PER_E in log(distance) (a factor 1.65): with 64
-#: probes which of them meet relief tells points apart, finer bins only split the classes of a
-#: flank (corrugated_chamber at 1500²: bins of 12.5 or 25 % halve its median class, 150 -> 75
-#: pixels, and 25 % adds 8 % to the total's noise).
-STEPS_PER_E = 2
+#: Probe distances are binned in steps of 1/STEPS_PER_E in log(distance) (a factor 1.28). Across a
+#: flank of the corrugated sheet e2 changes by a factor 4.5 in 13 pixels at 1500², and bins of a
+#: factor 1.65 (STEPS_PER_E = 2) joined neighbouring places on it: the classes' bias there (4 mm
+#: blocks, from 8 unshared renders, RMS per pixel of e2) 0.93-1.09 % with 2, 0.56-0.63 % with 4,
+#: 0.38-0.56 % with 8 (plain means; with the view factors 0.87-0.99 / 0.32-0.46 / 0.19-0.38 %); the
+#: classes' effective size, (mean of 1/sqrt(n))^-2, 119 / 99 / 89 pixels (2026-12-06).
+STEPS_PER_E = 4
 #: Normals are quantised in steps of sin(NORMAL_DEG) along x and y.
 NORMAL_DEG = 1.0
 #: Shortest probe distance told apart (mm): closer hits count as this distance.
@@ -68,6 +74,10 @@ MIN_DISTANCE_MM = 1e-3
 #: With a beam profile, the classes also look this many standard deviations of it away from the
 #: grid point (along +-x and +-y): inside that radius lie 68 % of a 2-D Gaussian's electrons.
 FOOTPRINT_SIGMAS = 1.5
+#: Least cosine of a detector's centre over a level plane at the beam's hit in the view factors
+#: that scale a class's mean across its block (:meth:`GeometryClasses.view_factors`): a detector
+#: at or below the plate's level still gets a positive factor.
+MIN_VIEW_COS = 0.05
 #: Pixels classified at a time (bounds the float64 temporaries to about 60 MB).
 CHUNK = 1 << 18
 #: The probes' offset from the surface along its normal, relative to 1 + max |p| (89 float32
@@ -161,9 +171,10 @@ def _surface_points(scene, hit, si, valid):
 
 
 def scan_features(scene, sensor):
-    """Per pixel (H x W): whether the beam meets a scattering surface there, and a 64-bit hash of
+    """Per pixel (H x W): whether the beam meets a scattering surface there, a 64-bit hash of
     its quantised normal (2 ints) and probe distances (:data:`PROBES` ints), equal for equal
-    features.
+    features, and the beam's hit at the grid point (H x W x 3, float32, mm; meaningless where it
+    meets no scattering surface).
 
     The rays are built on the host in float64 from the beam's centre rays and the distances come
     from the ray tracer as they are, so that the classes do not depend on the instruction set
@@ -176,14 +187,18 @@ def scan_features(scene, sensor):
     w, h = int(size[0]), int(size[1])
     valid = np.ones(w * h, bool)
     key = np.zeros(w * h, np.uint64)
+    points = np.zeros((w * h, 3), np.float32)
     for k, offset in enumerate(footprint_offsets(sensor)):
         o, d = sensor.centre_rays(offset)
         for a in range(0, w * h, CHUNK):  # float64 temporaries of CHUNK pixels at a time
-            ok, part = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK], PROBES if k == 0 else FOOTPRINT_PROBES)
+            ok, part, p = _chunk_features(scene, o[a:a + CHUNK], d[a:a + CHUNK],
+                                          PROBES if k == 0 else FOOTPRINT_PROBES)
             valid[a:a + CHUNK] &= ok
+            if k == 0:
+                points[a:a + CHUNK] = p
             with np.errstate(over="ignore"):  # the hash wraps around (uint64), as intended
                 key[a:a + CHUNK] += part * _POINT_MIX[k]
-    return valid.reshape(h, w), key.view(np.int64).reshape(h, w)
+    return valid.reshape(h, w), key.view(np.int64).reshape(h, w), points.reshape(h, w, 3)
 
 
 def footprint_offsets(sensor):
@@ -198,7 +213,8 @@ def footprint_offsets(sensor):
 
 
 def _chunk_features(scene, o, d, probes):
-    """:func:`scan_features` for the beam rays (o, d) (N, 3) and ``probes`` directions: (valid, hash) per ray."""
+    """:func:`scan_features` for the beam rays (o, d) (N, 3) and ``probes`` directions: (valid, hash,
+    hit point) per ray."""
     ray = _rays(o, d)
     hit = scene.ray_intersect_preliminary(ray)
     si = hit.compute_surface_interaction(ray)
@@ -232,7 +248,7 @@ def _chunk_features(scene, o, d, probes):
             # the bin by exact comparison with float64 edges (numpy's log may round differently per CPU)
             q = np.searchsorted(edges, t_probe, side="right").astype(np.uint64)
             key += q * mix[4 + c]
-    return valid, key
+    return valid, key, p
 
 
 def classes(valid, features, block_px):
@@ -274,15 +290,42 @@ class GeometryClasses:
         self.key = key
         size = sensor.film().crop_size()
         self.block_px = max(1, int(round(block_mm * int(size[0]) / float(sensor.field))))
-        valid, features = scan_features(scene, sensor)
+        valid, features, self._points = scan_features(scene, sensor)
+        self._valid = valid
         self.index, self.counts = classes(valid, features, self.block_px)
         self.flat = self.index.ravel()
         self._ranks = None
+        self._views = (None, None)
 
-    def share(self, plane):
-        """``plane`` (H x W, float32) replaced in place by the mean over each pixel's class."""
+    def view_factors(self, centres):
+        """Per detector centre (mm) the pixels' view factors of it (D x H x W, float64): the solid
+        angle a small detector at the centre subtends from a level plane at the beam's hit, per unit
+        area, max(cos, :data:`MIN_VIEW_COS`) / r^2; 1 where the beam meets no scattering surface
+        (those pixels are classes of their own). Cached for the last centres."""
+        key = tuple(tuple(round(float(x), 9) for x in c) for c in centres)
+        if self._views[0] != key:
+            out = np.ones((len(key),) + self._valid.shape)
+            p = self._points.astype(np.float64)[self._valid]
+            for d, c in enumerate(key):
+                v = np.asarray(c) - p
+                r2 = np.einsum("ij,ij->i", v, v)
+                out[d][self._valid] = np.maximum(v[:, 2] / np.sqrt(r2), MIN_VIEW_COS) / r2
+            self._views = (key, out)
+        return self._views[1]
+
+    def share(self, plane, view=None):
+        """``plane`` (H x W, float32) replaced in place by the mean over each pixel's class; with
+        ``view`` (H x W, a detector's :meth:`view_factors`) by its pixel's view factor times the
+        class's ratio of plane to view factor (sum over sum), so that what a detector sees of a
+        class varies across the block as its solid angle does (the detector's near side sees more
+        from the same relief)."""
+        if view is None:
+            sums = np.bincount(self.flat, weights=plane.ravel(), minlength=self.counts.size)
+            plane[...] = (sums / self.counts)[self.index]
+            return
         sums = np.bincount(self.flat, weights=plane.ravel(), minlength=self.counts.size)
-        plane[...] = (sums / self.counts)[self.index]
+        norms = np.bincount(self.flat, weights=view.ravel(), minlength=self.counts.size)
+        plane[...] = view * (sums / norms)[self.index]
 
     def ranks(self):
         """Per pixel (flat, row-major) its class, its rank in the class (0 .. n - 1, row-major) and

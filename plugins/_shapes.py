@@ -58,6 +58,12 @@ def cover_triangles(shape):
     return box_triangles(shape)
 
 
+def bbox_centre(shape):
+    """The centre of ``shape``'s bounding box (mm, float64, 3)."""
+    bb = shape.bbox()
+    return 0.5 * (np.array(bb.min, float).ravel() + np.array(bb.max, float).ravel())
+
+
 def box_triangles(shape):
     """The 12 triangles of ``shape``'s bounding box."""
     bb = shape.bbox()

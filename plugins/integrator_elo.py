@@ -112,7 +112,7 @@ from ._far_field import (NEAR_MM, TABLE_TRIANGLES, FarFieldTable, build_mean, bu
 from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
 from ._occlusion_tiles import WallTiles, worth_tiling
-from ._shapes import GeometryKey, shape_key
+from ._shapes import GeometryKey, bbox_centre, shape_key
 from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
                       strata_cells, stratum)
 from ._relief import (beam_probe, detectors_in_beam, field_missed, may_meet_beam, relief_under_beam,
@@ -633,10 +633,13 @@ class EloIntegrator(mi.SamplingIntegrator):
                 for c, m in means:
                     planes[c] += planes[m]
             if self._shares_bounces():
-                # pixels of one geometry class take its mean (both halves of the error estimate
-                # share the classes, so its noise is seen and any bias is not)
-                for name in self._bounce_channels():
-                    self._classes.share(planes[index[name]])
+                # pixels of one geometry class take its mean, scaled across the block by each
+                # detector's view factor (both halves of the error estimate share the classes, so
+                # its noise is seen and any bias is not)
+                views = self._classes.view_factors([bbox_centre(shape) for _, shape in self.detectors])
+                for d, (name, _) in enumerate(self.detectors):
+                    for k in range(2, self.events + 1):
+                        self._classes.share(planes[index[event_channel(name, k)]], views[d])
                 paths *= self._classes.pixels_per_class()
             if self.bounce_min > 0:
                 self._top_up(planes, index, scene, sensor, sensor_obj, seed_value, paths)

@@ -153,7 +153,7 @@ def test_under_a_beam_profile_the_classes_see_the_footprint(mi):
     for fwhm in (0.0, 0.27):
         scene = em.load_scene("corrugated_chamber", res=256, fwhm=fwhm)
         offsets = footprint_offsets(scene.sensor)
-        valid, key = scan_features(scene.scene, scene.sensor)
+        valid, key, _ = scan_features(scene.scene, scene.sensor)
         found[fwhm] = classes(valid, key, 13)[0]
     sigma = 0.27 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
     assert offsets[1] == pytest.approx((FOOTPRINT_SIGMAS * sigma, 0.0)) and len(offsets) == 5
@@ -220,31 +220,67 @@ def test_a_class_holds_points_of_equal_surroundings_on_the_sawtooth(mi, tmp_path
     assert spread <= 0.04, spread
 
 
+def test_view_factors_carry_a_detectors_solid_angle_across_a_block(mi):
+    """The view factors are cos / r^2 of each detector's centre from the beam's hit (on the flat
+    plate the pixel's grid point of docs/rendering.md's orientation: an independent computation),
+    and they carry what a detector sees across a block: the 1st event (the Appendix A quadrature,
+    deterministic), shared in :data:`SHARE_BLOCK_MM` blocks with them, stays within 0.1 % RMS of
+    itself (measured 0.03 %), where the plain class mean is off by 0.96 %."""
+    from elo_mitsuba.plugins._geometry_classes import GeometryClasses
+
+    scene = em.load_scene("flat_plate", res=64)
+    result = scene.render(quality="default", progress=False)
+    c = GeometryClasses(scene.scene, scene.sensor, SHARE_BLOCK_MM, None)
+    geometry = scene.detector_geometry()
+    views = c.view_factors([geometry[d]["center"] for d in DETS])
+    field, w = float(scene.sensor.field), 64
+    nudge = scene.sensor.aim_offset_mm  # the beam's aim, a hair off the grid point (sensor_elo_beam)
+    x = -field / 2 + (np.arange(w) + 0.5) * field / w + nudge[0]
+    y = field / 2 - (np.arange(w) + 0.5) * field / w + nudge[1]
+    p = np.stack(np.broadcast_arrays(x[None, :], y[:, None], 0.0 * x[None, :]), axis=-1)
+    for k, d in enumerate(DETS):
+        v = np.asarray(geometry[d]["center"]) - p
+        r = np.linalg.norm(v, axis=-1)
+        assert np.allclose(views[k], v[..., 2] / r**3, rtol=1e-5, atol=0.0), d
+        e1 = np.array(result.channels[d], np.float32)
+        plain, viewed = e1.copy(), e1.copy()
+        c.share(plain)
+        c.share(viewed, views[k])
+        rms = [np.sqrt(np.mean((a.astype(np.float64) - e1) ** 2)) / e1.mean() for a in (plain, viewed)]
+        assert rms[1] < 1e-3 and rms[0] > 5e-3, (d, rms)
+
+
 def test_shared_events_are_the_class_means(mi):
-    """Each pixel's shared e2 is its class's mean: one value per class, and that value agrees with
-    the mean of the class's per-pixel values of an independent unshared render (z-scores by the
-    class's spread of those values: a sum instead of a mean, or a pixel's own value, fails); the
-    1st event is never shared."""
+    """Each pixel's shared e2 is its view factor times its class's ratio of e2 to view factor: one
+    ratio per class, and that ratio agrees with the one of an independent unshared render
+    (z-scores by the class's spread of those values: a sum instead of a mean, or a pixel's own
+    value, fails); the 1st event is never shared."""
+    from elo_mitsuba.plugins._shapes import bbox_centre
+
     scene = em.load_scene("corrugated_chamber", res=48, field=10)
     spp = scene.set_quality("default")
     integ = scene.integrator
     shared, _ = integ.render_planes(scene.scene, 0, 9, spp)
     shared = shared.copy()
     c = integ.geometry_classes()
+    views = c.view_factors([bbox_centre(shape) for _, shape in integ.detectors])
     scene.configure(bounce_share=0.0)
     own, _ = integ.render_planes(scene.scene, 0, 10, spp)
     names = integ.channel_names()
     big = c.counts >= 8
     z = []
-    for d in DETS:
+    for k, d in enumerate(DETS):
         i = names.index(f"{d}.e2")
-        flat = shared[i].ravel().astype(np.float64)
-        means = np.bincount(c.flat, weights=flat) / c.counts
-        assert np.allclose(flat, means[c.flat], rtol=1e-6, atol=0.0)  # one value per class
+        view = views[k].ravel()
+        view_sum = np.bincount(c.flat, weights=view)
+        ratio = shared[i].ravel().astype(np.float64) / view
+        ratios = np.bincount(c.flat, weights=ratio) / c.counts
+        assert np.allclose(ratio, ratios[c.flat], rtol=1e-5, atol=0.0)  # one ratio per class
         values = own[i].ravel().astype(np.float64)
         m = np.bincount(c.flat, weights=values) / c.counts
         var = (np.bincount(c.flat, weights=values**2) / c.counts - m**2) * c.counts / np.maximum(c.counts - 1, 1)
-        z.append(((means - m) / np.sqrt(var / c.counts))[big])
+        own_ratio = np.bincount(c.flat, weights=values) / view_sum
+        z.append(((ratios - own_ratio) / (np.sqrt(var * c.counts) / view_sum))[big])
         j = names.index(f"{d}.e1")
         assert np.array_equal(shared[j], own[j])  # the 1st event is never shared
     z = np.concatenate(z)
@@ -258,10 +294,12 @@ def test_shared_events_are_the_class_means(mi):
 def test_a_class_spreads_its_paths_over_one_point_set(mi):
     """Over 8 seeds, the variance of a class's shared e2 against what averaging its pixels'
     independent per-pixel estimates would give (their variance over n): the class's pixels taking
-    one point set lower it to about 0.37 (measured 0.36-0.38 per detector; each pixel's own
-    points gave 0.98-1.21)."""
+    one point set lower it to about half (measured 0.47-0.64 per detector in 8 mm blocks, 0.46-0.55
+    in 4 mm ones, 2026-12-06, the spread being that of 8 seeds' variances; each pixel's own points
+    gave 0.98-1.21)."""
     scene = em.load_scene("corrugated_chamber", res=48, field=10)
     spp = scene.set_quality("default")
+    scene.configure(bounce_samples=16)  # the paths of a pixel as measured (the preset's count aside)
     integ = scene.integrator
 
     def stack(seed0):
@@ -278,4 +316,4 @@ def test_a_class_spreads_its_paths_over_one_point_set(mi):
         i = names.index(f"{d}.e2")
         v_shared = np.bincount(c.flat, weights=shared[:, i].reshape(8, -1).var(axis=0, ddof=1)) / c.counts
         v_mean = np.bincount(c.flat, weights=own[:, i].reshape(8, -1).var(axis=0, ddof=1)) / c.counts**2
-        assert big.sum() > 100 and v_shared[big].sum() < 0.6 * v_mean[big].sum()
+        assert big.sum() > 50 and v_shared[big].sum() < 0.8 * v_mean[big].sum()
