@@ -288,8 +288,8 @@ def main(argv=None):
         if a.classes < 4:
             p.error(f"--classes {a.classes}: give N >= 4 renders (two halves estimate the bias)")
         block, b, rows = class_bias(a.scene, a.bias_res, a.classes, probes, a.fwhm)
-        print(f"{a.scene} {a.bias_res}², e2, fwhm {a.fwhm:g} mm, {a.classes} per-pixel `default` renders each replaced "
-              f"by its class means ({block:g} mm blocks); worst detector:\n")
+        print(f"{a.scene} {a.bias_res}², e2, fwhm {a.fwhm:g} mm, {a.classes} per-pixel `default` renders each shared in "
+              f"its classes ({block:g} mm blocks, view factors); worst detector:\n")
         print(f"| probes | classes | bias per pixel (of mean e2) | the same, of the mean total | bias in {BLOCK_MEAN_MM:g} mm "
               "means (of mean e2) | the same, of one render's noise there | mean z² over the blocks |")
         print("|---|---|---|---|---|---|---|")

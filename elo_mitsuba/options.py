@@ -388,13 +388,14 @@ def parameter_table() -> str:
 #: ``scene`` keeps the scene file's own settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
-              "bounce_min": 0.0, "relief_paths": 4},
+              "bounce_min": 0.0, "relief_paths": 4, "near_relief_paths": 4},
     "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 2400,
-                "bounce_min": 2.0, "relief_paths": 8},
+                "bounce_min": 2.0, "relief_paths": 16, "near_relief_paths": 8},
     "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 1.0, "bounce_budget": 9600,
-                  "bounce_min": 8.0, "relief_paths": 32},
+                  "bounce_min": 8.0, "relief_paths": 32, "near_relief_paths": 32},
     "unbiased": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
-                 "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128},
+                 "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128,
+                 "near_relief_paths": 128},
 }
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
@@ -424,7 +425,10 @@ RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: far field varies along y). Under a beam profile the classes also probe its footprint (1.5
 #: sigma along +-x, +-y); 0.27 mm FWHM, 256^2: bias 0-0.6 % of e2 on corrugated_chamber, 0-0.08 %
 #: of e2 and 0-1.3 % of e3 on melt_chamber at events 3 (one render's noise 3.7-30 %).
-SHARE_BLOCK_MM = 8.0
+SHARE_BLOCK_MM = 4.0
+#: ... where the near relief makes the later events (``near_share`` >= :data:`NEAR_SHARE_MAX`: no tabulated
+#: far mean), with ``near_relief_paths`` paths a pixel (TO BE DOCUMENTED).
+NEAR_SHARE_BLOCK_MM = 8.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 #: ... where the presets give relief per-pixel paths shared by geometry classes (``bounce_share``):
@@ -503,9 +507,11 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
     if relief and bounce_filter > 0 and not residual:
         # the window average of the whole later events is biased on relief: per-pixel paths,
         # shared by the pixels of matching geometry (and beam footprint) in a block
-        share = SHARE_BLOCK_MM
+        # where the near relief makes the later events (no tabulated far mean), the view factors
+        # carry them across larger blocks, whose larger classes need fewer paths a pixel
+        share = SHARE_BLOCK_MM if far_table else NEAR_SHARE_BLOCK_MM
         bounce_filter, bounce_min = 0.0, 0.0
-        per_pixel = float(preset["relief_paths"])
+        per_pixel = float(preset["relief_paths" if far_table else "near_relief_paths"])
     else:
         level = filter_window_levels(bounce_filter, pixel_mm, size_px)
         window = 1 if level is None else 3 << level  # the filter's window, in pixels along x and y

@@ -5,7 +5,7 @@ import pytest
 
 import elo_mitsuba as em
 from elo_mitsuba.errors import EloInputError
-from elo_mitsuba.options import EloOptions, SHARE_BLOCK_MM
+from elo_mitsuba.options import NEAR_SHARE_BLOCK_MM, SHARE_BLOCK_MM, EloOptions
 from elo_mitsuba.plugins._geometry_classes import classes, probe_directions
 
 DETS = ("right", "left", "back", "front")
@@ -70,10 +70,10 @@ def test_the_corrugated_sheets_flank_lines_are_classes(mi):
     scene = em.load_scene("corrugated_chamber", res=64, field=10)
     scene.set_quality("default")
     integ = scene.integrator
-    assert integ.options.bounce_share == SHARE_BLOCK_MM
+    assert integ.options.bounce_share == NEAR_SHARE_BLOCK_MM
     integ.prepare_scene(scene.scene, scene.sensor)
     c = integ.geometry_classes()
-    assert c.block_px == round(SHARE_BLOCK_MM / (10 / 64))  # 26 px
+    assert c.block_px == round(NEAR_SHARE_BLOCK_MM / (10 / 64))  # 51 px
     index = c.index
     block = index[:26, :26]
     # along y (rows) a column's pixels are one class, but where a probe distance lies on a step
@@ -125,21 +125,35 @@ def test_classes_are_built_once_per_geometry(mi):
 
 
 def test_the_presets_share_on_relief_only(mi):
+    """Per-pixel paths shared by geometry on relief only: in blocks of NEAR_SHARE_BLOCK_MM with
+    ``near_relief_paths`` where the near relief makes the later events (corrugated_chamber), of
+    SHARE_BLOCK_MM with ``relief_paths`` where the far field does (melt_chamber at events 3)."""
+    from elo_mitsuba.options import QUALITY_PRESETS
+
     chosen = {}
-    for name, fwhm, quality in (("corrugated_chamber", 0.0, "default"), ("corrugated_chamber", 0.0, "draft"),
-                                ("corrugated_chamber", 0.0, "reference"), ("corrugated_chamber", 0.0, "unbiased"),
-                                ("corrugated_chamber", 0.27, "default"),
-                                ("melt_chamber", 0.0, "default"), ("athene_flat", 0.0, "default")):
-        scene = em.load_scene(name, res=32, fwhm=fwhm)
-        scene.set_quality(quality)
-        chosen[(name, fwhm, quality)] = scene.integrator.options.bounce_share
-    assert chosen == {("corrugated_chamber", 0.0, "default"): SHARE_BLOCK_MM,
-                      ("corrugated_chamber", 0.0, "draft"): SHARE_BLOCK_MM,
-                      ("corrugated_chamber", 0.0, "reference"): SHARE_BLOCK_MM,
-                      ("corrugated_chamber", 0.0, "unbiased"): 0.0,  # the ground truth
-                      ("corrugated_chamber", 0.27, "default"): SHARE_BLOCK_MM,  # classes of footprints
-                      ("melt_chamber", 0.0, "default"): 0.0,  # the residual filter instead
-                      ("athene_flat", 0.0, "default"): 0.0}, chosen
+    for name, fwhm, quality, events in (("corrugated_chamber", 0.0, "default", 2), ("corrugated_chamber", 0.0, "draft", 2),
+                                        ("corrugated_chamber", 0.0, "reference", 2),
+                                        ("corrugated_chamber", 0.0, "unbiased", 2),
+                                        ("corrugated_chamber", 0.27, "default", 2),
+                                        ("melt_chamber", 0.0, "default", 2), ("melt_chamber", 0.0, "default", 3),
+                                        ("athene_flat", 0.0, "default", 2)):
+        scene = em.load_scene(name, res=32, fwhm=fwhm, events=events)
+        spp = scene.set_quality(quality)
+        o = scene.integrator.options
+        chosen[(name, fwhm, quality, events)] = (o.bounce_share, o.bounce_samples * o.bounce_fraction * spp)
+    near, far = NEAR_SHARE_BLOCK_MM, SHARE_BLOCK_MM
+    paths = {q: (p["near_relief_paths"], p["relief_paths"]) for q, p in QUALITY_PRESETS.items()}
+    assert chosen == {("corrugated_chamber", 0.0, "default", 2): (near, paths["default"][0]),
+                      ("corrugated_chamber", 0.0, "draft", 2): (near, paths["draft"][0]),
+                      ("corrugated_chamber", 0.0, "reference", 2): (near, paths["reference"][0]),
+                      ("corrugated_chamber", 0.0, "unbiased", 2): (0.0, paths["unbiased"][0]),  # the ground truth
+                      # classes of footprints; each of the profile's samples traces a path at least
+                      ("corrugated_chamber", 0.27, "default", 2): (near, max(paths["default"][0],
+                                                                              QUALITY_PRESETS["default"]["spp_blur"])),
+                      ("melt_chamber", 0.0, "default", 2): (0.0, chosen[("melt_chamber", 0.0, "default", 2)][1]),  # the residual filter
+                      ("melt_chamber", 0.0, "default", 3): (far, paths["default"][1]),
+                      ("athene_flat", 0.0, "default", 2): (0.0, chosen[("athene_flat", 0.0, "default", 2)][1])}, chosen
+    assert near > far and paths["default"][0] < paths["default"][1]
 
 
 def test_under_a_beam_profile_the_classes_see_the_footprint(mi):
@@ -224,13 +238,13 @@ def test_view_factors_carry_a_detectors_solid_angle_across_a_block(mi):
     """The view factors are cos / r^2 of each detector's centre from the beam's hit (on the flat
     plate the pixel's grid point of docs/rendering.md's orientation: an independent computation),
     and they carry what a detector sees across a block: the 1st event (the Appendix A quadrature,
-    deterministic), shared in :data:`SHARE_BLOCK_MM` blocks with them, stays within 0.1 % RMS of
+    deterministic), shared in :data:`NEAR_SHARE_BLOCK_MM` blocks with them, stays within 0.1 % RMS of
     itself (measured 0.03 %), where the plain class mean is off by 0.96 %."""
     from elo_mitsuba.plugins._geometry_classes import GeometryClasses
 
     scene = em.load_scene("flat_plate", res=64)
     result = scene.render(quality="default", progress=False)
-    c = GeometryClasses(scene.scene, scene.sensor, SHARE_BLOCK_MM, None)
+    c = GeometryClasses(scene.scene, scene.sensor, NEAR_SHARE_BLOCK_MM, None)
     geometry = scene.detector_geometry()
     views = c.view_factors([geometry[d]["center"] for d in DETS])
     field, w = float(scene.sensor.field), 64
