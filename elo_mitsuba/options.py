@@ -361,9 +361,10 @@ def parameter_table() -> str:
 #: can scatter onto itself (a scattering surface that is not one plane: an object in a chamber)
 #: events >= 2 vary along a flank whose normals agree, where the window average of the whole
 #: event is biased (+9 % in e2 on the corrugated sheet in the chamber): there the presets give
-#: every pixel ``relief_paths`` continuation paths instead, unless the far field's mean is
-#: tabulated and only events 1 + 2 are traced; ``draft`` and ``default`` then share those events
-#: between the pixels of matching geometry in blocks of :data:`SHARE_BLOCK_MM` (``bounce_share``). Events >= 2 get the far-field control variate with
+#: every pixel ``relief_paths`` continuation paths instead (``near_relief_paths`` where the near
+#: relief makes those events), unless the far field's mean is tabulated and only events 1 + 2 are
+#: traced; ``draft``, ``default`` and ``reference`` then share those events between the pixels of
+#: matching geometry in blocks of :data:`SHARE_BLOCK_MM` or :data:`NEAR_SHARE_BLOCK_MM` (``bounce_share``). Events >= 2 get the far-field control variate with
 #: its mean tabulated (``far_table``, plugins/_far_field.py) wherever less than
 #: :data:`NEAR_SHARE_MAX` of the 2nd event's electrons meet the relief again (``near_share``):
 #: measured at 128^2, `default`, athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the
@@ -406,7 +407,7 @@ PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
-QUALITY_ACCURACY = {"draft": 0.06, "default": 0.027, "reference": 0.018, "unbiased": 0.025}  # corrugated_chamber: 5.8, 2.48, 1.5, 2.0 %
+QUALITY_ACCURACY = {"draft": 0.04, "default": 0.027, "reference": 0.012, "unbiased": 0.025}  # corrugated_chamber: 3.4, 2.41, 1.0, 2.0 %
 #: The presets use the far field's variate (``far_table``) on scenes where less than this share of
 #: the 2nd event's electrons (g_BSE-weighted) meet a surface again within the far field's near
 #: distance: those directions carry the variate too, where it only adds noise. Measured shares
@@ -417,17 +418,25 @@ NEAR_SHARE_MAX = 0.1
 #: field's tabulated mean (``far_table``, events 1 + 2): the mean keeps each pixel's own normal.
 RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: The presets' block (mm) of ``bounce_share`` on relief that keeps per-pixel paths (no residual
-#: filter): pixels of matching geometry in a block share their events
-#: >= 2 (plugins/_geometry_classes.py), their paths one point set per class (plugins/_strata.py,
-#: spread_point). corrugated_chamber, `default`, 1500^2: 6.2 -> 0.32 % total, e2 21 -> 1.1 %, for
-#: the same paths (shared with each sample's own points: 0.53-0.62 %, e2 1.8-2.1 %); at 512^2 its bias was below the
-#: measurement's noise at 4 mm (~0.5 % of e2) and up to 1.0 % of e2 at 8 mm (back, front: the
-#: far field varies along y). Under a beam profile the classes also probe its footprint (1.5
-#: sigma along +-x, +-y); 0.27 mm FWHM, 256^2: bias 0-0.6 % of e2 on corrugated_chamber, 0-0.08 %
-#: of e2 and 0-1.3 % of e3 on melt_chamber at events 3 (one render's noise 3.7-30 %).
+#: filter) where the far field makes the later events (its mean tabulated: melt_chamber at events
+#: 3): pixels of matching geometry in a block share their events >= 2
+#: (plugins/_geometry_classes.py), their paths one point set per class (plugins/_strata.py,
+#: spread_point). Bias against the per-pixel estimator, melt_chamber 256^2, events 3 (``python -m
+#: benchmarks.geometry_share --bias 8,6 --scene melt_chamber --events 3 --bias-res 256``,
+#: 2026-12-06): e2 0.35-0.44 %, e3 0.00-1.65 % (one render's noise 2.4-5.6 % and 8-18 %); in 8 mm
+#: blocks e2 0.70-0.80 %: there the far field, which the view factors do not model, varies across
+#: the block. Under a beam profile the classes also probe its footprint (1.5 sigma along +-x, +-y).
 SHARE_BLOCK_MM = 4.0
-#: ... where the near relief makes the later events (``near_share`` >= :data:`NEAR_SHARE_MAX`: no tabulated
-#: far mean), with ``near_relief_paths`` paths a pixel (TO BE DOCUMENTED).
+#: ... where the near relief makes the later events (``near_share`` >= :data:`NEAR_SHARE_MAX`, no
+#: tabulated far mean: corrugated_chamber's facing flanks), with the presets'
+#: ``near_relief_paths``. Each pixel takes its view factor of the detector times its class's ratio
+#: of events to view factors, which carries the near field across a larger block; the larger
+#: classes need fewer paths a pixel. corrugated_chamber at 1500^2 (benchmarks/RESULTS.md, Far
+#: field, "Larger classes, seen as the detectors see them"), 4 mm blocks of plain means and bins of a
+#: factor 1.65 with 16 paths before -> now: `default` 0.32 -> 0.32 % total noise (the render's own
+#: estimate, worst detector), classes' bias 0.26-0.32 -> 0.17-0.21 % of the total (RMS per pixel,
+#: from unshared renders; the estimate cannot see it), in 5.8-6.0 -> 3.0-3.5 s; `reference` (32
+#: paths) 0.20 -> 0.13 % noise with the same bias, in the same 8.5 s.
 NEAR_SHARE_BLOCK_MM = 8.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8

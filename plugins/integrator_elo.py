@@ -55,8 +55,10 @@ per pixel) then tops up, in a second pass of continuation paths only, the pixels
 paths than that (e.g. at edges where the window had to shrink); both estimates are averaged by
 path count. ``bounce_share`` (mm), the alternative to ``bounce_filter``, shares them between pixels whose geometry matches
 (:mod:`._geometry_classes`: in blocks of that side, the pixels with the same normal and the same
-distances along 64 probe rays, classified once per geometry): for relief that scatters onto
-itself, where events >= 2 vary along a flank but repeat where the relief repeats. The continuation
+distances along 64 probe rays, classified once per geometry; each pixel takes its view factor of
+the detector times the class's ratio of events to view factors, so that a class seen from a
+detector's near side counts more there): for relief that scatters onto itself, where events >= 2
+vary along a flank but repeat where the relief repeats. The continuation
 paths of a class's pixels then form one point set in g_BSE's sample space (:func:`._strata.spread_point`,
 one random shift per class and render, so each pixel stays unbiased; the sampling frame made from
 the normal alone, so one point means one direction in every pixel): they stratify the class's
