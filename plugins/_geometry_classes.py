@@ -33,7 +33,7 @@ and the average is unbiased but for what varies within the block otherwise (the 
 beam's incidence); where no two points match, every pixel keeps its own value (no gain, no bias). A class can still join points whose probes agree but whose events >= 2 do
 not: a difference between the probe directions, such as how much of the facing flank a point on
 the sawtooth plate sees by its distance to the valley's end (16 probes left 7.2 % of e2 per
-pixel there, 64 leave 2.8 %: :data:`PROBES`). The bias that is left is measured (``python -m
+pixel there, 64 leave 2.8 % in 4 mm blocks and 3.3 % in 8 mm ones: :data:`PROBES`). The bias that is left is measured (``python -m
 benchmarks.geometry_share --classes``), never seen by the render's own error estimate (both
 halves share the classes). Each pixel's rank in
 its class (:meth:`GeometryClasses.ranks`) places its paths in the point set the class's samples
@@ -319,13 +319,12 @@ class GeometryClasses:
         class's ratio of plane to view factor (sum over sum), so that what a detector sees of a
         class varies across the block as its solid angle does (the detector's near side sees more
         from the same relief)."""
-        if view is None:
-            sums = np.bincount(self.flat, weights=plane.ravel(), minlength=self.counts.size)
-            plane[...] = (sums / self.counts)[self.index]
-            return
         sums = np.bincount(self.flat, weights=plane.ravel(), minlength=self.counts.size)
-        norms = np.bincount(self.flat, weights=view.ravel(), minlength=self.counts.size)
-        plane[...] = view * (sums / norms)[self.index]
+        if view is None:
+            plane[...] = (sums / self.counts)[self.index]
+        else:
+            norms = np.bincount(self.flat, weights=view.ravel(), minlength=self.counts.size)
+            plane[...] = view * (sums / norms)[self.index]
 
     def ranks(self):
         """Per pixel (flat, row-major) its class, its rank in the class (0 .. n - 1, row-major) and
