@@ -308,7 +308,7 @@ class GeometryClasses:
             p = self._points.astype(np.float64)[self._valid]
             for d, c in enumerate(key):
                 v = np.asarray(c) - p
-                r2 = np.einsum("ij,ij->i", v, v)
+                r2 = np.maximum(np.einsum("ij,ij->i", v, v), 1e-12)  # finite even at the centre itself
                 out[d][self._valid] = np.maximum(v[:, 2] / np.sqrt(r2), MIN_VIEW_COS) / r2
             self._views = (key, out)
         return self._views[1]
