@@ -47,8 +47,8 @@ mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the mel
 e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
 >= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft,
 default and reference share them between pixels of matching geometry (same normal, same distances along 64
-probe rays; under a beam profile also around its footprint) in 8 mm blocks, scaled across a block
-by each detector's view factor, their paths one point set per class (at 1500^2, default: 0.31 %
+probe rays; under a beam profile also around its footprint) in 8 mm blocks (4 mm where the far
+field makes those events), scaled across a block by each detector's view factor, their paths one point set per class (at 1500^2, default: 0.32 %
 total from 8 paths per pixel, and a bias of 0.21 % that the render's own estimate cannot see,
 where 16 own paths per pixel gave 6.2 %). Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
