@@ -262,6 +262,11 @@ def test_view_factors_carry_a_detectors_solid_angle_across_a_block(mi):
         c.share(viewed, views[k])
         rms = [np.sqrt(np.mean((a.astype(np.float64) - e1) ** 2)) / e1.mean() for a in (plain, viewed)]
         assert rms[1] < 1e-3 and rms[0] > 5e-3, (d, rms)
+    # a detector moved (a sweep): its factors follow, never the cached ones of before
+    moved = np.asarray(geometry["right"]["center"]) + (10.0, -20.0, 5.0)
+    v = moved - p
+    r = np.linalg.norm(v, axis=-1)
+    assert np.allclose(c.view_factors([moved])[0], v[..., 2] / r**3, rtol=1e-5, atol=0.0)
 
 
 def test_shared_events_are_the_class_means(mi):
