@@ -364,7 +364,7 @@ def parameter_table() -> str:
 #: every pixel ``relief_paths`` continuation paths instead (``near_relief_paths`` where the near
 #: relief makes those events), unless the far field's mean is tabulated and only events 1 + 2 are
 #: traced; ``draft``, ``default`` and ``reference`` then share those events between the pixels of
-#: matching geometry in blocks of :data:`SHARE_BLOCK_MM` or :data:`NEAR_SHARE_BLOCK_MM` (``bounce_share``). Events >= 2 get the far-field control variate with
+#: matching geometry in blocks of :data:`SHARE_BLOCK_MM` or ``near_share_mm`` (``bounce_share``). Events >= 2 get the far-field control variate with
 #: its mean tabulated (``far_table``, plugins/_far_field.py) wherever less than
 #: :data:`NEAR_SHARE_MAX` of the 2nd event's electrons meet the relief again (``near_share``):
 #: measured at 128^2, `default`, athene_flat 0.30 -> 0.27 % total in 0.57 -> 0.34 s (against the
@@ -389,14 +389,14 @@ def parameter_table() -> str:
 #: ``scene`` keeps the scene file's own settings.
 QUALITY_PRESETS = {
     "draft": {"spp": 1, "spp_blur": 4, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 100,
-              "bounce_min": 0.0, "relief_paths": 4, "near_relief_paths": 4},
+              "bounce_min": 0.0, "relief_paths": 4, "near_relief_paths": 2, "near_share_mm": 16.0},
     "default": {"spp": 1, "spp_blur": 16, "quadrature_triangles": 4, "bounce_filter": 1.0, "bounce_budget": 2400,
-                "bounce_min": 2.0, "relief_paths": 16, "near_relief_paths": 8},
+                "bounce_min": 2.0, "relief_paths": 16, "near_relief_paths": 4, "near_share_mm": 16.0},
     "reference": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 1.0, "bounce_budget": 9600,
-                  "bounce_min": 8.0, "relief_paths": 32, "near_relief_paths": 32},
+                  "bounce_min": 8.0, "relief_paths": 32, "near_relief_paths": 24, "near_share_mm": 12.0},
     "unbiased": {"spp": 1, "spp_blur": 256, "quadrature_triangles": 24, "bounce_filter": 0.0,
                  "bounce_budget": 128, "bounce_min": 0.0, "relief_paths": 128,
-                 "near_relief_paths": 128},
+                 "near_relief_paths": 128, "near_share_mm": 0.0},
 }
 QUALITIES = tuple(QUALITY_PRESETS) + ("scene",)
 #: The options a preset sets (:func:`quality_options`); ``scene`` restores them from the scene file.
@@ -427,17 +427,6 @@ RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: blocks e2 0.70-0.80 %: there the far field, which the view factors do not model, varies across
 #: the block. Under a beam profile the classes also probe its footprint (1.5 sigma along +-x, +-y).
 SHARE_BLOCK_MM = 4.0
-#: ... where the near relief makes the later events (``near_share`` >= :data:`NEAR_SHARE_MAX`, no
-#: tabulated far mean: corrugated_chamber's facing flanks), with the presets'
-#: ``near_relief_paths``. Each pixel takes its view factor of the detector times its class's ratio
-#: of events to view factors, which carries the near field across a larger block; the larger
-#: classes need fewer paths a pixel. corrugated_chamber at 1500^2 (benchmarks/RESULTS.md, Far
-#: field, "Larger classes, seen as the detectors see them"), 4 mm blocks of plain means and bins of a
-#: factor 1.65 with 16 paths before -> now: `default` 0.32 -> 0.32 % total noise (the render's own
-#: estimate, worst detector), classes' bias 0.26-0.32 -> 0.17-0.21 % of the total (RMS per pixel,
-#: from unshared renders; the estimate cannot see it), in 5.8-6.0 -> 3.0-3.5 s; `reference` (32
-#: paths) 0.20 -> 0.13 % noise with the same bias, in the same 8.5 s.
-NEAR_SHARE_BLOCK_MM = 8.0
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 #: ... where the presets give relief per-pixel paths shared by geometry classes (``bounce_share``):
@@ -518,7 +507,7 @@ def quality_options(quality: str, base: EloOptions, *, pixel_mm: float, fwhm_mm:
         # shared by the pixels of matching geometry (and beam footprint) in a block
         # where the near relief makes the later events (no tabulated far mean), the view factors
         # carry them across larger blocks, whose larger classes need fewer paths a pixel
-        share = SHARE_BLOCK_MM if far_table else NEAR_SHARE_BLOCK_MM
+        share = SHARE_BLOCK_MM if far_table else float(preset["near_share_mm"])
         bounce_filter, bounce_min = 0.0, 0.0
         per_pixel = float(preset["relief_paths" if far_table else "near_relief_paths"])
     else:

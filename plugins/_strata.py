@@ -19,6 +19,13 @@ _GOLDEN_U32 = 2654435769
 #: 1/g, 1/g^2, 1/g^3 (g = 1.22074408..., the real root of x^4 = x + 1) in 32-bit fixed point: the
 #: steps of a 3D Kronecker (R3) sequence, frac(i alpha), low-discrepancy in every projection.
 _R3_U32 = (3518319155, 2882110345, 2360945575)
+#: 1/p, 1/p^2 (p = 1.32471795..., the plastic number, x^3 = x + 1) in 32-bit fixed point: the steps
+#: of a 2D Kronecker (R2) sequence, low-discrepancy in the plane (a pair of steps chosen apart,
+#: such as the golden ratio's and 1/p, nearly repeat: 7 (1/p - golden) = 0.96).
+_R2_U32 = (3242174889, 2447445414)
+#: Most continuation paths per sample for which a class's point set also picks their components
+#: (:func:`spread_pick`); above it each sample counts its own (:func:`spread_point`).
+PICK_MAX_PATHS = 4
 #: The largest float32 below 1: a point of a stratum must stay inside the unit square.
 _BELOW_ONE = 0.99999994
 
@@ -101,6 +108,28 @@ def spread_point(j: int, k: int, n_first, sample, n_samples, shift_x, rot_first,
     x = mi.Float(i) / n + u / n + shift_x
     y = mi.Float(i * _GOLDEN_U32) * (1.0 / 4294967296.0) + dr.select(is_first, rot_first, rot_second)
     return is_first, mi.Point2f(dr.minimum(x - dr.floor(x), _BELOW_ONE), y - dr.floor(y))
+
+
+def spread_pick(j: int, k: int, sample, n_samples, q, shift_pick, shift_x, rot, u):
+    """As :func:`spread_point`, for few paths per sample (k <= :data:`PICK_MAX_PATHS`): (is_first,
+    its point in that component's unit square) for a first component of probability ``q``, the
+    class's point set making the choice too. Path i = sample k + j takes the first component where
+    i a1 + ``shift_pick`` < q and the point ((i + u) / (n_samples k) + ``shift_x``, i a2 + ``rot``),
+    all mod 1, (a1, a2) the steps of a 2D Kronecker (R2) sequence. A count of first-component
+    paths drawn per sample (:func:`spread_point`) leaves each component a random subset of the
+    class's points at k = 1 or 2; here the class's paths stratify the choice and the square
+    together (from k = 8 on the count stratifies each component better: tests/test_strata.py).
+    The choice compares with each path's own q, so pixels of one class whose q differs (the beam's
+    incidence changes across a block) keep their own mixture. With the shifts uniform (one random
+    shift each per class and render) every path's choice and point are as one independent
+    sample's: each pixel's estimate stays unbiased."""
+    i = sample * k + mi.UInt32(j)
+    n = mi.Float(n_samples * k)
+    x = mi.Float(i) / n + u / n + shift_x
+    y = mi.Float(i * _R2_U32[1]) * (1.0 / 4294967296.0) + rot
+    pick = mi.Float(i * _R2_U32[0]) * (1.0 / 4294967296.0) + shift_pick
+    return (pick - dr.floor(pick) < q,
+            mi.Point2f(dr.minimum(x - dr.floor(x), _BELOW_ONE), y - dr.floor(y)))
 
 
 def spread_later(i, shifts):

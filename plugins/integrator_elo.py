@@ -115,8 +115,8 @@ from ._detectors import find_detectors, parse_detector_list, quadrature_geometry
 from ._occlusion import unblockable, unblockable_regions
 from ._occlusion_tiles import WallTiles, worth_tiling
 from ._shapes import GeometryKey, bbox_centre, shape_key
-from ._strata import (allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later, spread_point,
-                      strata_cells, stratum)
+from ._strata import (PICK_MAX_PATHS, allocated, cell_area, cell_point, group_point, shifted_lattice, spread_later,
+                      spread_pick, spread_point, strata_cells, stratum)
 from ._relief import (beam_probe, detectors_in_beam, field_missed, may_meet_beam, relief_under_beam,
                       surfaces_met_from_behind, surfaces_overlapping, surfaces_seen_from_behind)
 from ._scene_checks import SceneChecks
@@ -813,7 +813,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                             if k_paths > 1 else None
                     path = None
                     if groups is not None and groups[-1] is not None:  # the path's index in its class
-                        sample, _, _, c = groups[-1]
+                        sample, _, _, c, _, _ = groups[-1]
                         path = (sample * k_paths + j, c)
                     more, more_hit = self._bounces(scene, sampler, si, ray, bsdf_of(si, ray), ctx, alive, traced,
                                                    far, first=first, far_mask=far_mask, spread=path)
@@ -929,7 +929,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                 wo, w = si.to_world(bs.wo), weight[0]
             else:
                 si = self._normal_frame(si, ray)
-                u1, u2 = spread_later(spread[0], self._class_shifts(spread[1], event))
+                u1, u2 = spread_later(spread[0], self._class_shifts(spread[1], event)[:3])
                 bs, weight = bsdf.sample(ctx, si, u1, u2, alive)
                 wo, w = si.to_world(bs.wo), weight[0]
             throughput = throughput * w
@@ -1001,17 +1001,17 @@ class EloIntegrator(mi.SamplingIntegrator):
         c = dr.gather(mi.UInt32, cls, pixel, alive)
         sample = dr.gather(mi.UInt32, rank, pixel, alive) * spp + (lane - pixel * spp)
         n_samples = dr.gather(mi.UInt32, size, pixel, alive) * spp
-        rot_lobe, rot_diffuse, shift_x = self._class_shifts(c, 1)
-        return n_lobe, rot_lobe, rot_diffuse, (sample, n_samples, shift_x, c)
+        rot_lobe, rot_diffuse, shift_x, shift_pick = self._class_shifts(c, 1)
+        return n_lobe, rot_lobe, rot_diffuse, (sample, n_samples, shift_x, c, q, shift_pick)
 
     def _class_shifts(self, c, event):
-        """Three uniform numbers of class ``c`` for its paths' continuation ``event`` (1 = the
+        """Four uniform numbers of class ``c`` for its paths' continuation ``event`` (1 = the
         first) in this render, the random shifts of its point set: hashes of the class and the
         render's key, one key per continuation."""
         key = self._spread[4] ^ mi.UInt32(0x9E3779B9 * event % (1 << 32))
         a, b = mi.sample_tea_32(c, key, 4)
-        d = mi.sample_tea_32(c, key ^ 0x5BD1E995, 4)[0]
-        return [mi.Float(x) * (1.0 / 4294967296.0) for x in (a, b, d)]
+        d, e = mi.sample_tea_32(c, key ^ 0x5BD1E995, 4)
+        return [mi.Float(x) * (1.0 / 4294967296.0) for x in (a, b, d, e)]
 
     @staticmethod
     def _normal_frame(si, ray):
@@ -1028,14 +1028,19 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _direction_grouped(j, k, groups, si, ray, ctx, sampler, alive):
         """Path j of k (world direction, weight S): the lobe's if j < L, else the diffuse part's;
         g_BSE sampled at its group's point (the component forced: u1 = 0 picks the lobe, 1 the
-        diffuse part). Weight 1/k per path: with E[L] = q k this is the mixture's estimate."""
+        diffuse part). Weight 1/k per path: with E[L] = q k this is the mixture's estimate. While a
+        class spreads its paths over one point set and k <= PICK_MAX_PATHS, the set picks each
+        path's component instead (with probability q, :func:`._strata.spread_pick`)."""
         n_lobe, rot_lobe, rot_diffuse, spread = groups
+        u = sampler.next_1d(alive)
         if spread is None:
-            is_lobe, u2 = group_point(j, k, n_lobe, rot_lobe, rot_diffuse, sampler.next_1d(alive))
+            is_lobe, u2 = group_point(j, k, n_lobe, rot_lobe, rot_diffuse, u)
+        elif k <= PICK_MAX_PATHS:  # few paths a sample: the class's point set picks the component too
+            sample, n_samples, shift_x, _, q, shift_pick = spread
+            is_lobe, u2 = spread_pick(j, k, sample, n_samples, q, shift_pick, shift_x, rot_lobe, u)
         else:
-            sample, n_samples, shift_x, _ = spread
-            is_lobe, u2 = spread_point(j, k, n_lobe, sample, n_samples, shift_x, rot_lobe, rot_diffuse,
-                                       sampler.next_1d(alive))
+            sample, n_samples, shift_x, _, _, _ = spread
+            is_lobe, u2 = spread_point(j, k, n_lobe, sample, n_samples, shift_x, rot_lobe, rot_diffuse, u)
         return _sample_direction(si, ray, ctx, dr.select(is_lobe, 0.0, 1.0), u2, alive)
 
     @staticmethod

@@ -296,7 +296,7 @@ def test_the_presets_filter_the_residual_on_relief_only_with_the_tabulated_mean(
     """The window spans relief (RESIDUAL_FILTER_ANGLE_DEG) only where the far field's mean is
     tabulated and events 1 + 2 are traced; elsewhere relief gets per-pixel paths, and a flat scene
     keeps the 1-degree guide. The mean's hidden channels hold what is added back."""
-    from elo_mitsuba.options import FILTER_ANGLE_DEG, NEAR_SHARE_BLOCK_MM, RESIDUAL_FILTER_ANGLE_DEG, SHARE_BLOCK_MM
+    from elo_mitsuba.options import FILTER_ANGLE_DEG, QUALITY_PRESETS, RESIDUAL_FILTER_ANGLE_DEG, SHARE_BLOCK_MM
 
     chosen = {}
     for name, events in (("melt_chamber", 2), ("melt_chamber", 3), ("corrugated_chamber", 2), ("athene_flat", 2)):
@@ -307,7 +307,7 @@ def test_the_presets_filter_the_residual_on_relief_only_with_the_tabulated_mean(
     # relief without the residual filter: per-pixel paths, shared by geometry (test_geometry_classes.py)
     assert chosen == {("melt_chamber", 2): (1.0, RESIDUAL_FILTER_ANGLE_DEG, True, 0.0),
                       ("melt_chamber", 3): (0.0, FILTER_ANGLE_DEG, True, SHARE_BLOCK_MM),
-                      ("corrugated_chamber", 2): (0.0, FILTER_ANGLE_DEG, False, NEAR_SHARE_BLOCK_MM),
+                      ("corrugated_chamber", 2): (0.0, FILTER_ANGLE_DEG, False, QUALITY_PRESETS["default"]["near_share_mm"]),
                       ("athene_flat", 2): (1.0, FILTER_ANGLE_DEG, True, 0.0)}, chosen
     scene = em.load_scene("melt_chamber", res=96)
     spp = scene.set_quality("default")
