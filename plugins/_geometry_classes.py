@@ -326,7 +326,7 @@ class GeometryClasses:
         xy = np.where(valid.reshape(-1, 1), self._points[..., :2].reshape(-1, 2).astype(np.float64), 0.0)
         centre = np.stack([np.bincount(self.flat, weights=xy[:, a], minlength=self.counts.size)
                            for a in (0, 1)], axis=1) / self.counts[:, None]
-        self._offset = xy - centre[self.flat]
+        self._ox, self._oy = (np.ascontiguousarray(xy[:, a] - centre[self.flat, a]) for a in (0, 1))
         # the class's quantised normal (the grid point's, part of every class key), as a group number
         first = np.full(self.counts.size, -1, np.int64)
         first[self.flat[::-1]] = np.arange(self.flat.size - 1, -1, -1)
@@ -336,7 +336,7 @@ class GeometryClasses:
         self._pixel_group = group[self.flat]
         self._tilted = shared >= MIN_TILT_PIXELS  # groups whose tilt is fitted
         self._reach = np.zeros(self._tilted.size)  # per group the farthest pixel from its class's centre (mm)
-        np.maximum.at(self._reach, self._pixel_group, np.hypot(self._offset[:, 0], self._offset[:, 1]))
+        np.maximum.at(self._reach, self._pixel_group, np.hypot(self._ox, self._oy))
 
     def view_factors(self, centres):
         """Per detector centre (mm) the pixels' view factors of it (D x H x W, float64): the solid
@@ -371,15 +371,24 @@ class GeometryClasses:
             return
         v = view.ravel()
         moments = self._view_moments(view)
-        aux = v
+        norms = moments.sum
+        ratio = sums / np.where(norms != 0, norms, 1.0)
         theta = self.tilts(x, v, sums, moments)
-        if theta is not None:
+        if theta is None:
+            out = np.take(ratio, self.flat)
+        else:  # in place, a pass over the pixels per step (the planes have millions)
             tx, ty = theta[:, 0], theta[:, 1]
             centre = tx[self._class_group] * moments.centre[:, 0] + ty[self._class_group] * moments.centre[:, 1]
-            aux = v * (1.0 + tx[self._pixel_group] * self._offset[:, 0] + ty[self._pixel_group] * self._offset[:, 1]
-                       - centre[self.flat])
-        norms = moments.sum
-        plane[...] = (aux * (sums / np.where(norms != 0, norms, 1.0))[self.flat]).reshape(plane.shape)
+            out = np.take(tx, self._pixel_group)
+            out *= self._ox
+            step = np.take(ty, self._pixel_group)
+            step *= self._oy
+            out += step
+            out -= np.take(centre, self.flat)
+            out += 1.0
+            out *= np.take(ratio, self.flat)
+        out *= v
+        plane[...] = out.reshape(plane.shape)
 
     def tilts(self, x, v, sums, moments):
         """The tilt theta (groups x 2, per mm) of :meth:`share` per quantised normal, or None where
@@ -394,7 +403,7 @@ class GeometryClasses:
         n, groups = self.counts.size, self._tilted.size
         r = np.where(moments.sum != 0, sums / np.where(moments.sum != 0, moments.sum, 1.0), 0.0)
         xv = x * v
-        b = np.stack([np.bincount(self.flat, weights=xv * self._offset[:, a], minlength=n) for a in (0, 1)], axis=1)
+        b = np.stack([np.bincount(self.flat, weights=xv * o, minlength=n) for o in (self._ox, self._oy)], axis=1)
         b -= moments.centre * np.bincount(self.flat, weights=xv, minlength=n)[:, None]  # sum of v x (x, y) per class
         b -= r[:, None] * moments.first  # ... less R v^2 (x, y): the sum of v (x - v R) (x, y)
 
@@ -425,8 +434,8 @@ class GeometryClasses:
 
             total = sums(v)
             safe = np.where(total != 0, total, 1.0)
-            centre = np.stack([sums(v * self._offset[:, a]) / safe for a in (0, 1)], axis=1)
-            dx, dy = (self._offset[:, a] - centre[self.flat, a] for a in (0, 1))
+            centre = np.stack([sums(v * o) / safe for o in (self._ox, self._oy)], axis=1)
+            dx, dy = (o - centre[self.flat, a] for a, o in enumerate((self._ox, self._oy)))
             v2 = v * v
             first = np.stack([sums(v2 * dx), sums(v2 * dy)], axis=1)
             second = np.stack([sums(v2 * dx * dx), sums(v2 * dx * dy), sums(v2 * dy * dy)], axis=1)
