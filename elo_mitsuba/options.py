@@ -407,7 +407,7 @@ PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
-QUALITY_ACCURACY = {"draft": 0.04, "default": 0.027, "reference": 0.012, "unbiased": 0.025}  # corrugated_chamber: 3.4, 2.41, 1.0, 2.0 %
+QUALITY_ACCURACY = {"draft": 0.04, "default": 0.027, "reference": 0.012, "unbiased": 0.025}  # corrugated_chamber: 3.43, 2.29, 1.0, 1.96 %
 #: The presets use the far field's variate (``far_table``) on scenes where less than this share of
 #: the 2nd event's electrons (g_BSE-weighted) meet a surface again within the far field's near
 #: distance: those directions carry the variate too, where it only adds noise. Measured shares
@@ -427,6 +427,20 @@ RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: blocks e2 0.70-0.80 %: there the far field, which the view factors do not model, varies across
 #: the block. Under a beam profile the classes also probe its footprint (1.5 sigma along +-x, +-y).
 SHARE_BLOCK_MM = 4.0
+#: Where the near relief makes the later events (``near_share`` >= :data:`NEAR_SHARE_MAX`, no
+#: tabulated far mean: corrugated_chamber's facing flanks) the presets share them in blocks of their
+#: ``near_share_mm`` with ``near_relief_paths`` paths a pixel: each pixel takes its view factor of
+#: the detector times its class's ratio of events to view factors, times the tilt across the block
+#: that the classes of its normal share (the beam's incidence on a flank changes across the field;
+#: plugins/_geometry_classes.py), and where a sample has at most 4 paths the class's point set also
+#: picks their components (plugins/_strata.py, spread_pick). corrugated_chamber at 1500^2, before
+#: (8 mm blocks, no tilt, components counted per sample) -> now, interleaved in one process on the
+#: shared 2-core AMD EPYC (2026-12-06; noise: the render's own estimate, worst detector; bias: the
+#: classes' RMS per pixel of the total from 64 unshared renders, worst detector, which the estimate
+#: cannot see; benchmarks/RESULTS.md, Far field, "A tilt across the blocks"):
+#: draft 4 paths in 8 mm -> 2 in 16 mm: noise 0.58 -> 0.44 %, bias 0.22 -> 0.19 %, 1.7-2.5 -> 1.6-1.9 s;
+#: default 8 -> 4 in 16 mm: 0.32 -> 0.25 %, bias 0.22 -> 0.19 %, 2.6-3.7 -> 2.0-2.6 s;
+#: reference 32 in 8 mm -> 24 in 12 mm: 0.12 -> 0.11 %, bias 0.22 -> 0.14 %, 9.2-13.8 -> 7.2-7.9 s.
 #: Most continuation paths per sample a preset asks for (the loop is unrolled in the kernel).
 MAX_BOUNCE_SAMPLES = 8
 #: ... where the presets give relief per-pixel paths shared by geometry classes (``bounce_share``):

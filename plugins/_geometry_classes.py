@@ -23,7 +23,14 @@ enter the class.
 A class is the pixels of one block with equal quantised normal and probe distances; the integrator
 replaces each pixel's events >= 2 by its class's (``bounce_share``): for each detector the pixel's
 view factor of it (cos / r^2 of the detector's centre from the beam's hit, over a level plane:
-:meth:`GeometryClasses.view_factors`) times the class's ratio of events to view factors. A detector
+:meth:`GeometryClasses.view_factors`) times the class's ratio of events to view factors, times
+1 + theta . (x, y), (x, y) the pixel's place in its class and theta the tilt that all classes of
+its quantised normal share, fitted by least squares in each render (:meth:`GeometryClasses.tilts`):
+the beam's incidence on a flank changes across the field (perspective), and with it what the flank
+sends onto the facing one (corrugated_chamber at 1500^2, 64 unshared renders each shared as the
+integrator does, RMS per pixel of e2 by detector: 16 mm blocks 1.10-1.36 % without the tilt,
+0.36-0.63 % with it; of the total, worst detector, 0.19 % against 0.22 % in the 8 mm blocks
+without it of the presets before). A detector
 sees the same relief from the block's near side under a larger solid angle, so a plain mean
 would tilt every class across its block: corrugated_chamber at 1500^2, 8 mm blocks, 0.97-1.15 % of
 e2 per pixel (RMS) plain, 0.58-0.75 % with the view factors; the 1st event of the flat plate
@@ -308,18 +315,23 @@ class GeometryClasses:
         Side of the blocks (mm) that bound a class.
     key : hashable
         What they were made for (:func:`geometry_key` and the block), kept to compare.
+    like : GeometryClasses, optional
+        Classes of the same geometry, beam and film in another block size: their
+        :func:`scan_features` and view factors are taken over (the scan is the costly part, 4-7 s
+        at 1500^2; sorting into other blocks takes about a second).
     """
 
-    def __init__(self, scene, sensor, block_mm, key):
+    def __init__(self, scene, sensor, block_mm, key, like=None):
         self.key = key
         size = sensor.film().crop_size()
         self.block_px = max(1, int(round(block_mm * int(size[0]) / float(sensor.field))))
-        valid, features, self._points, normal = scan_features(scene, sensor)
+        self.features = scan_features(scene, sensor) if like is None else like.features
+        valid, features, self._points, normal = self.features
         self._valid = valid
         self.index, self.counts = classes(valid, features, self.block_px)
         self.flat = self.index.ravel()
         self._ranks = None
-        self._views = (None, None)
+        self._views = (None, None) if like is None else like._views
         self._moments = {}  # per view factor plane (its buffer): its sums per class (_view_moments)
         # each pixel's place in its class: its hit less the class's mean hit (x, y, mm); 0 in a
         # class of one pixel, and where the beam meets no scattering surface
@@ -454,7 +466,7 @@ class GeometryClasses:
         if self._ranks is not None:
             return self._ranks
         scramble = np.random.default_rng(RANK_SEED).permutation(self.flat.size)
-        order = np.lexsort((scramble, self.flat))
+        order = np.argsort((self.flat.astype(np.int64) << 32) | scramble)  # by class, then scrambled
         starts = np.cumsum(self.counts) - self.counts
         rank = np.empty(self.flat.size, np.int64)
         rank[order] = np.arange(self.flat.size) - starts[self.flat[order]]

@@ -57,13 +57,16 @@ path count. ``bounce_share`` (mm), the alternative to ``bounce_filter``, shares 
 (:mod:`._geometry_classes`: in blocks of that side, the pixels with the same normal and the same
 distances along 64 probe rays, classified once per geometry; each pixel takes its view factor of
 the detector times the class's ratio of events to view factors, so that a class seen from a
-detector's near side counts more there): for relief that scatters onto itself, where events >= 2
+detector's near side counts more there, times the tilt across the block that the classes of its
+normal share, fitted in each render): for relief that scatters onto itself, where events >= 2
 vary along a flank but repeat where the relief repeats. The continuation
 paths of a class's pixels then form one point set in g_BSE's sample space (:func:`._strata.spread_point`,
 one random shift per class and render, so each pixel stays unbiased; the sampling frame made from
 the normal alone, so one point means one direction in every pixel): they stratify the class's
 integral together instead of k paths at a time (corrugated_chamber 1500^2, `default`: e2 1.8-2.1
--> 0.9-1.1 % per pixel for the same paths); the later continuations (events >= 3) take a 3D
+-> 0.9-1.1 % per pixel for the same paths), and where a sample has at most ``PICK_MAX_PATHS`` (4)
+the set also picks each path's component (:func:`._strata.spread_pick`; 8 mm blocks, 8 paths a
+pixel: total 0.32 -> 0.28 %); the later continuations (events >= 3) take a 3D
 Kronecker sequence over the class's paths (:func:`._strata.spread_later`; corrugated_chamber 256^2,
 events 3: e3 10.4 -> 9.1 %; melt_chamber's e3, whose noise is not in the directions, unchanged).
 
@@ -172,7 +175,8 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._far_mean_table = None  # its tabulated mean (_far_field.MeanTable, option far_table), or None
         self.far_field_builds = 0  # how many times the far-field table was built (tests, benchmarks)
         self._classes = None  # the geometry classes of bounce_share (_geometry_classes), or None
-        self.class_builds = 0  # how many times they were built (tests, benchmarks)
+        self._other_classes = None  # the classes of the block used before, on the same geometry (another preset)
+        self.class_builds = 0  # how many times their features were scanned (tests, benchmarks)
         self._spread = None  # (class, rank, size per pixel, spp, key) while a pass spreads a class's paths
 
     # ---- options --------------------------------------------------------------------------------
@@ -347,9 +351,15 @@ class EloIntegrator(mi.SamplingIntegrator):
         key = (classes_key(scene, sensor, self._geometry_key), float(self.bounce_share))
         if self._classes is not None and self._classes.key == key:
             return
-        self._classes = None  # the old classes' arrays go before the new ones are made
-        self._classes = GeometryClasses(scene, sensor, self.bounce_share, key)
-        self.class_builds += 1
+        same = [c for c in (self._classes, self._other_classes) if c is not None and c.key[0] == key[0]]
+        self._classes = self._other_classes = None  # old classes' arrays go before new ones are made
+        if same and same[-1].key == key:  # back to the block before (presets taken in turn): kept
+            self._classes, self._other_classes = same[-1], same[0]
+            return
+        # another block on the same geometry sorts the same features anew, and the last block is kept
+        self._classes = GeometryClasses(scene, sensor, self.bounce_share, key, same[0] if same else None)
+        self._other_classes = same[0] if same else None
+        self.class_builds += not same
 
     def near_share(self, scene, sensor):
         """The share of the 2nd event's electrons that meet a surface again within NEAR_MM of the

@@ -100,12 +100,18 @@ def test_the_corrugated_sheets_flank_lines_are_classes(mi):
 
 def test_classes_are_built_once_per_geometry(mi):
     """Re-renders and detector moves out of the probes' reach reuse the classes (a detector
-    sweep); a detector moved within reach of the field, or another film, rebuilds them."""
+    sweep), and another preset's block sorts the same features anew; a detector moved within reach
+    of the field, or another film, scans them again."""
     scene = em.load_scene("corrugated_chamber", res=24, field=10)
     for seed in (1, 2):
         scene.render(quality="default", seed=seed, progress=False)
     integ = scene.integrator
     assert integ.class_builds == 1
+    block = integ.geometry_classes().block_px
+    scene.render(quality="reference", seed=1, progress=False)  # its own block, the same features
+    assert integ.class_builds == 1 and integ.geometry_classes().block_px != block
+    scene.render(quality="default", seed=1, progress=False)
+    assert integ.class_builds == 1 and integ.geometry_classes().block_px == block
     centre = scene.detector_geometry()["right"]["center"]
     scene.set_detector("right", center=[centre[0] + 5.0, centre[1], centre[2]])
     scene.render(quality="default", seed=3, progress=False)

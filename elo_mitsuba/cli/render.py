@@ -47,18 +47,19 @@ mean (the mean stays per pixel), also on relief at events 1 + 2 (bias on the mel
 e2 per pixel). Where relief scatters much onto itself (corrugated_chamber's facing flanks) events
 >= 2 are traced per pixel (a window average was biased by +9 % in e2 on flanks) and draft,
 default and reference share them between pixels of matching geometry (same normal, same distances along 64
-probe rays; under a beam profile also around its footprint) in 8 mm blocks (4 mm where the far
-field makes those events), scaled across a block by each detector's view factor, their paths one point set per class (at 1500^2, default: 0.32 %
-total from 8 paths per pixel, and a bias of 0.21 % that the render's own estimate cannot see,
-where 16 own paths per pixel gave 6.2 %). Measured on every
+probe rays; under a beam profile also around its footprint) in blocks of 16 mm (12 mm for
+reference; 4 mm where the far field makes those events), scaled across a block by each
+detector's view factor and a tilt fitted per normal, their paths one point set per class (at
+1500^2, default: 0.25 % total from 4 paths per pixel, and a bias of 0.19 % that the render's own
+estimate cannot see, where 16 own paths per pixel gave 6.2 %). Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
 detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
   draft       corrugated_chamber     3.4 %   0.05 s         0.54 %
-  default     corrugated_chamber     2.41 %  0.07 s         0.23 % (0.10 % at 1500^2, own estimate)
-  reference   corrugated_chamber     1.0 %   0.24 s         0.22 % (0.05 % at 1500^2, own estimate)
-  unbiased    corrugated_chamber     2.0 %   0.43 s         0.51 % (0.47 % at 1500^2, in 27x default's time)
+  default     corrugated_chamber     2.29 %  0.11 s         0.23 % (0.10 % at 1500^2, own estimate)
+  reference   corrugated_chamber     1.0 %   0.29 s         0.22 % (0.05 % at 1500^2, own estimate)
+  unbiased    corrugated_chamber     2.0 %   0.41 s         0.51 % (0.47 % at 1500^2, in 27x default's time)
 
 reference is default's averaging with 4x its paths (at 1500^2 half default's noise in 1.5-2x its
 time); unbiased averages nothing between pixels (128 paths per pixel of their own): the ground
