@@ -423,9 +423,9 @@ RESIDUAL_FILTER_ANGLE_DEG = 20.0
 #: (plugins/_geometry_classes.py), their paths one point set per class (plugins/_strata.py,
 #: spread_point). Bias against the per-pixel estimator, melt_chamber 256^2, events 3 (``python -m
 #: benchmarks.geometry_share --bias 8,6 --scene melt_chamber --events 3 --bias-res 256``,
-#: 2026-12-06): e2 0.35-0.44 %, e3 0.00-1.65 % (one render's noise 2.4-5.6 % and 8-18 %); in 8 mm
-#: blocks e2 0.70-0.80 %: there the far field, which the view factors do not model, varies across
-#: the block. Under a beam profile the classes also probe its footprint (1.5 sigma along +-x, +-y).
+#: 2026-12-06 16:00, with the classes' tilt): e2 0.08-0.41 %, e3 0.00-1.64 % (one render's noise
+#: 2.4-5.6 % and 8-18 %; before the tilt e2 0.35-0.44 %); in 8 mm blocks without the tilt e2
+#: 0.70-0.80 %: there the far field, which the view factors do not model, varies across the block. Under a beam profile the classes also probe its footprint (1.5 sigma along +-x, +-y).
 SHARE_BLOCK_MM = 4.0
 #: Where the near relief makes the later events (``near_share`` >= :data:`NEAR_SHARE_MAX`, no
 #: tabulated far mean: corrugated_chamber's facing flanks) the presets share them in blocks of their
