@@ -118,7 +118,7 @@ def spread_pick(j: int, k: int, sample, n_samples, q, shift_pick, shift_x, rot, 
     all mod 1, (a1, a2) the steps of a 2D Kronecker (R2) sequence. A count of first-component
     paths drawn per sample (:func:`spread_point`) leaves each component a random subset of the
     class's points at k = 1 or 2; here the class's paths stratify the choice and the square
-    together (from k = 8 on the count stratifies each component better: tests/test_strata.py).
+    together (from k = 8 on the count does as well or better: tests/test_strata.py).
     The choice compares with each path's own q, so pixels of one class whose q differs (the beam's
     incidence changes across a block) keep their own mixture. With the shifts uniform (one random
     shift each per class and render) every path's choice and point are as one independent
