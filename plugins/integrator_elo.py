@@ -351,15 +351,15 @@ class EloIntegrator(mi.SamplingIntegrator):
         key = (classes_key(scene, sensor, self._geometry_key), float(self.bounce_share))
         if self._classes is not None and self._classes.key == key:
             return
-        same = [c for c in (self._classes, self._other_classes) if c is not None and c.key[0] == key[0]]
-        self._classes = self._other_classes = None  # old classes' arrays go before new ones are made
-        if same and same[-1].key == key:  # back to the block before (presets taken in turn): kept
-            self._classes, self._other_classes = same[-1], same[0]
+        if self._other_classes is not None and self._other_classes.key == key:  # back to the block before
+            self._classes, self._other_classes = self._other_classes, self._classes
             return
         # another block on the same geometry sorts the same features anew, and the last block is kept
-        self._classes = GeometryClasses(scene, sensor, self.bounce_share, key, same[0] if same else None)
-        self._other_classes = same[0] if same else None
-        self.class_builds += not same
+        like = self._classes if self._classes is not None and self._classes.key[0] == key[0] else None
+        self._classes = self._other_classes = None  # old classes' arrays go before new ones are made
+        self._classes = GeometryClasses(scene, sensor, self.bounce_share, key, like)
+        self._other_classes = like
+        self.class_builds += like is None
 
     def near_share(self, scene, sensor):
         """The share of the 2nd event's electrons that meet a surface again within NEAR_MM of the
