@@ -649,9 +649,9 @@ class EloIntegrator(mi.SamplingIntegrator):
                 # detector's view factor (both halves of the error estimate share the classes, so
                 # its noise is seen and any bias is not)
                 views = self._classes.view_factors([bbox_centre(shape) for _, shape in self.detectors])
-                for d, (name, _) in enumerate(self.detectors):
-                    for k in range(2, self.events + 1):
-                        self._classes.share(planes[index[event_channel(name, k)]], views[d])
+                self._classes.share_all((planes[index[event_channel(name, k)]], views[d])
+                                        for d, (name, _) in enumerate(self.detectors)
+                                        for k in range(2, self.events + 1))
                 paths *= self._classes.pixels_per_class()
             if self.bounce_min > 0:
                 self._top_up(planes, index, scene, sensor, sensor_obj, seed_value, paths)
