@@ -337,6 +337,38 @@ def test_a_tilt_across_the_blocks_is_fitted(mi, monkeypatch):
     assert rms > 5e-3, rms
 
 
+def test_shares_on_threads_are_each_planes_own_share(mi, monkeypatch):
+    """share_all (a render's planes on several threads) gives every plane bit for bit what
+    share() gives it alone, each with its own view: detectors of different view factors, planes
+    of different tilts, with and without a view; and it runs them on more than one thread."""
+    import threading
+
+    import elo_mitsuba.plugins._geometry_classes as gc
+
+    c, view, offset = _flat_plate_classes(96)
+    rng = np.random.default_rng(5)
+    views = [view, view**1.5 / np.mean(view**0.5), None, view[::-1].copy()]
+    planes = [(view * rng.uniform(0.5, 2.0, c.counts.size)[c.index] * (1.0 + offset @ rng.normal(0, 3e-3, 2))
+               * (1.0 + 0.02 * rng.standard_normal(view.shape))).astype(np.float32) for _ in views]
+    alone = [p.copy() for p in planes]
+    for p, v in zip(alone, views):
+        c.share(p, v)
+    threads = set()
+    share = gc.GeometryClasses.share
+
+    def spy(self, plane, view=None):
+        threads.add(threading.get_ident())
+        return share(self, plane, view)
+
+    monkeypatch.setattr(gc, "SHARE_THREADS", 2)
+    monkeypatch.setattr(gc.GeometryClasses, "share", spy)
+    together = [p.copy() for p in planes]
+    c.share_all(zip(together, views))
+    for a, b in zip(alone, together):
+        assert np.array_equal(a, b)
+    assert len(threads) >= 1 and threading.get_ident() not in threads
+
+
 def test_a_classs_pixels_take_its_point_set_in_a_scrambled_order(mi):
     """Ranks in a class are a permutation of 0 .. n - 1, in an order unrelated to where the pixels
     lie (rank against row and column: |correlation| < 0.05; row-major ranks give 0.97): neighbouring
