@@ -161,8 +161,9 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None)
     face, that cross a surface (a detector moved through a chamber wall): a mesh's or rectangle's
     triangles near the disc, a sphere, cylinder or disk exactly, in its own frame. On the host: no
     kernel, so a re-render after a move compiles nothing. ``cache`` (a dict): each mesh's triangles,
-    kept by shape, vertex buffer and bounds (a merged mesh's bbox() is empty, so its bounds come
-    from its triangles)."""
+    kept by shape with its vertex buffer (held: Dr.Jit gives a freed array's index to new ones),
+    vertex count and bounds (a merged mesh's bbox() is empty, so its bounds come from its
+    triangles)."""
 
     cache = {} if cache is None else cache
     others, boxes = [], []
@@ -178,14 +179,16 @@ def surfaces_through_detectors(scene, detectors, segments: int = 16, cache=None)
         else:
             # a mesh's triangles are kept (a rectangle's two are read again: its bounds do not tell
             # a plate tilted +10 deg from one tilted -10 deg)
-            key = (shape_key(sh), sh.vertex_count(), sh.vertex_positions_buffer().index, tuple(sh.bbox().min),
-                   tuple(sh.bbox().max)) if sh.is_mesh() else None
-            entry = cache.get(key) if key is not None else None
+            # the vertex buffer is held with them, so that no new buffer takes its variable index
+            buffer = sh.vertex_positions_buffer() if sh.is_mesh() else None
+            stamp = (sh.vertex_count(), tuple(sh.bbox().min), tuple(sh.bbox().max)) if sh.is_mesh() else None
+            held = cache.get(shape_key(sh)) if sh.is_mesh() else None
+            entry = held[2] if held is not None and held[0].index == buffer.index and held[1] == stamp else None
             if entry is None:
                 tris = cover_triangles(sh)
                 entry = (tris, tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0))
-                if key is not None:
-                    cache[key] = entry
+                if sh.is_mesh():
+                    cache[shape_key(sh)] = (buffer, stamp, entry)
         others.append((sh, entry[0]))
         boxes.append(entry[1:])
     found = []

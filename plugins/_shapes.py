@@ -86,9 +86,12 @@ class GeometryKey:
     """A key of where the scene's shapes are, cheap enough to read at every render: per shape its
     kernel id, its bounds, and for a shape placed by a transform its ``to_world`` (read through a
     parameter handle kept per shape: bounds alone do not tell a plate tilted +10 deg from one tilted
-    -10 deg), for a mesh its vertex count and the Dr.Jit variable of its vertex buffer (a new one
-    after ``params.update()``). What it cannot see: a mesh's vertices changed in place in their
-    buffer (a scatter into it) without a change of the mesh's bounds.
+    -10 deg), for a mesh its vertex count and the generation of its vertex buffer (counted up at
+    every new buffer, which ``params.update()`` makes). The buffer last read is held: Dr.Jit reuses
+    the variable index of a freed array, so a new buffer could take an old one's index, and keys
+    read by index matched the placement of vertices since replaced (the corrugated sheet bent,
+    tilted flat and bent again was taken for the flat one). What it cannot see: a mesh's vertices
+    changed in place in their buffer (a scatter into it) without a change of the mesh's bounds.
     """
 
     def __init__(self):
@@ -97,10 +100,11 @@ class GeometryKey:
         self._handles, self._scene = {}, None
         self._planar = {}  # a shape's entry -> is_planar (a mesh's vertices are copied to the host)
         self._entries = {}  # shape key -> entry, as of the last keying (the set-up asks several times)
+        self._buffers = {}  # mesh's shape key -> (its vertex buffer as last read, held; its generation)
 
     def __call__(self, scene) -> tuple:
         if self._scene != id(scene):
-            self._handles, self._planar, self._scene = {}, {}, id(scene)
+            self._handles, self._planar, self._buffers, self._scene = {}, {}, {}, id(scene)
         self._entries = {shape_key(sh): self._read(sh) for sh in scene.shapes()}
         return (id(scene),) + tuple(self._entries.values())
 
@@ -114,7 +118,10 @@ class GeometryKey:
         box = sh.bbox()
         entry = (k, int(sh.shape_type()), tuple(box.min), tuple(box.max))
         if sh.is_mesh():
-            return entry + (sh.vertex_count(), sh.face_count(), sh.vertex_positions_buffer().index)
+            buffer, held = sh.vertex_positions_buffer(), self._buffers.get(k)
+            if held is None or held[0].index != buffer.index:  # the held buffer's index is not reused
+                self._buffers[k] = (buffer, 0 if held is None else held[1] + 1)
+            return entry + (sh.vertex_count(), sh.face_count(), self._buffers[k][1])
         if k not in self._handles:
             self._handles[k] = (sh, mi.traverse(sh))
         to_world = self._handles[k][1].get("to_world")

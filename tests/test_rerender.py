@@ -206,3 +206,38 @@ def test_a_mesh_given_new_vertices_is_analysed_again():
     params.update()
     with pytest.raises(em.EloInputError, match="surface 'corrugated_sheet' has an area of 0"):
         scene.render(quality="draft", progress=False, events=2)
+
+
+def test_a_new_vertex_buffer_is_a_new_placement(mi, monkeypatch):
+    """GeometryKey tells every new vertex buffer of a mesh from the ones before, also where Dr.Jit
+    gives the new buffer a freed buffer's variable index: a sheet bent and flattened in turn,
+    through Mitsuba's parameters, is one plane exactly when flat (the set-up's cached answer), and
+    the key differs from the last one at every update; and the triangles kept for the disc checks
+    are read anew at every new buffer. Both failed before the buffers were held (index reuse)."""
+    import elo_mitsuba.plugins._detectors as det
+    from elo_mitsuba.plugins._shapes import GeometryKey, cover_triangles, is_planar
+
+    scene = em.load_scene("corrugated_sheet", res=8)
+    params = mi.traverse(scene.scene)
+    sheet = next(s for s in scene.scene.shapes() if s.id() == "corrugated_sheet")
+    bent = np.array(params["corrugated_sheet.vertex_positions"]).reshape(-1, 3)
+    flat = bent.copy()
+    x, z = bent[:, 0].astype(float), bent[:, 2].astype(float)
+    flat[:, 2] = z.min() + (z.max() - z.min()) * (x - x.min()) / (x.max() - x.min())  # the same bounds
+    key, keys, cache = GeometryKey(), [], {}
+    detectors = [(s.id(), s) for s in scene.scene.shapes() if s.is_emitter()]
+    sequence = (flat, bent, bent, flat, flat, bent, flat, bent)
+    for vertices in sequence:
+        params["corrugated_sheet.vertex_positions"] = mi.Float(vertices.ravel())
+        params.update()
+        keys.append(key(scene.scene))
+        assert key.planar(sheet) == is_planar(sheet) == (vertices is flat)
+    assert all(a != b for a, b in zip(keys, keys[1:]))
+    read = []
+    monkeypatch.setattr(det, "cover_triangles", lambda sh: read.append(sh.id()) or cover_triangles(sh))
+    for vertices in sequence:  # alone: no key holds the buffers here, and Dr.Jit reuses their indices
+        params["corrugated_sheet.vertex_positions"] = mi.Float(vertices.ravel())
+        params.update()
+        read.clear()
+        det.surfaces_through_detectors(scene.scene, detectors, cache=cache)
+        assert "corrugated_sheet" in read  # a new buffer: its triangles read anew
