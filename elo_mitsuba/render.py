@@ -19,7 +19,6 @@ alone (only when ``events > 1``). Values are N_d/N_0 (or volts with ``units="vol
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 
@@ -28,8 +27,9 @@ from .constants import MAX_SEED, MAX_SPP
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points
 from .grid import ORIENTATION
-from .error_estimate import DETERMINISTIC, METHOD, combine_channels, first_half_suffices, split_render
-from .sample_counts import each_pass, pass_count, pass_sizes
+from .error_estimate import DETERMINISTIC, METHOD, combine_channels, split_render
+from .passes import may_merge, render_halves
+from .sample_counts import pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, check_scene_options, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
 from .progress import RenderProgress
@@ -569,7 +569,7 @@ class EloScene:
             n_passes = sum(pass_count(sizes) for sizes in passes)
             names = self.integrator.channel_names()
             # the mean channels are film channels too (the fit below them counted the named ones)
-            channels = len(names) + 1 + len(self.integrator.mean_channels())
+            channels = (2 if may_merge(spp, halves, self.integrator) else 1) * len(names) + 1 + len(self.integrator.mean_channels())
             notes = check_render(self.sensor.resolution, channels, spp, self.integrator.traced_events(),
                                  max(n_passes, 2 if len(halves) > 1 else 1),
                                  detector_points=detector_points(self.integrator), force=force)
@@ -585,37 +585,10 @@ class EloScene:
         report = RenderProgress(work, n_passes, progress)
         # film channels ('Y', then the AOVs in our order) as (channels, H, W) float32 straight from the
         # film's storage (peak memory near the film's own); the passes of each half summed in float64
-        sums = []
-        done = p = 0
-        t0 = time.perf_counter()
         saved = self.integrator.options
-        # a 1st event that every pass computes alike is traced in the first pass only: the later
-        # passes (the error estimate's other half, further passes of many samples) take its planes
-        first = None
         try:
-            for (n_half, options), sizes in zip(halves, passes):
-                if options is not None:
-                    self.integrator.configure(options)
-                acc = None
-                for n in each_pass(sizes):
-                    planes, _ = self.integrator.render_planes(self.scene, 0, (seed * 65537 + p) % (1 << 32), n,
-                                                              first=first)
-                    if first is None and self.integrator.reuses_first_event():
-                        first = self.integrator.first_event_planes(planes)
-                    if acc is None and n == n_half:
-                        acc = planes  # one pass: its own mean
-                    else:
-                        if acc is None:
-                            acc = np.zeros(planes.shape, np.float64)
-                        acc += planes * (n / n_half)
-                    del planes
-                    p += 1
-                    done += n
-                    report(done, time.perf_counter() - t0)
-                sums.append(acc)
-                if first_half_suffices(spp, self.integrator, halves):  # the other half: this render again
-                    first_status = DETERMINISTIC
-                    break
+            sums, first_status = render_halves(self.integrator, self.scene, halves, passes, spp, seed, report,
+                                               first_status)
         finally:
             self.integrator.configure(saved)
             report.end()

@@ -211,7 +211,37 @@ def test_render_warns_when_the_estimate_is_above_the_preset(mi):
     assert (worst > QUALITY_ACCURACY["draft"]) == any(line.startswith("note:") for line in lines)
 
 
-@pytest.mark.parametrize("spp", [1, 4])
+def test_one_pass_traces_both_halves_each_as_its_own_pass(mi, monkeypatch):
+    """At 1 spp with events >= 2 and a 1st event that every pass computes alike, one pass traces
+    both halves (render_halves; render_planes is not called): the 1st half is bit for bit the pass
+    of its own seed, the 1st event is the same in both, and the 2nd half draws its own numbers
+    (no pixel's 2nd event equals the 1st half's: a sampler's draws inside a symbolic branch do not
+    advance it, and without a sampler of its own 30 % of them did). Block pattern of
+    bounce_fraction 1/2 in both halves."""
+    from elo_mitsuba.options import half_budget
+
+    scene = em.load_scene("athene_flat", res=32)
+    scene.configure(detector_sampling="quadrature", bounce_samples=2, bounce_fraction=0.5, events=2)
+    cls = type(scene.integrator)
+    calls = []
+    for name in ("render_planes", "render_halves"):
+        original = getattr(cls, name)
+        monkeypatch.setattr(cls, name, lambda self, *a, _o=original, _n=name, **k: calls.append(_n) or _o(self, *a, **k))
+    result = scene.render(quality="custom", spp=1, progress=False, seed=3)
+    assert calls == ["render_halves"] and result.errors
+    integ = scene.integrator
+    integ.configure(half_budget(integ.options))
+    a, b = integ.render_halves(scene.scene, 0, [11, 12])
+    alone, _ = integ.render_planes(scene.scene, 0, 11, 1)
+    for i, name in enumerate(integ.channel_names()):
+        assert np.array_equal(a[i], alone[i]), name
+        if name.endswith(".e1"):
+            assert np.array_equal(a[i], b[i]), name
+        elif name.endswith(".e2"):
+            assert np.count_nonzero(a[i]) > a[i].size // 4 and not np.any((a[i] == b[i]) & (a[i] != 0)), name
+
+
+@pytest.mark.parametrize("spp", [2, 4])
 def test_a_deterministic_first_event_is_traced_once_and_the_images_are_the_same(mi, monkeypatch, spp):
     """Where the 1st event is deterministic (the quadrature with one ray per triangle, a single-ray
     beam), a render traces it in its first pass only; the later passes (the error estimate's other
