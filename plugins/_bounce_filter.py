@@ -11,10 +11,13 @@ varies slowly also across relief (plugins/integrator_elo.py).
 """
 
 import math
+import threading
 
 import numpy as np
 
 from elo_mitsuba.options import filter_window_levels
+
+from ._threads import each_plane
 
 #: Hidden film channels: the 1st-event surface normal that guides the filter.
 GUIDE_CHANNELS = ("_elo_nx", "_elo_ny", "_elo_nz")
@@ -53,7 +56,7 @@ def _window(tiles):
     return sum(pad[i:i + nt, j:j + ns] for i in range(3) for j in range(3))
 
 
-def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_deg, paths=None):
+def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_deg, paths=None, plan=None):
     """Replace the event >= 2 channels of the film's ``planes`` (float32, C x H x W, in place,
     :mod:`elo_mitsuba.film`) by their normal-guided window average.
 
@@ -65,19 +68,51 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
     cos(angle_deg). Pixels whose surrounding windows are all homogeneous take the bilinear
     interpolation of the window means; the others go on to tiles half as large (three scales at
     most); what is left keeps its own value. ``paths`` (H, W) is multiplied by the number of
-    pixels each value now averages.
+    pixels each value now averages. The channels are filtered on threads
+    (:func:`._threads.each_plane`), each as alone.
 
-    Memory: the decisions come from the guide channels alone, then the channels are filtered one
-    at a time in one padded scratch plane, so a render touches little fresh memory (a new
-    process pays for every fresh page).
+    ``plan``: what :func:`filter_plan` decided from the same guide channels (the two halves of
+    a render traced in one pass share them), else decided here. Returns the plan.
+
+    Memory: the decisions come from the guide channels alone, then each channel is filtered in
+    one padded scratch plane, so a render touches little fresh memory (a new process pays for
+    every fresh page).
     """
+    if plan is None:
+        plan = filter_plan(planes, index, field_mm, half_width_mm, angle_deg)
+    if plan is None:
+        return None
+    top, hp, wp, steps, gain = plan
+    if paths is not None:  # continuation paths behind each pixel's value now
+        paths *= gain
+
+    scratch = {}  # one padded plane per thread (its padding stays zero)
+
+    def one(c):
+        mine = scratch.get(threading.get_ident())
+        if mine is None:
+            mine = scratch[threading.get_ident()] = np.zeros((hp, wp), np.float32)
+        levels = _pyramid(planes[c], hp, wp, top, mine)
+        for level, take, ay, ax, count in steps:
+            means = _window(levels[level]) / count
+            smooth = ay @ means @ ax.T  # window centres -> pixel centres
+            np.copyto(planes[c], smooth, where=take)
+
+    each_plane(one, [index[name] for name in bounce_names])
+    return plan
+
+
+def filter_plan(planes, index, field_mm, half_width_mm, angle_deg):
+    """The filter's decisions from the guide channels of ``planes`` (see :func:`filter_bounces`):
+    (top level, padded height and width, steps, gain), steps = [(level, pixels taken,
+    interpolation along y and x, window pixel counts)], gain the pixels each pixel's value
+    averages (H x W); None where nothing is filtered."""
     h, w = int(planes.shape[1]), int(planes.shape[2])
     if not field_mm:
-        return
+        return None
     top = filter_window_levels(half_width_mm, field_mm / w, max(h, w))
     if top is None:
-        return
-    bounce = [index[name] for name in bounce_names]
+        return None
     size = 1 << top
     hp, wp = -(-h // size) * size, -(-w // size) * size
     scratch = np.zeros((hp, wp), np.float32)
@@ -95,6 +130,7 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
     first = top - min(top, 3)  # lowest level used (three scales at most)
     cos2 = math.cos(math.radians(angle_deg)) ** 2
     steps = []  # (level, pixels taken, interpolation, window pixel count)
+    gain = np.ones((h, w), np.float32)
     for level in range(top, first - 1, -1):
         if not np.any(undecided):
             break
@@ -115,15 +151,6 @@ def filter_bounces(planes, index, bounce_names, field_mm, half_width_mm, angle_d
         if not np.any(take):
             continue
         steps.append((level, take, ay, ax, count))
-        if paths is not None:  # continuation paths behind each pixel's value now
-            np.copyto(paths, paths * win_count[iy][:, ix], where=take)
+        np.copyto(gain, win_count[iy][:, ix], where=take)
         undecided &= ~take
-    del normal_levels, count_levels, valid_levels
-    if not steps:
-        return
-    for c in bounce:
-        levels = _pyramid(planes[c], hp, wp, top, scratch)
-        for level, take, ay, ax, count in steps:
-            means = _window(levels[level]) / count
-            smooth = ay @ means @ ax.T  # window centres -> pixel centres
-            np.copyto(planes[c], smooth, where=take)
+    return (top, hp, wp, steps, gain) if steps else None

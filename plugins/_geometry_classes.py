@@ -50,8 +50,6 @@ share (:func:`._strata.spread_point`).
 import dataclasses
 import hashlib
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import drjit as dr
 import mitsuba as mi
@@ -59,6 +57,7 @@ import numpy as np
 
 from ._far_field import NEAR_MM
 from ._shapes import digest_geometry, shape_key
+from ._threads import each_plane
 
 #: Probe directions per pixel (a power of two: the Hammersley set). Two points whose surroundings
 #: differ only between the probes share a class: on the sawtooth plate (valleys ending at the
@@ -93,8 +92,6 @@ MIN_VIEW_COS = 0.05
 MIN_TILT_PIXELS = 4096
 #: Largest |theta . (x, y)| a tilt may give a pixel: a tilt is a correction to the class's mean.
 MAX_TILT = 0.5
-#: Threads that share a render's planes at once (:meth:`GeometryClasses.share_all`).
-SHARE_THREADS = max(1, min(4, os.cpu_count() or 1))
 #: Seed of the fixed order in which the pixels of a class take their places in its point set.
 RANK_SEED = 0x6E0E
 #: Pixels classified at a time (bounds the float64 temporaries to about 60 MB).
@@ -108,16 +105,6 @@ MAX_PROBES = 1024
 #: Odd 64-bit multipliers of the class key's hash (fixed: classes are reproducible).
 _MIX = np.random.default_rng(0x6E0C).integers(1, 1 << 62, size=MAX_PROBES + 4, dtype=np.int64) * 2 + 1
 _POINT_MIX = (np.random.default_rng(0x6E0D).integers(1, 1 << 62, size=5, dtype=np.int64) * 2 + 1).astype(np.uint64)
-
-
-_POOL = []
-
-
-def _share_pool():
-    """The threads of :meth:`GeometryClasses.share_all` (made once, on first use)."""
-    if not _POOL:
-        _POOL.append(ThreadPoolExecutor(SHARE_THREADS, thread_name_prefix="elo-share"))
-    return _POOL[0]
 
 
 def probe_directions(count=PROBES):
@@ -419,18 +406,14 @@ class GeometryClasses:
 
     def share_all(self, jobs):
         """:meth:`share` of each (plane, view) in ``jobs`` (planes that are not the same array),
-        on :data:`SHARE_THREADS` threads: numpy lets go of the GIL in its passes over the pixels,
-        and each plane's result is the same as alone (corrugated_chamber at 1500^2, a render's 8
-        shares: 0.44 s on one thread, 0.25 s on two, on 2 cores)."""
+        on threads (:func:`._threads.each_plane`): numpy lets go of the GIL in its passes over
+        the pixels, and each plane's result is the same as alone (corrugated_chamber at 1500^2, a
+        render's 8 shares: 0.44 s on one thread, 0.25 s on two, on 2 cores)."""
         jobs = list(jobs)
-        if len(jobs) < 2 or SHARE_THREADS < 2:
-            for plane, view in jobs:
-                self.share(plane, view)
-            return
         for _, view in jobs:  # the views' moments once, before the threads read them
             if view is not None:
                 self._view_moments(view)
-        list(_share_pool().map(lambda job: self.share(*job), jobs))
+        each_plane(lambda job: self.share(*job), jobs)
 
     def tilts(self, x, v, sums, moments):
         """The tilt theta (groups x 2, per mm) of :meth:`share` per quantised normal, or None where

@@ -639,10 +639,10 @@ class EloIntegrator(mi.SamplingIntegrator):
                 names = self.channel_names()
                 index = {name: i for i, name in enumerate(aovs)}
                 second = dict(index, **{n: index[HALF_PREFIX + n] for n in names})
-                out = []
+                out, plan = [], None
                 for value, idx in zip(values, (index, second)):
                     self._block_offset, self._roulette_key = self._half_state(sensor_obj, value, spp, spread=False)[1:]
-                    self._finish(planes, idx, scene, sensor, sensor_obj, value, spp, False)
+                    plan = self._finish(planes, idx, scene, sensor, sensor_obj, value, spp, False, plan)
                     start = idx[names[0]]  # each half's channels lie together, in the order of names
                     out.append(planes[start:start + len(names)])
                 sensor_obj.sampler().seed(0, 1)
@@ -698,10 +698,11 @@ class EloIntegrator(mi.SamplingIntegrator):
         sensor_obj.sampler().seed(0, 1)  # as mi.render: the sampler's state no longer depends on the render
         return planes[:len(self.channel_names())], buffer
 
-    def _finish(self, planes, index, scene, sensor, sensor_obj, seed_value, spp, totals):
+    def _finish(self, planes, index, scene, sensor, sensor_obj, seed_value, spp, totals, plan=None):
         """A pass's events >= 2 in the planes of ``index`` (channel -> plane), in place: the bounce
         filter or the classes' share, the top-up, each detector's total (also with ``totals``
-        where the 1st event's planes were set after the pass)."""
+        where the 1st event's planes were set after the pass). ``plan``: the filter's decisions
+        from the same guide channels (the other half of one pass). Returns them, or None."""
         if self.traced_events() > 1 and (self.bounce_filter > 0 or self.bounce_share > 0 or self.bounce_min > 0):
             n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
             rate = self.bounce_fraction * self.bounce_samples * n_spp  # paths per pixel, expected
@@ -713,8 +714,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                          for name, _ in self.detectors] if self._filters_residual() else []
                 for c, m in means:
                     planes[c] -= planes[m]
-                filter_bounces(planes, index, self._bounce_channels(), getattr(sensor_obj, "field", None),
-                               self.bounce_filter, self.bounce_filter_angle, paths)
+                plan = filter_bounces(planes, index, self._bounce_channels(), getattr(sensor_obj, "field", None),
+                                      self.bounce_filter, self.bounce_filter_angle, paths, plan)
                 for c, m in means:
                     planes[c] += planes[m]
             if self._shares_bounces():
@@ -731,6 +732,7 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._totals(planes, index)
         elif totals and self.events > 1:
             self._totals(planes, index)
+        return plan
 
     def _use_wall_tiles(self, scene, sensor, spp):
         """The walls' free cells (:mod:`._occlusion_tiles`) for a pass that traces enough

@@ -341,6 +341,7 @@ def test_shares_on_threads_are_each_planes_own_share(mi, monkeypatch):
     """share_all (a render's planes on several threads) gives every plane bit for bit what
     share() gives it alone, each with its own view: detectors of different view factors, planes
     of different tilts, with and without a view; and it runs them on more than one thread."""
+    import sys
     import threading
 
     import elo_mitsuba.plugins._geometry_classes as gc
@@ -360,7 +361,7 @@ def test_shares_on_threads_are_each_planes_own_share(mi, monkeypatch):
         threads.add(threading.get_ident())
         return share(self, plane, view)
 
-    monkeypatch.setattr(gc, "SHARE_THREADS", 2)
+    monkeypatch.setattr(sys.modules["elo_mitsuba.plugins._threads"], "PLANE_THREADS", 2)
     monkeypatch.setattr(gc.GeometryClasses, "share", spy)
     together = [p.copy() for p in planes]
     c.share_all(zip(together, views))

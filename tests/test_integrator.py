@@ -646,3 +646,42 @@ def test_many_samples_never_make_the_result_worse():
     assert (1 << 17) > 64 * MAX_SPP_PER_PASS
     for name in DETECTORS:
         np.testing.assert_allclose(many[name], one[name], rtol=3e-5)
+
+
+def test_the_filter_on_threads_and_with_a_shared_plan_is_the_filter_alone(mi, monkeypatch):
+    """filter_bounces on threads gives each channel bit for bit what one thread gives it, and
+    with the plan (filter_plan) of the same guide channels (the two halves of one pass share
+    them) the same planes and paths as deciding anew; a plan made from another guide gives other
+    planes (the plan is what decides)."""
+    import sys
+
+    from elo_mitsuba.plugins._bounce_filter import GUIDE_CHANNELS, filter_bounces, filter_plan
+
+    threads = sys.modules["elo_mitsuba.plugins._threads"]
+    rng = np.random.default_rng(8)
+    h, w = 96, 80
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1.0
+    normal[0, :, w // 2:], normal[2, :, w // 2:] = np.sin(0.6), np.cos(0.6)  # an edge at the middle
+    names = [f"d{k}.e2" for k in range(4)]
+    index = {n: i for i, n in enumerate(names + list(GUIDE_CHANNELS))}
+    planes = np.concatenate([rng.uniform(0.5, 1.5, (4, h, w)).astype(np.float32), normal])
+
+    def run(count, plan=None, guide=None):
+        monkeypatch.setattr(threads, "PLANE_THREADS", count)
+        p = planes.copy()
+        paths = np.full((h, w), 2.0, np.float32)
+        used = filter_bounces(p, index, names, 20.0, 1.0, 10.0, paths, plan)
+        return p, paths, used
+
+    alone, paths1, plan = run(1)
+    together, paths2, _ = run(2)
+    assert np.array_equal(alone, together) and np.array_equal(paths1, paths2)
+    assert not np.array_equal(alone[:4], planes[:4]) and paths1.max() > 2.0
+    shared, paths3, _ = run(2, plan)
+    assert np.array_equal(alone, shared) and np.array_equal(paths1, paths3)
+    flat = planes.copy()
+    flat[4:] = 0.0
+    flat[6] = 1.0  # one normal everywhere: windows across the edge
+    other = filter_plan(flat, index, 20.0, 1.0, 10.0)
+    assert not np.array_equal(run(2, other)[0], alone)
