@@ -407,7 +407,7 @@ PRESET_FIELDS = ("detector_sampling", "quadrature_triangles", "bounce_filter", "
 #: What each preset promises: the per-pixel RMS relative error of a detector's total (events
 #: counted) on its WORST scene of benchmarks/RESULTS.md (section ``presets``); ``render`` warns
 #: when a render's own error estimate is above it.
-QUALITY_ACCURACY = {"draft": 0.04, "default": 0.027, "reference": 0.012, "unbiased": 0.025}  # corrugated_chamber: 3.43, 2.29, 1.0, 1.96 %
+QUALITY_ACCURACY = {"draft": 0.04, "default": 0.027, "reference": 0.012, "unbiased": 0.025}  # corrugated_chamber: 3.34, 2.33, 1.0, 1.96 %
 #: The presets use the far field's variate (``far_table``) on scenes where less than this share of
 #: the 2nd event's electrons (g_BSE-weighted) meet a surface again within the far field's near
 #: distance: those directions carry the variate too, where it only adds noise. Measured shares

@@ -56,9 +56,9 @@ shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RM
 detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
-  draft       corrugated_chamber     3.4 %   0.05 s         0.54 %
-  default     corrugated_chamber     2.29 %  0.11 s         0.23 % (0.10 % at 1500^2, own estimate)
-  reference   corrugated_chamber     1.0 %   0.29 s         0.22 % (0.05 % at 1500^2, own estimate)
+  draft       corrugated_chamber     3.3 %   0.06 s         0.54 %
+  default     corrugated_chamber     2.33 %  0.04 s         0.23 % (0.10 % at 1500^2, own estimate)
+  reference   corrugated_chamber     1.0 %   0.20 s         0.22 % (0.05 % at 1500^2, own estimate)
   unbiased    corrugated_chamber     2.0 %   0.41 s         0.51 % (0.47 % at 1500^2, in 27x default's time)
 
 reference is default's averaging with 4x its paths (at 1500^2 half default's noise in 1.5-2x its
