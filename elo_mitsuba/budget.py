@@ -279,6 +279,26 @@ def estimate(resolution, channels: int, spp: int, traced_events: int, passes: in
     }
 
 
+def fits_in_memory(resolution, channels: int, spp: int, traced_events: int, passes: int,
+                   available: int | None = None, *, detector_points: tuple[int, int] = (0, 1)) -> bool:
+    """Whether a render's estimated memory (:func:`estimate`) fits in ``available`` bytes
+    (default :func:`memory_limit`; unknown counts as fitting, as :func:`check_work` does): one
+    pass that holds both halves of a render's channels is taken only where it fits, two passes
+    need less.
+
+    Examples
+    --------
+    >>> fits_in_memory((1500, 1500), 25, 1, 2, 1, available=10**10)
+    True
+    >>> fits_in_memory((10**5, 10**5), 25, 1, 2, 1, available=10**10)
+    False
+    """
+    if available is None:
+        available = memory_limit()[0]
+    memory = estimate(resolution, channels, spp, traced_events, passes, detector_points)["memory_bytes"]
+    return available is None or memory <= available
+
+
 def check_render(resolution, channels: int, spp: int, traced_events: int, passes: int,
                  available: int | None = None, *, detector_points: tuple[int, int] = (0, 1),
                  force: bool = False) -> list[str]:

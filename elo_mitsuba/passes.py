@@ -28,7 +28,7 @@ def may_merge(spp: int, halves, integrator) -> bool:
     return spp == 1 and len(halves) == 2 and halves[0][1] is not None and integrator.traced_events() > 1
 
 
-def render_halves(integrator, scene, halves, passes, spp: int, seed: int, report, first_status):
+def render_halves(integrator, scene, halves, passes, spp: int, seed: int, report, first_status, merge=True):
     """Render the halves of a split render.
 
     Parameters
@@ -47,6 +47,9 @@ def render_halves(integrator, scene, halves, passes, spp: int, seed: int, report
         ``report(samples done, seconds)`` after each pass.
     first_status : str or None
         The status :func:`~elo_mitsuba.error_estimate.split_render` forced.
+    merge : bool
+        One pass for both halves where :func:`may_merge` and the integrator allow it (False:
+        two passes, e.g. where both halves' channels would not fit in memory).
 
     Returns
     -------
@@ -57,7 +60,7 @@ def render_halves(integrator, scene, halves, passes, spp: int, seed: int, report
     """
     t0 = time.perf_counter()
     seeds = [(seed * 65537 + p) % (1 << 32) for p in range(sum(1 for sizes in passes for _ in each_pass(sizes)))]
-    if may_merge(spp, halves, integrator):  # one pass for both, where the integrator's set-up allows it
+    if merge and may_merge(spp, halves, integrator):  # one pass for both, where the set-up allows it
         integrator.configure(halves[0][1])
         both = integrator.render_halves(scene, 0, seeds[:2])
         if both is not None:

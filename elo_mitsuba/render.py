@@ -25,7 +25,7 @@ import numpy as np
 from ._version import __version__
 from .constants import MAX_SEED, MAX_SPP
 from .errors import EloError, EloInputError
-from .budget import check_render, detector_points
+from .budget import check_render, detector_points, fits_in_memory
 from .grid import ORIENTATION
 from .error_estimate import DETERMINISTIC, METHOD, combine_channels, split_render
 from .passes import may_merge, render_halves
@@ -569,7 +569,12 @@ class EloScene:
             n_passes = sum(pass_count(sizes) for sizes in passes)
             names = self.integrator.channel_names()
             # the mean channels are film channels too (the fit below them counted the named ones)
-            channels = (2 if may_merge(spp, halves, self.integrator) else 1) * len(names) + 1 + len(self.integrator.mean_channels())
+            channels = len(names) + 1 + len(self.integrator.mean_channels())
+            # one pass for both halves holds both halves' channels: only where that fits in memory
+            merge = may_merge(spp, halves, self.integrator) and fits_in_memory(
+                self.sensor.resolution, channels + len(names), spp, self.integrator.traced_events(), 1,
+                detector_points=detector_points(self.integrator))
+            channels += len(names) if merge else 0
             notes = check_render(self.sensor.resolution, channels, spp, self.integrator.traced_events(),
                                  max(n_passes, 2 if len(halves) > 1 else 1),
                                  detector_points=detector_points(self.integrator), force=force)
@@ -588,7 +593,7 @@ class EloScene:
         saved = self.integrator.options
         try:
             sums, first_status = render_halves(self.integrator, self.scene, halves, passes, spp, seed, report,
-                                               first_status)
+                                               first_status, merge)
         finally:
             self.integrator.configure(saved)
             report.end()

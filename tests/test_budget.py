@@ -34,3 +34,26 @@ def test_cli_refuses_a_resolution_that_cannot_fit(tmp_path, capsys):
     # the error estimate renders two halves (two sets of channel planes): 1.6 TB, was 1.2 TB in one pass
     assert "needs about 1.6 TB of memory" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o.exr").exists()
+
+
+def test_one_pass_for_both_halves_only_where_it_fits(monkeypatch):
+    """A 1-spp render with events >= 2 takes both halves in one pass (its film holds both halves'
+    channels) where that fits in memory; where only two passes' film fits, it renders two passes
+    (the same images' statistics, no refusal)."""
+    from elo_mitsuba.budget import detector_points, estimate
+
+    scene = em.load_scene("corrugated_chamber", res=32)
+    cls = type(scene.integrator)
+    calls = []
+    for name in ("render_planes", "render_halves"):
+        original = getattr(cls, name)
+        monkeypatch.setattr(cls, name, lambda self, *a, _o=original, _n=name, **k: calls.append(_n) or _o(self, *a, **k))
+    scene.render(quality="default", events=2, progress=False)
+    assert calls == ["render_halves"]
+    names = scene.integrator.channel_names()
+    one = len(names) + 1 + len(scene.integrator.mean_channels())
+    work = [estimate((32, 32), c, 1, 2, 1, detector_points(scene.integrator))["memory_bytes"] for c in (one, one + len(names))]
+    monkeypatch.setattr(budget, "memory_limit", lambda: (int(sum(work) / 2), "set by the test"))
+    calls.clear()
+    result = scene.render(quality="default", events=2, progress=False)
+    assert calls == ["render_planes", "render_planes"] and result.errors
