@@ -6,7 +6,8 @@ each rendered in passes of at most a pass's samples and summed, or both halves i
 * At 1 spp with events >= 2, where the integrator can (``merges_halves``: that 1st event, no
   sampled far field), one pass traces both halves' continuation paths, each half from its own
   seed: the second pass's beam rays, set-up and film are saved (athene_flat 1500^2, `default`:
-  1.27 -> 1.08 s; corrugated_chamber 1.84 -> 1.76 s).
+  1.27 -> 1.08 s; corrugated_chamber 1.84 -> 1.76 s; interleaved in one process, the shared 2-core
+  AMD EPYC, 2026-12-06), where both halves' channels fit in memory (``merge``).
 * A render of the 1st event alone whose first half draws nothing at random stops after it
   (:func:`~elo_mitsuba.error_estimate.first_half_suffices`).
 """
@@ -28,8 +29,8 @@ def may_merge(spp: int, halves, integrator) -> bool:
     return spp == 1 and len(halves) == 2 and halves[0][1] is not None and integrator.traced_events() > 1
 
 
-def render_halves(integrator, scene, halves, passes, spp: int, seed: int, report, first_status, merge=True):
-    """Render the halves of a split render.
+def render_passes(integrator, scene, halves, passes, spp: int, seed: int, report, first_status, merge=True):
+    """Render the halves of a split render, in one pass or in passes of each.
 
     Parameters
     ----------

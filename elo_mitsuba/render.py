@@ -28,7 +28,7 @@ from .errors import EloError, EloInputError
 from .budget import check_render, detector_points, fits_in_memory
 from .grid import ORIENTATION
 from .error_estimate import DETERMINISTIC, METHOD, combine_channels, split_render
-from .passes import may_merge, render_halves
+from .passes import may_merge, render_passes
 from .sample_counts import pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, check_scene_options, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
                       quality_options)
@@ -592,7 +592,7 @@ class EloScene:
         # film's storage (peak memory near the film's own); the passes of each half summed in float64
         saved = self.integrator.options
         try:
-            sums, first_status = render_halves(self.integrator, self.scene, halves, passes, spp, seed, report,
+            sums, first_status = render_passes(self.integrator, self.scene, halves, passes, spp, seed, report,
                                                first_status, merge)
         finally:
             self.integrator.configure(saved)
