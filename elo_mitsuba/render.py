@@ -570,14 +570,14 @@ class EloScene:
             names = self.integrator.channel_names()
             # the mean channels are film channels too (the fit below them counted the named ones)
             channels = len(names) + 1 + len(self.integrator.mean_channels())
+            points = detector_points(self.integrator)
             # one pass for both halves holds both halves' channels: only where that fits in memory
             merge = may_merge(spp, halves, self.integrator) and fits_in_memory(
                 self.sensor.resolution, channels + len(names), spp, self.integrator.traced_events(), 1,
-                detector_points=detector_points(self.integrator))
+                detector_points=points)
             channels += len(names) if merge else 0
             notes = check_render(self.sensor.resolution, channels, spp, self.integrator.traced_events(),
-                                 max(n_passes, 2 if len(halves) > 1 else 1),
-                                 detector_points=detector_points(self.integrator), force=force)
+                                 max(n_passes, 2 if len(halves) > 1 else 1), detector_points=points, force=force)
         except EloError:  # the next render applies its own quality (set_quality) from these
             self.set_events(before[0])
             self.quality = before[1]

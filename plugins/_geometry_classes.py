@@ -346,10 +346,9 @@ class GeometryClasses:
         _, group = np.unique(normal.ravel()[first], return_inverse=True)
         shared = np.bincount(group, weights=np.where(self.counts > 1, self.counts, 0))
         self._class_group = group
-        self._pixel_group = group[self.flat]
         self._tilted = shared >= MIN_TILT_PIXELS  # groups whose tilt is fitted
         self._reach = np.zeros(self._tilted.size)  # per group the farthest pixel from its class's centre (mm)
-        np.maximum.at(self._reach, self._pixel_group, np.hypot(self._ox, self._oy))
+        np.maximum.at(self._reach, group[self.flat], np.hypot(self._ox, self._oy))
 
     def view_factors(self, centres):
         """Per detector centre (mm) the pixels' view factors of it (D x H x W, float64): the solid

@@ -10,12 +10,11 @@ PLANE_THREADS = max(1, min(4, os.cpu_count() or 1))
 _POOL = []
 
 
-def each_plane(fn, jobs, threads=None):
-    """``fn(job)`` for every job, on :data:`PLANE_THREADS` threads (or ``threads``) where there
-    are two jobs or more; in order on this thread otherwise. The jobs must not share what ``fn``
-    writes."""
+def each_plane(fn, jobs):
+    """``fn(job)`` for every job, on :data:`PLANE_THREADS` threads where there are two jobs or
+    more; in order on this thread otherwise. The jobs must not share what ``fn`` writes."""
     jobs = list(jobs)
-    threads = PLANE_THREADS if threads is None else threads
+    threads = PLANE_THREADS
     if len(jobs) < 2 or threads < 2:
         for job in jobs:
             fn(job)

@@ -640,8 +640,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                 index = {name: i for i, name in enumerate(aovs)}
                 second = dict(index, **{n: index[HALF_PREFIX + n] for n in names})
                 out, plan = [], None
-                for value, idx in zip(values, (index, second)):
-                    self._block_offset, self._roulette_key = self._half_state(sensor_obj, value, spp, spread=False)[1:]
+                for value, state, idx in zip(values, states, (index, second)):
+                    self._block_offset, self._roulette_key = state[1:3]
                     plan = self._finish(planes, idx, scene, sensor, sensor_obj, value, spp, False, plan)
                     start = idx[names[0]]  # each half's channels lie together, in the order of names
                     out.append(planes[start:start + len(names)])
@@ -656,7 +656,7 @@ class EloIntegrator(mi.SamplingIntegrator):
     def _seed_value(seed):
         return int(np.array(seed, dtype=np.uint64).ravel()[0]) if not isinstance(seed, int) else seed
 
-    def _half_state(self, sensor_obj, seed_value, spp, spread=True):
+    def _half_state(self, sensor_obj, seed_value, spp):
         """(class point sets, block offset, roulette key) a pass of seed ``seed_value`` draws: the
         block selection of bounce_fraction a fresh uniform shift per seed (unbiased), the classes'
         continuation paths one point set per class (:func:`._strata.spread_point`), the lanes per
@@ -664,7 +664,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         offset = dr.opaque(mi.Float, float(np.random.default_rng([seed_value, 7]).random()))
         roulette = dr.opaque(mi.UInt32, int(np.random.default_rng([seed_value, 26]).integers(1 << 32)))
         points = None
-        if spread and self._shares_bounces() and self._g_tables is not None:
+        if self._shares_bounces() and self._g_tables is not None:
             if int(spp) > 0:
                 sensor_obj.sampler().set_sample_count(int(spp))
             n_spp = int(sensor_obj.sampler().sample_count())
