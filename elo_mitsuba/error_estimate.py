@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from .options import half_budget
+from .options import half_budgets, paths_per_sample
 from .schema import event_channel
 
 #: Relative errors are taken against ``max(|value|, FLOOR x the image mean of |value|)``, as in benchmarks/.
@@ -217,7 +217,9 @@ def split_render(spp: int, integrator, beam_fwhm: float):
     """How a render of ``spp`` samples per pixel splits into two independent halves.
 
     spp >= 2: the samples split in two (same options). 1 spp with events >= 2 traced: two
-    renders of 1 spp with half the continuation paths each (:func:`~elo_mitsuba.options.half_budget`).
+    renders of 1 spp with about half the continuation paths each (:func:`~elo_mitsuba.options.half_budgets`:
+    where the classes share paths, k paths a sample split as ceil(k/2) and floor(k/2); the halves are
+    then weighed by their paths, :func:`half_weights`).
     1 spp, 1st event only, by the quadrature with a single-ray beam: with one ray per triangle
     (``triangle`` visibility) the result is deterministic (one render, no sampling error); with
     the sampled visibility two renders (partly occluded detectors are sampled; identical halves
@@ -245,8 +247,7 @@ def split_render(spp: int, integrator, beam_fwhm: float):
     if spp >= 2:
         return [((spp + 1) // 2, None), (spp // 2, None)], None
     if integrator.traced_events() > 1:
-        half = half_budget(integrator.options)
-        return [(1, half), (1, half)], None
+        return [(1, half) for half in half_budgets(integrator.options)], None
     if integrator.detector_sampling == "quadrature" and not beam_fwhm > 0:
         if integrator.quadrature_visibility == "triangle":
             return [(1, None)], DETERMINISTIC
@@ -262,7 +263,17 @@ def first_half_suffices(spp: int, integrator, halves) -> bool:
     return spp == 1 and len(halves) == 2 and integrator.traced_events() == 1 and bool(integrator.first_event_fixed)
 
 
-def combine_channels(names, sums, counts, equal_halves: bool, forced_status):
+def half_weights(halves) -> list[float]:
+    """What each half of :func:`split_render` weighs in the render's mean: its samples per pixel
+    where the samples split, its continuation paths per sample where a 1-spp render split them
+    (the estimate of each half's events >= 2 has a variance about inversely proportional to them)."""
+    if halves[0][1] is None or len(halves) < 2:
+        return [float(n) for n, _ in halves]
+    paths = [paths_per_sample(options) for _, options in halves]
+    return paths if all(p > 0 for p in paths) else [1.0] * len(halves)
+
+
+def combine_channels(names, sums, weights, forced_status):
     """The channels of a render, their per-pixel errors and summaries, from its halves.
 
     Parameters
@@ -271,10 +282,8 @@ def combine_channels(names, sums, counts, equal_halves: bool, forced_status):
         The channel names, in the order of the planes.
     sums : list of ndarray (channels, H, W)
         Each half's mean (one entry: a render that was not split); overwritten.
-    counts : list of int
-        The samples per pixel of each half.
-    equal_halves : bool
-        The halves split the continuation paths (1 spp each, equal weight) instead of the samples.
+    weights : list of float
+        What each half weighs in the mean (:func:`half_weights`).
     forced_status : str or None
         The status of every channel of a render that was not split (:func:`split_render`).
 
@@ -289,7 +298,7 @@ def combine_channels(names, sums, counts, equal_halves: bool, forced_status):
         planes = sums[0]
         channels = {name: np.asarray(planes[i], np.float32) for i, name in enumerate(names)}
         return channels, {}, {name: summarise(channels[name], None, forced_status) for name in names}
-    share_a = 0.5 if equal_halves else counts[0] / sum(counts)
+    share_a = weights[0] / sum(weights)
     a, b = sums
     channels, errors, summary = {}, {}, {}
     for i, name in enumerate(names):

@@ -63,7 +63,7 @@ def render_passes(integrator, scene, halves, passes, spp: int, seed: int, report
     seeds = [(seed * 65537 + p) % (1 << 32) for p in range(sum(1 for sizes in passes for _ in each_pass(sizes)))]
     if merge and may_merge(spp, halves, integrator):  # one pass for both, where the set-up allows it
         integrator.configure(halves[0][1])
-        both = integrator.render_halves(scene, 0, seeds[:2])
+        both = integrator.render_halves(scene, 0, seeds[:2], options=[options for _, options in halves])
         if both is not None:
             report(sum(n for n, _ in halves), time.perf_counter() - t0)
             return both, first_status

@@ -27,7 +27,7 @@ from .constants import MAX_SEED, MAX_SPP
 from .errors import EloError, EloInputError
 from .budget import check_render, detector_points, fits_in_memory
 from .grid import ORIENTATION
-from .error_estimate import DETERMINISTIC, METHOD, combine_channels, split_render
+from .error_estimate import DETERMINISTIC, METHOD, combine_channels, half_weights, split_render
 from .passes import may_merge, render_passes
 from .sample_counts import pass_count, pass_sizes
 from .options import (PRESET_FIELDS, QUALITIES, check_scene_options, QUALITY_PRESETS, SAMPLE_OPTIONS, EloOptions, check_combination,
@@ -597,8 +597,7 @@ class EloScene:
         finally:
             self.integrator.configure(saved)
             report.end()
-        channels, errors, summary = combine_channels(names, sums, [n for n, _ in halves], halves[0][1] is not None,
-                                                     first_status)
+        channels, errors, summary = combine_channels(names, sums, half_weights(halves), first_status)
         for name, img in channels.items():
             if not np.all(np.isfinite(img)):
                 raise EloError(f"channel {name!r} holds NaN/Inf: a defect; please report the scene")

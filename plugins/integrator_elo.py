@@ -96,6 +96,7 @@ XML parameters (name, type, default, meaning):
 """
 
 import dataclasses
+import functools
 import math
 
 import drjit as dr
@@ -104,7 +105,7 @@ import numpy as np
 
 from elo_mitsuba.errors import EloInputError
 from elo_mitsuba.film import film_tensor, raw_planes
-from elo_mitsuba.options import EloOptions, parameter_table
+from elo_mitsuba.options import EloOptions, parameter_table, paths_per_sample
 from elo_mitsuba.physics.solid_angle import vos_denominator
 from elo_mitsuba.sample_counts import count_at_least
 from elo_mitsuba.schema import event_channel, event_channels
@@ -611,24 +612,31 @@ class EloIntegrator(mi.SamplingIntegrator):
         return (self.reuses_first_event() and self.far_field == 0
                 and (self.far_roulette >= 1.0 or self.traced_events() <= 2))
 
-    def render_halves(self, scene, sensor, seeds, spp=1):
-        """Both halves of a render (each at the integrator's options, seeds ``seeds``) in one pass
-        (:meth:`merges_halves`): each half's events >= 2 from its own continuation paths, with the
-        block pattern and class point sets its own pass would draw from its seed; the 1st event
-        shared. Returns [planes of half 1, planes of half 2], each as :meth:`render_planes` returns
-        its planes (views of one buffer), or None where the scene, once prepared, does not allow it
-        (then render the halves apart)."""
+    def render_halves(self, scene, sensor, seeds, spp=1, options=None):
+        """Both halves of a render (seeds ``seeds``) in one pass (:meth:`merges_halves`): each
+        half's events >= 2 from its own continuation paths, with the block pattern and class point
+        sets its own pass would draw from its seed; the 1st event shared. ``options``: each half's
+        (:func:`~elo_mitsuba.options.half_budgets`; they may differ in ``bounce_samples`` alone), or
+        the integrator's for both. Returns [planes of half 1, planes of half 2], each as
+        :meth:`render_planes` returns its planes (views of one buffer), or None where the scene,
+        once prepared, does not allow it (then render the halves apart)."""
+        own = self.options
+        options = list(options) if options is not None else [own, own]
+        if any(o.replace(bounce_samples=options[0].bounce_samples) != options[0] for o in options):
+            raise ValueError("render_halves: the halves' options may differ in bounce_samples alone")
         self._in_render = True
         sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         scene_spp = sensor_obj.sampler().sample_count()
         try:
             with dr.suspend_grad():
+                self.options = options[0]
                 self.prepare_scene(scene, sensor_obj)
                 if not self.merges_halves():
                     return None
-                self._use_wall_tiles(scene, sensor_obj, 2 * spp)
+                self._use_wall_tiles(scene, sensor_obj, spp, sum(paths_per_sample(o) for o in options))
                 values = [self._seed_value(x) for x in seeds]
-                states = [self._half_state(sensor_obj, v, spp) + (dr.opaque(mi.UInt32, v),) for v in values]
+                states = [self._half_state(sensor_obj, v, spp) + (dr.opaque(mi.UInt32, v), o.bounce_samples)
+                          for v, o in zip(values, options)]
                 self._halves = states
                 self._spread, self._block_offset, self._roulette_key = states[0][:3]
                 aovs = self.aov_names()
@@ -640,8 +648,9 @@ class EloIntegrator(mi.SamplingIntegrator):
                 index = {name: i for i, name in enumerate(aovs)}
                 second = dict(index, **{n: index[HALF_PREFIX + n] for n in names})
                 out, plan = [], None
-                for value, state, idx in zip(values, states, (index, second)):
+                for value, state, idx, half in zip(values, states, (index, second), options):
                     self._block_offset, self._roulette_key = state[1:3]
+                    self.options = half
                     plan = self._finish(planes, idx, scene, sensor, sensor_obj, value, spp, False, plan)
                     start = idx[names[0]]  # each half's channels lie together, in the order of names
                     out.append(planes[start:start + len(names)])
@@ -650,6 +659,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         finally:
             self._in_render = False
             self._halves = self._spread = None
+            self.options = own
             sensor_obj.sampler().set_sample_count(scene_spp)
 
     @staticmethod
@@ -705,7 +715,7 @@ class EloIntegrator(mi.SamplingIntegrator):
         from the same guide channels (the other half of one pass). Returns them, or None."""
         if self.traced_events() > 1 and (self.bounce_filter > 0 or self.bounce_share > 0 or self.bounce_min > 0):
             n_spp = int(spp) if int(spp) > 0 else int(sensor_obj.sampler().sample_count())
-            rate = self.bounce_fraction * self.bounce_samples * n_spp  # paths per pixel, expected
+            rate = paths_per_sample(self.options) * n_spp  # paths per pixel, expected
             paths = np.full(planes.shape[1:], rate, np.float32)
             if self.bounce_filter > 0:
                 # with the far field's tabulated mean, only the residual about it is averaged: the
@@ -734,16 +744,18 @@ class EloIntegrator(mi.SamplingIntegrator):
             self._totals(planes, index)
         return plan
 
-    def _use_wall_tiles(self, scene, sensor, spp):
+    def _use_wall_tiles(self, scene, sensor, spp, per_sample=None):
         """The walls' free cells (:mod:`._occlusion_tiles`) for a pass that traces enough
-        continuation paths to pay for them (:func:`._occlusion_tiles.worth_tiling`): once per
-        geometry and detectors (a sweep that moves no detector reuses them)."""
+        continuation paths to pay for them (:func:`._occlusion_tiles.worth_tiling`; ``per_sample``:
+        the pass's paths a sample, the options' by default): once per geometry and detectors (a
+        sweep that moves no detector reuses them)."""
         self._wall_tiles = None
         if not (self.occlusion_analysis and self.traced_events() > 1):
             return
         size = sensor.film().crop_size()
         n_spp = int(spp) if int(spp) > 0 else int(sensor.sampler().sample_count())
-        paths = int(size[0]) * int(size[1]) * n_spp * self.bounce_samples * self.bounce_fraction
+        per_sample = paths_per_sample(self.options) if per_sample is None else per_sample
+        paths = int(size[0]) * int(size[1]) * n_spp * per_sample
         if not worth_tiling(scene, self.detectors, paths):
             return
         if self._tiles[0] != self._tiles_key:
@@ -855,7 +867,7 @@ class EloIntegrator(mi.SamplingIntegrator):
                     block_u = mi.sample_tea_float32(block, self._roulette_key, 4)
                     q_far = dr.opaque(mi.Float, self.far_roulette)
 
-            def bounces(si, ray, alive, sampler):
+            def bounces(si, ray, alive, sampler, k_paths=k_paths):
                 self._n_shadow = mi.Float(0.0) if counting else None
                 if picks is not None:  # one path per pick, times its stratum's share over its picks
                     later, n_hit = None, mi.Float(0.0)
@@ -924,7 +936,8 @@ class EloIntegrator(mi.SamplingIntegrator):
                         # hand the 2nd the same numbers again
                         own = sampler.fork()
                         own.seed(state[3], dr.width(alive))
-                halves.append(self._later_out(bounces, si, ray, alive, own, n_det, traced, n_out, mean))
+                half_bounces = bounces if state is None else functools.partial(bounces, k_paths=state[4])
+                halves.append(self._later_out(half_bounces, si, ray, alive, own, n_det, traced, n_out, mean))
             out = halves[0]
             for d in range(n_det):
                 per_event[d] += list(out[d * (traced - 1):(d + 1) * (traced - 1)])
