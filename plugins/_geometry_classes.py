@@ -334,6 +334,8 @@ class GeometryClasses:
         self._ranks = None
         self._views = (None, None) if like is None else like._views
         self._moments = {}  # per view factor plane (its buffer): its sums per class (_view_moments)
+        self._dr_views = {}  # ... and the plane as a Dr.Jit array (_view_array)
+        self._dr_pixels = None  # per pixel its class and place in it, as Dr.Jit arrays (_pixel_arrays)
         # each pixel's place in its class: its hit less the class's mean hit (x, y, mm); 0 in a
         # class of one pixel, and where the beam meets no scattering surface
         xy = np.where(valid.reshape(-1, 1), self._points[..., :2].reshape(-1, 2).astype(np.float64), 0.0)
@@ -364,7 +366,7 @@ class GeometryClasses:
                 r2 = np.maximum(np.einsum("ij,ij->i", v, v), 1e-12)  # finite even at the centre itself
                 out[d][self._valid] = np.maximum(v[:, 2] / np.sqrt(r2), MIN_VIEW_COS) / r2
             self._views = (key, out)
-            self._moments = {}
+            self._moments, self._dr_views = {}, {}
         return self._views[1]
 
     def share(self, plane, view=None):
@@ -376,43 +378,72 @@ class GeometryClasses:
         (mm, about the class's centre weighted by the view factors, so that the tilt leaves the
         class's sum as it is): the tilt across the block that the classes of one quantised normal
         share (:meth:`tilts`), as the beam's incidence on a flank changes across the field."""
+        self._apply(plane, self._tables(plane, view), view)
+
+    def _tables(self, plane, view):
+        """Per class what :meth:`share` writes, (a, b, c) of v (a + b x + c y) (float64; b and c
+        None without a tilt, v = 1 without a view): numpy's passes, which let go of the GIL."""
         x = plane.reshape(-1)  # float32: bincount and the products below work in float64
         sums = np.bincount(self.flat, weights=x, minlength=self.counts.size)
         if view is None:
-            plane[...] = (sums / self.counts)[self.index]
-            return
+            return sums / self.counts, None, None
         v = view.reshape(-1)
         moments = self._view_moments(view)
         norms = moments.sum
         ratio = sums / np.where(norms != 0, norms, 1.0)
         theta = self.tilts(x, v, sums, moments)
         if theta is None:
-            out = np.take(ratio, self.flat)
-        else:
-            # v R (1 + theta . (o - centre)) as v (a + b ox + c oy), a, b, c per class: three
-            # lookups of small tables and a few in-place passes over the pixels (millions)
-            tx, ty = theta[self._class_group, 0], theta[self._class_group, 1]
-            a = ratio * (1.0 - tx * moments.centre[:, 0] - ty * moments.centre[:, 1])
-            out = np.take(a, self.flat, mode="clip")  # the indices are in range: no check
-            step = np.take(ratio * tx, self.flat, mode="clip")
-            step *= self._ox
-            out += step
-            np.take(ratio * ty, self.flat, out=step, mode="clip")
-            step *= self._oy
-            out += step
-        out *= v
-        plane.reshape(-1)[...] = out
+            return ratio, None, None
+        tx, ty = theta[self._class_group, 0], theta[self._class_group, 1]
+        return ratio * (1.0 - tx * moments.centre[:, 0] - ty * moments.centre[:, 1]), ratio * tx, ratio * ty
+
+    def _apply(self, plane, tables, view):
+        """``plane`` = v (a + b x + c y) per pixel from its class's ``tables`` (:meth:`_tables`), in
+        one Dr.Jit kernel over the pixels (float64 arithmetic on the float32 offsets and view
+        factors): three gathers of small tables and a few products, where numpy made a pass over
+        the pixels for each."""
+        f64 = mi.Float64
+        flat, ox, oy = self._pixel_arrays()
+        a, b, c = tables
+        out = dr.gather(f64, f64(a), flat)
+        if b is not None:
+            out = out + dr.gather(f64, f64(b), flat) * f64(ox) + dr.gather(f64, f64(c), flat) * f64(oy)
+        if view is not None:
+            out = out * f64(self._view_array(view))
+        plane.reshape(-1)[...] = np.asarray(mi.Float(out))
+
+    def _pixel_arrays(self):
+        """Per pixel its class and its place in the class (x, y; float32), as Dr.Jit arrays (made once)."""
+        if self._dr_pixels is None:
+            self._dr_pixels = (mi.UInt32(self.flat.astype(np.uint32)), mi.Float(self._ox.astype(np.float32)),
+                               mi.Float(self._oy.astype(np.float32)))
+        return self._dr_pixels
+
+    def _view_array(self, view):
+        """A view factor plane as a Dr.Jit float32 array, kept as its moments are (:meth:`_view_moments`)."""
+        key = self._view_key(view)
+        if key not in self._dr_views:
+            self._dr_views[key] = mi.Float(np.ascontiguousarray(view, np.float32).reshape(-1))
+        return self._dr_views[key]
 
     def share_all(self, jobs):
-        """:meth:`share` of each (plane, view) in ``jobs`` (planes that are not the same array),
-        on threads (:func:`._threads.each_plane`): numpy lets go of the GIL in its passes over
-        the pixels, and each plane's result is the same as alone (corrugated_chamber at 1500^2, a
-        render's 8 shares: 0.44 s on one thread, 0.25 s on two, on 2 cores)."""
+        """:meth:`share` of each (plane, view) in ``jobs`` (planes that are not the same array):
+        the classes' sums on threads (:func:`._threads.each_plane`: numpy lets go of the GIL in its
+        passes over the pixels), then each plane's pixels in one Dr.Jit kernel on this thread; each
+        plane's result is the same as alone (corrugated_chamber at 1500^2, a render's 8 shares:
+        0.44 s on one thread, 0.25 s on two)."""
         jobs = list(jobs)
         for _, view in jobs:  # the views' moments once, before the threads read them
             if view is not None:
                 self._view_moments(view)
-        each_plane(lambda job: self.share(*job), jobs)
+        tables = [None] * len(jobs)
+
+        def fill(i):
+            tables[i] = self._tables(*jobs[i])
+
+        each_plane(fill, range(len(jobs)))
+        for (plane, view), t in zip(jobs, tables):
+            self._apply(plane, t, view)
 
     def tilts(self, x, v, sums, moments):
         """The tilt theta (groups x 2, per mm) of :meth:`share` per quantised normal, or None where
@@ -449,7 +480,7 @@ class GeometryClasses:
         and the sums of view^2 (x, y) and view^2 (x^2, xy, y^2) about that centre ((x, y) the
         pixels' places in the class), kept per view plane (its buffer, shape and a sample of its values) until
         :meth:`view_factors` is called with other centres."""
-        key = (view.__array_interface__["data"][0], view.shape, float(view.ravel()[::4099].sum()))
+        key = self._view_key(view)
         if key not in self._moments:
             n, v = self.counts.size, view.ravel().astype(np.float64)
 
@@ -465,6 +496,10 @@ class GeometryClasses:
             second = np.stack([sums(v2 * dx * dx), sums(v2 * dx * dy), sums(v2 * dy * dy)], axis=1)
             self._moments[key] = ViewMoments(total, centre, first, second)
         return self._moments[key]
+
+    @staticmethod
+    def _view_key(view):
+        return view.__array_interface__["data"][0], view.shape, float(view.ravel()[::4099].sum())
 
     def ranks(self):
         """Per pixel (flat, row-major) its class, its rank in the class (0 .. n - 1, in a fixed

@@ -338,9 +338,10 @@ def test_a_tilt_across_the_blocks_is_fitted(mi, monkeypatch):
 
 
 def test_shares_on_threads_are_each_planes_own_share(mi, monkeypatch):
-    """share_all (a render's planes on several threads) gives every plane bit for bit what
-    share() gives it alone, each with its own view: detectors of different view factors, planes
-    of different tilts, with and without a view; and it runs them on more than one thread."""
+    """share_all (the classes' sums of a render's planes on several threads, then each plane's
+    pixels) gives every plane bit for bit what share() gives it alone, each with its own view:
+    detectors of different view factors, planes of different tilts, with and without a view; and
+    it runs the sums on more than one thread."""
     import sys
     import threading
 
@@ -355,14 +356,14 @@ def test_shares_on_threads_are_each_planes_own_share(mi, monkeypatch):
     for p, v in zip(alone, views):
         c.share(p, v)
     threads = set()
-    share = gc.GeometryClasses.share
+    tables = gc.GeometryClasses._tables
 
-    def spy(self, plane, view=None):
+    def spy(self, plane, view):
         threads.add(threading.get_ident())
-        return share(self, plane, view)
+        return tables(self, plane, view)
 
     monkeypatch.setattr(sys.modules["elo_mitsuba.plugins._threads"], "PLANE_THREADS", 2)
-    monkeypatch.setattr(gc.GeometryClasses, "share", spy)
+    monkeypatch.setattr(gc.GeometryClasses, "_tables", spy)
     together = [p.copy() for p in planes]
     c.share_all(zip(together, views))
     for a, b in zip(alone, together):
