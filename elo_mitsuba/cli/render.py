@@ -50,14 +50,14 @@ default and reference share them between pixels of matching geometry (same norma
 probe rays; under a beam profile also around its footprint) in blocks of 16 mm (12 mm for
 reference; 4 mm where the far field makes those events), scaled across a block by each
 detector's view factor and a tilt fitted per normal, their paths one point set per class (at
-1500^2, default: 0.25 % total from 4 paths per pixel, and a bias of 0.19 % that the render's own
+1500^2, default: 0.33 % total from 3 paths per pixel, and a bias of 0.19 % that the render's own
 estimate cannot see, where 16 own paths per pixel gave 6.2 %). Measured on every
 shipped scene at 128 x 128 (benchmarks/RESULTS.md, section presets; per-pixel RMS error of a
 detector's total against a converged reference), each preset's WORST scene:
 
   preset      worst scene           total    time (128^2)   athene_flat
   draft       corrugated_chamber     3.3 %   0.06 s         0.54 %
-  default     corrugated_chamber     2.33 %  0.04 s         0.23 % (0.10 % at 1500^2, own estimate)
+  default     corrugated_chamber     2.65 %  0.03 s         0.23 % (0.10 % at 1500^2, own estimate)
   reference   corrugated_chamber     1.0 %   0.20 s         0.22 % (0.05 % at 1500^2, own estimate)
   unbiased    corrugated_chamber     2.0 %   0.41 s         0.51 % (0.47 % at 1500^2, in 27x default's time)
 
