@@ -37,8 +37,9 @@ def raw_planes(raw, columns, weight_column: int | None = 3):
     raw : TensorXf (H, W, C)
         ``film.develop(raw=True)``: the accumulated values with the sample weight in column
         ``weight_column`` (None: take the values as they are).
-    columns : list of int
-        Columns to develop, in the order of the planes.
+    columns : list of int or None
+        Columns to develop, in the order of the planes; None: a plane the caller fills itself
+        (left as the buffer's memory holds it: not developed, not cleared).
 
     Returns
     -------
@@ -54,15 +55,18 @@ def raw_planes(raw, columns, weight_column: int | None = 3):
     flat = raw.array
     index_t = dr.uint32_array_t(type(flat))
     count, pixels = len(columns), h * w
-    slot, pixel = _order(dr, index_t, pixels, count)
-    inside = pixel < pixels
-    column = dr.gather(index_t, index_t(np.asarray(columns, np.uint32)), slot)
-    value = dr.gather(type(flat), flat, pixel * c + column, inside)
-    if weight_column is not None:
-        weight = dr.gather(type(flat), flat, pixel * c + weight_column, inside)
-        value = value / dr.select(weight == 0, 1.0, weight)  # hdrfilm's develop
+    developed = [i for i, col in enumerate(columns) if col is not None]
     buffer = dr.empty(type(flat), count * pixels)
-    dr.scatter(buffer, value, slot * pixels + pixel, inside)
+    if developed:
+        slot, pixel = _order(dr, index_t, pixels, len(developed))
+        inside = pixel < pixels
+        column = dr.gather(index_t, index_t(np.asarray([columns[i] for i in developed], np.uint32)), slot)
+        plane = dr.gather(index_t, index_t(np.asarray(developed, np.uint32)), slot)
+        value = dr.gather(type(flat), flat, pixel * c + column, inside)
+        if weight_column is not None:
+            weight = dr.gather(type(flat), flat, pixel * c + weight_column, inside)
+            value = value / dr.select(weight == 0, 1.0, weight)  # hdrfilm's develop
+        dr.scatter(buffer, value, plane * pixels + pixel, inside)
     dr.eval(buffer)
     return np.asarray(buffer).reshape(count, h, w), buffer
 

@@ -54,6 +54,43 @@ def test_raw_planes_are_mitsubas_develop_bit_for_bit(rendered):
     assert planes.flags.writeable
 
 
+def test_planes_the_caller_fills_are_not_developed(rendered, monkeypatch):
+    """A column None leaves its plane to the caller (the integrator's totals, which it sums again
+    from the events): the other planes are developed as before, bit for bit, and the integrator's
+    totals are its events' sums whether or not the film's totals were developed."""
+    _, integ, film = rendered
+    raw = film.develop(raw=True)
+    aovs = integ.aov_names()
+    first = int(raw.shape[2]) - len(aovs)
+    full, _ = raw_planes(raw, [first + k for k in range(len(aovs))], weight_column=first - 1)
+    columns = [None if k % 3 == 0 else first + k for k in range(len(aovs))]
+    part, _ = raw_planes(raw, columns, weight_column=first - 1)
+    assert part.shape == full.shape
+    for k, col in enumerate(columns):
+        if col is not None:
+            assert np.array_equal(part[k], full[k]), aovs[k]
+    import sys
+
+    scene = em.load_scene("athene_flat", res=24, events=2)
+    scene.set_quality("default")
+    integ = scene.integrator
+    assert integ._sums_totals()
+    module = sys.modules[type(integ).__module__]
+    skipped = []
+
+    def spy(raw_, columns_, **kwargs):
+        skipped.append([i for i, col in enumerate(columns_) if col is None])
+        return raw_planes(raw_, columns_, **kwargs)
+
+    monkeypatch.setattr(module, "raw_planes", spy)
+    planes, _ = integ.render_planes(scene.scene, 0, 4, 1)
+    names = integ.channel_names()
+    assert skipped == [[names.index(d) for d in ("right", "left", "back", "front")]]
+    for d in ("right", "left", "back", "front"):
+        e1, e2 = planes[names.index(f"{d}.e1")], planes[names.index(f"{d}.e2")]
+        assert np.array_equal(planes[names.index(d)], e1 + e2), d
+
+
 def test_film_tensor_is_the_inverse_move(rendered):
     _, integ, film = rendered
     raw = film.develop(raw=True)
