@@ -182,7 +182,9 @@ class EloIntegrator(mi.SamplingIntegrator):
         self._other_classes = None  # the classes of the block used before, on the same geometry (another preset)
         self.class_builds = 0  # how many times their features were scanned (tests, benchmarks)
         self._spread = None  # (class, rank, size per pixel, spp, key) while a pass spreads a class's paths
-        self._halves = None  # per half (class point sets, block offset, roulette key, sampler seed) while one pass traces both
+        # while one pass traces both halves, per half: (class point sets, block offset, roulette
+        # key, sampler seed, paths a sample)
+        self._halves = None
 
     # ---- options --------------------------------------------------------------------------------
     def configure(self, options: EloOptions) -> None:
