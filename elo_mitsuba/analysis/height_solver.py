@@ -127,6 +127,17 @@ LINE_SEARCH = 4
 MISFIT_SIGMAS = 4.0
 #: ... and never below this misfit (corrected units).
 MIN_MISFIT = 5e-3
+#: A robust curvature penalty where a region's images demand relief that the quadratic one flattens
+#: (:func:`solve_robust`, the local refinement at defects): each curvature term is weighted by
+#: Cauchy's 1 / (1 + (kappa / kappa_0)^2), kappa the change of slope at that corner and kappa_0 this
+#: many times the median over the window, reweighted :data:`ROBUST_ROUNDS` times (iteratively
+#: reweighted least squares). Measured on the rough layer (400^2, 0.27 mm beam, 1 % noise), error
+#: within 1 mm of the pores and bumps (start 11.9 um): quadratic 9.2 um; Huber's weight at 1x / 3x
+#: the median 6.5 / 6.7 um; Cauchy's at 1.5x / 3x 7.6 / 6.2 um (1.5x frees the noise's curvature
+#: too: the bumps went 6 -> 11 um).
+ROBUST_SCALE = 3.0
+#: Reweightings of :func:`solve_robust` (3: 6.15 um as above; 6: 6.34 um).
+ROBUST_ROUNDS = 3
 
 
 @dataclass
@@ -705,12 +716,13 @@ def _set_up(data, geometry, *, fwhm_mm, alpha, noise, shadows, nodes, factor=1, 
 
 
 def _solve_scale(setup: _Setup, h0, start_height, *, iterations, cg_iterations, tol, discrepancy, budget,
-                 progress, t0, scale=1) -> InversionResult:
-    """Gauss-Newton at one scale (:func:`_set_up`) from the pixel heights ``h0``; ``start_height``
-    is what the result reports as its start."""
+                 progress, t0, scale=1, corners=None) -> InversionResult:
+    """Gauss-Newton at one scale (:func:`_set_up`) from the pixel heights ``h0`` (or from the model's
+    corner heights ``corners``, whose scan heights ``h0`` must be); ``start_height`` is what the
+    result reports as its start."""
     problem, noise, model_var, names = setup.problem, setup.noise, setup.model_var, setup.names
     model, weights, alpha = problem.model, problem.w, problem.alpha
-    g0 = problem.start_corners(h0)
+    g0 = problem.start_corners(h0) if corners is None else np.array(corners, float)
     h = g0.copy()  # the unknowns: corner heights
     k = HUBER_K * noise
     lin = model.evaluate(h)  # derivatives only if a step is taken
@@ -778,18 +790,70 @@ def _solve_scale(setup: _Setup, h0, start_height, *, iterations, cg_iterations, 
                            _linearised=(problem, h, visible, r, s, m, k, float(np.sqrt(noise ** 2 + model_var))))
 
 
+def robust_links(corners, dx: float, dy: float, where, scale: float = ROBUST_SCALE) -> np.ndarray:
+    """Weights (corners) of the curvature terms for :func:`solve_robust`: Cauchy's
+    1 / (1 + (kappa / kappa_0)^2) at the corners of the pixels ``where`` (on the model's grid), 1
+    elsewhere; kappa = |(second differences along x / dx, along y / dy)| at ``corners``, kappa_0 =
+    ``scale`` times its median over the grid (the relief's own curvature, which stays penalised).
+
+    Examples
+    --------
+    >>> g = 0.01 * np.add.outer(np.sin(np.arange(9.0)), np.cos(np.arange(9.0)))   # a gentle relief
+    >>> g[4, 4] -= 1.0                                  # and a pit one corner deep
+    >>> w = robust_links(g, 1.0, 1.0, np.ones((8, 8), bool))
+    >>> float(w[4, 4]) < 1e-3, 0.5 < float(w[2, 6]) < 1.0, float(w[0, 0])   # freed at the pit only
+    (True, True, 1.0)
+    >>> float(robust_links(g, 1.0, 1.0, np.zeros((8, 8), bool))[4, 4])
+    1.0
+    """
+    lx, ly = _second_differences(np.asarray(corners, float))
+    kappa = np.hypot(lx / dx, ly / dy)
+    curved = kappa[kappa > 0]
+    kappa0 = scale * float(np.median(curved)) if curved.size else 0.0
+    weights = 1.0 / (1.0 + (kappa / kappa0) ** 2) if kappa0 > 0 else np.ones_like(kappa)
+    where = np.asarray(where, bool)
+    near = np.zeros(kappa.shape, bool)
+    for di in (0, 1):
+        for dj in (0, 1):
+            near[di:di + where.shape[0], dj:dj + where.shape[1]] |= where
+    return np.where(near, weights, 1.0)
+
+
+def solve_robust(setup: _Setup, result: InversionResult, where, settings: dict,
+                 rounds: int = ROBUST_ROUNDS) -> InversionResult:
+    """From ``result`` (a solve of ``setup``), the solve again with the curvature penalty robust at
+    the pixels ``where`` (scan grid): ``rounds`` times, each with the weights of
+    :func:`robust_links` at the previous round's corners (iteratively reweighted least squares).
+    The quadratic penalty flattens a pit or a peak a few pixels wide, whose curvature is far beyond
+    the relief's around it, in proportion to that curvature; Cauchy's weight lets the data decide
+    there. The last round's result, its objective with the last weights."""
+    p = setup.problem
+    f = p.model.factor if isinstance(p.model, SuperResolvedModel) else 1
+    fine = np.kron(np.asarray(where, bool), np.ones((f, f), bool)) if f > 1 else np.asarray(where, bool)
+    out = result
+    for _ in range(int(rounds)):
+        corners = out._linearised[1] if out._linearised is not None else p.start_corners(out.height)
+        links = robust_links(corners, p.dx, p.dy, fine)
+        robust = dataclasses.replace(setup, problem=_Problem(p.model, p.c, p.w, p.bf, p.alpha, p.dx, p.dy,
+                                                             free=p.free, links=links))
+        out = _solve_scale(robust, p.scan_heights(corners), result.start_height, corners=corners, **settings)
+    out.stopped = f"{result.stopped}; robust curvature ({int(rounds)} reweightings): {out.stopped}"
+    return out
+
+
 def solve_field(data: ScaleData, geometry, h0, *, fwhm_mm: float, alpha, noise, shadows: bool, nodes,
                 super_resolution: int = 1, fixed_border: int = 0, scales: int = SCALES, iterations: int = ITERATIONS,
                 cg_iterations: int = CG_ITERATIONS, tol: float = TOL, discrepancy: float = DISCREPANCY,
                 budget: float | None = None, progress=None, t0: float | None = None,
-                uncertainty_probes: int = 0) -> tuple[InversionResult, _Setup]:
+                uncertainty_probes: int = 0, robust=None) -> tuple[InversionResult, _Setup]:
     """Solve the whole field from the pixel heights ``h0`` (inputs checked by the caller).
 
     At full resolution first; if that does not reproduce the images to within their noise, coarse
     to fine (:func:`scale_factors`) from the same start, kept if it ends at a lower objective (the
     discrepancy principle decides); both full-resolution solves share one set-up. Then the noise's
     part of the height error (``uncertainty_probes`` draws), the start's misfit and the misfit the
-    true surface would leave.
+    true surface would leave. With ``robust`` (a pixel mask), the solve goes on with a robust
+    curvature penalty at those pixels (:func:`solve_robust`), and the height error is that solve's.
 
     Returns
     -------
@@ -824,6 +888,8 @@ def solve_field(data: ScaleData, geometry, h0, *, fwhm_mm: float, alpha, noise, 
             fine.stopped += f" (coarse to fine: {', '.join(done)}, then 1/1; at full resolution alone the misfit " \
                             f"stayed at {single.history[-1]['rms']:.4g})"
             result = fine
+    if robust is not None and np.any(robust) and iterations > 0:
+        result = solve_robust(full, result, robust, settings)
     result = _with_uncertainty(result, uncertainty_probes, cg_iterations)
     result.start_misfit = _misfit_of(full, h0)
     result.expected_misfit = float(result.discrepancy_level / discrepancy) if discrepancy > 0 else float(
