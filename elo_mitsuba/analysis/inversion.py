@@ -319,7 +319,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         result.regions = refine_regions(result, images, flats, geometry, fwhm_mm=fwhm_mm, later=later,
                                         flat_later=flat_later, later_error=later_error,
                                         flat_later_error=flat_later_error, shadows=shadows, nodes=nodes,
-                                        iterations=iterations, time_budget_s=left())
+                                        iterations=iterations, time_budget_s=left(), probes=uncertainty_probes)
         refined = sum(r.status.startswith("refined") for r in result.regions)
         if result.regions:
             result.stopped += f"; {len(result.regions)} region(s) above the noise, {refined} refined"
