@@ -131,13 +131,20 @@ MIN_MISFIT = 5e-3
 #: (:func:`solve_robust`, the local refinement at defects): each curvature term is weighted by
 #: Cauchy's 1 / (1 + (kappa / kappa_0)^2), kappa the change of slope at that corner and kappa_0 this
 #: many times the median over the window, reweighted :data:`ROBUST_ROUNDS` times (iteratively
-#: reweighted least squares). Measured on the rough layer (400^2, 0.27 mm beam, 1 % noise), error
-#: within 1 mm of the pores and bumps (start 11.9 um): quadratic 9.2 um; Huber's weight at 1x / 3x
-#: the median 6.5 / 6.7 um; Cauchy's at 1.5x / 3x 7.6 / 6.2 um (1.5x frees the noise's curvature
-#: too: the bumps went 6 -> 11 um).
+#: reweighted least squares). Measured on the rough layer (400^2, 0.27 mm beam, 1 % noise, 2 x 2
+#: sub-pixel facets), error within 1 mm of the pores and bumps (start 11.9 um): quadratic 9.2 um;
+#: Huber's weight at 1x / 3x the median 6.5 / 6.7 um; Cauchy's at 1.5x / 3x 7.6 / 6.2 um (1.5x
+#: frees the noise's curvature too: the bumps went 6 -> 11 um).
 ROBUST_SCALE = 3.0
-#: Reweightings of :func:`solve_robust` (3: 6.15 um as above; 6: 6.34 um).
+#: Reweightings of :func:`solve_robust` (3: 6.2 um as above; 6: 6.3 um).
 ROBUST_ROUNDS = 3
+#: The robust pass is taken only where some curvature term's weight would fall below this (a
+#: change of slope beyond 3 kappa_0, :func:`frees_curvature`): elsewhere it has nothing to free and
+#: costs its solves. The smallest weight on the quadratic refinement's heights (one facet a pixel):
+#: on the rough layer's 11 regions (pores and bumps, 400^2) 0.004-0.038; on the melt plate's 7
+#: (512^2, at the melt squares' rims) 0.077-0.23, where the pass had taken 30 s and left the heights
+#: as they were (3.8 um).
+ROBUST_FREE = 0.05
 
 
 @dataclass
@@ -817,6 +824,25 @@ def robust_links(corners, dx: float, dy: float, where, scale: float = ROBUST_SCA
         for dj in (0, 1):
             near[di:di + where.shape[0], dj:dj + where.shape[1]] |= where
     return np.where(near, weights, 1.0)
+
+
+def frees_curvature(heights, pixel_mm, where, free: float = ROBUST_FREE) -> bool:
+    """Whether the robust penalty would free a curvature term at the pixels ``where`` of the pixel
+    heights ``heights`` (:func:`robust_links` of their corners below ``free``): a pit or peak whose
+    change of slope lies beyond 3 kappa_0.
+
+    Examples
+    --------
+    >>> h = 0.01 * np.add.outer(np.sin(np.arange(12.0)), np.cos(np.arange(12.0)))
+    >>> everywhere = np.ones((12, 12), bool)
+    >>> frees_curvature(h, (0.2, 0.2), everywhere)
+    False
+    >>> h[6, 6] -= 0.3
+    >>> frees_curvature(h, (0.2, 0.2), everywhere)
+    True
+    """
+    links = robust_links(corners_from_pixels(np.asarray(heights, float)), pixel_mm[0], pixel_mm[1], where)
+    return bool(np.min(links) < free)
 
 
 def solve_robust(setup: _Setup, result: InversionResult, where, settings: dict,
