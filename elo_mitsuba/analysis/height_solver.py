@@ -527,6 +527,22 @@ def _held_fixed_variance(corrected, img, flt, weights, names, later_error, flat_
 CUT_LINK = 1e-3
 
 
+def pixel_corners(pixels) -> np.ndarray:
+    """The corners (H + 1, W + 1) of the pixels ``pixels`` (H, W): the curvature terms they touch.
+
+    Examples
+    --------
+    >>> pixel_corners(np.array([[True, False]])).astype(int).tolist()
+    [[1, 1, 0], [1, 1, 0]]
+    """
+    pixels = np.asarray(pixels, bool)
+    out = np.zeros((pixels.shape[0] + 1, pixels.shape[1] + 1), bool)
+    for di in (0, 1):
+        for dj in (0, 1):
+            out[di:di + pixels.shape[0], dj:dj + pixels.shape[1]] |= pixels
+    return out
+
+
 def cut_across(setup: _Setup, result: InversionResult, band, settings) -> None:
     """Solve again with the band's pixels out of the data and the curvature terms across it cut
     (:data:`CUT_LINK`), so that a cliff's wrongly integrated offset does not bend the relief
@@ -541,11 +557,7 @@ def cut_across(setup: _Setup, result: InversionResult, band, settings) -> None:
     from scipy.ndimage import binary_dilation
 
     p = setup.problem
-    corners = np.zeros((band.shape[0] + 1, band.shape[1] + 1), bool)
-    for di in (0, 1):
-        for dj in (0, 1):
-            corners[di:di + band.shape[0], dj:dj + band.shape[1]] |= band
-    links = np.where(binary_dilation(corners), CUT_LINK, 1.0)
+    links = np.where(binary_dilation(pixel_corners(band)), CUT_LINK, 1.0)
     w = np.where(band[None], 0.0, p.w)
     cut = _Problem(p.model, p.c, w, p.bf, p.alpha, p.dx, p.dy, free=p.free, links=links)
     res = _solve_scale(dataclasses.replace(setup, problem=cut), result.height, result.start_height, **settings)
@@ -818,12 +830,7 @@ def robust_links(corners, dx: float, dy: float, where, scale: float = ROBUST_SCA
     curved = kappa[kappa > 0]
     kappa0 = scale * float(np.median(curved)) if curved.size else 0.0
     weights = 1.0 / (1.0 + (kappa / kappa0) ** 2) if kappa0 > 0 else np.ones_like(kappa)
-    where = np.asarray(where, bool)
-    near = np.zeros(kappa.shape, bool)
-    for di in (0, 1):
-        for dj in (0, 1):
-            near[di:di + where.shape[0], dj:dj + where.shape[1]] |= where
-    return np.where(near, weights, 1.0)
+    return np.where(pixel_corners(where), weights, 1.0)
 
 
 def frees_curvature(heights, pixel_mm, where, free: float = ROBUST_FREE) -> bool:
