@@ -30,6 +30,7 @@ import numpy as np
 from ..constants import LOBE_WIDTH_DEG
 from ..physics import get_material
 from ..physics.scattering import lobe_weight_table
+from .jit_arrays import floats
 
 #: Nodes of the disc rule (in s = (r/R)^2, in the azimuth).
 DEFAULT_NODES = (1, 4)
@@ -213,7 +214,7 @@ def normals_from_gradient(dzdx, dzdy) -> np.ndarray:
 def to_vector(mi, a):
     """(N, 3) numpy -> Vector3f."""
     a = np.asarray(a, np.float32).reshape(-1, 3)
-    return mi.Vector3f(mi.Float(a[:, 0].copy()), mi.Float(a[:, 1].copy()), mi.Float(a[:, 2].copy()))
+    return mi.Vector3f(*[floats(mi, a[:, c]) for c in range(3)])
 
 
 def model_images(geometry, dzdx=None, dzdy=None, heights=None, *, nodes=DEFAULT_NODES) -> dict[str, np.ndarray]:

@@ -49,6 +49,7 @@ from ..grid import pixel_size
 from ..schema import FWHM_RANGE, fwhm_to_sigma, is_fwhm
 from .detector_model import DEFAULT_NODES, FacetModel
 from .grid_kernels import GridKernels
+from .jit_arrays import bools, floats
 
 #: The stencil of one pixel's facet: its four corners (top = the +y side, row i of the corner grid).
 STENCIL = ("tl", "tr", "bl", "br")
@@ -189,8 +190,8 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
     col0, row0 = float(x0[0, 0]), float(y0[0, 0])
     inv_wd = 1.0 / geometry.work_distance_mm if geometry.projection == "perspective" else 0.0
     n_rows, n_cols = shape
-    tex = mi.Float(np.ascontiguousarray(h, np.float32).ravel())
-    px, py, pz = (mi.Float(np.ascontiguousarray(points[..., c], np.float32).ravel()) for c in range(3))
+    tex = floats(mi, h)
+    px, py, pz = (floats(mi, points[..., c]) for c in range(3))
     step = SHADOW_STEP_PX * min(dx, dy)
     Float, UInt32 = mi.Float, mi.UInt32
 
@@ -221,11 +222,16 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
         padded = np.full((nbr * block, nbc * block), -np.inf)
         padded[:n_rows, :n_cols] = h
         local = maximum_filter(padded.reshape(nbr, block, nbc, block).max(axis=(1, 3)), size=3, mode="nearest")
-        tex_max = mi.Float(np.ascontiguousarray(local, np.float32).ravel())
+        tex_max = floats(mi, local)
         # (block - 1) pixels of the finer axis, less the perspective's magnification, keep the ray
         # within the 3 x 3 blocks; a whole number of steps keeps its samples where the march
         # without the skip puts them (else a wall one pixel thin is met or missed by chance)
         block_mm = step * np.floor((block - 1) * min(dx, dy) * (1.0 - max(top, 0.0) * inv_wd) / step)
+    # opaque: what depends on the heights or on where a window lies changes at every step of a
+    # solve (as literals it compiled the march anew each time)
+    top_o, bound_o = dr.opaque(Float, top), dr.opaque(Float, bound)
+    col0_o, row0_o = dr.opaque(Float, col0), dr.opaque(Float, row0)
+    block_mm_o = dr.opaque(Float, float(block_mm)) if block > 0 else None
     for k in range(targets.shape[0]):
         for j in range(targets.shape[1]):
             # opaque: one kernel for every target (literals would compile one each)
@@ -234,24 +240,24 @@ def visibility(geometry, heights, points, targets) -> np.ndarray:
             ground = dr.maximum(dr.sqrt(vx * vx + vy * vy), 1e-9)
             ux, uy, slope = vx / ground, vy / ground, vz / ground
             blocked = dr.zeros(mi.Bool, dr.width(px))
-            catchable = slope < bound
+            catchable = slope < bound_o
 
             def cond(d, blocked):
-                return ~blocked & (d < MAX_SHADOW_STEPS * step) & (pz + slope * d < top) & catchable
+                return ~blocked & (d < MAX_SHADOW_STEPS * step) & (pz + slope * d < top_o) & catchable
 
             def body(d, blocked):
                 wx, wy, wz = px + ux * d, py + uy * d, pz + slope * d
                 t = 1.0 - wz * inv_wd
-                col = (wx / t - col0) * (1.0 / dx)
-                row = (row0 - wy / t) * (1.0 / dy)
+                col = (wx / t - col0_o) * (1.0 / dx)
+                row = (row0_o - wy / t) * (1.0 / dy)
                 inside = (col >= 0) & (col <= n_cols - 1) & (row >= 0) & (row <= n_rows - 1)
                 gap = wz - height_at(row, col)
                 hit = inside & (gap < 0)
-                skip = dr.maximum(step, gap / (bound - slope))
+                skip = dr.maximum(step, gap / (bound_o - slope))
                 if block > 0:
                     b = (UInt32(dr.clip(dr.floor(row * (1.0 / block)), 0, nbr - 1)) * nbc
                          + UInt32(dr.clip(dr.floor(col * (1.0 / block)), 0, nbc - 1)))
-                    skip = dr.select(wz > dr.gather(Float, tex_max, b), dr.maximum(skip, block_mm), skip)
+                    skip = dr.select(wz > dr.gather(Float, tex_max, b), dr.maximum(skip, block_mm_o), skip)
                 # leaving the grid ends the march: what lies beyond is not known (counted clear)
                 return dr.select(inside, d + skip, MAX_SHADOW_STEPS * step), blocked | hit
 
@@ -332,7 +338,7 @@ class HeightModel:
         _, dirs = geometry.beam(None)  # the beam's direction does not depend on where it lands
         mi = self.facets.mi
         self.kernels = GridKernels(self.shape, self.sigma_px)
-        self._dirs = mi.Vector3f(*[mi.Float(np.ascontiguousarray(dirs[..., c], np.float32).ravel()) for c in range(3)])
+        self._dirs = mi.Vector3f(*[floats(mi, dirs[..., c]) for c in range(3)])
 
     # -- pieces --
     def landing_points(self, heights) -> np.ndarray:
@@ -357,16 +363,13 @@ class HeightModel:
         dx, dy = pixel_size(self.shape, self.geometry.field_mm)
         ax, ay = self._aim
 
-        def flat(a):
-            return mi.Float(np.ascontiguousarray(a, np.float32).ravel())
-
-        hs = {c: flat(corner(g, c)) for c in STENCIL}
+        hs = {c: floats(mi, corner(g, c)) for c in STENCIL}
         offsets = {"tl": (-0.5 * dx, 0.5 * dy), "tr": (0.5 * dx, 0.5 * dy),
                    "bl": (-0.5 * dx, -0.5 * dy), "br": (0.5 * dx, -0.5 * dy)}
-        aims = {c: (flat(ax + ox), flat(ay + oy)) for c, (ox, oy) in offsets.items()}
-        centre = (flat(ax), flat(ay))
+        aims = {c: (floats(mi, ax + ox), floats(mi, ay + oy)) for c, (ox, oy) in offsets.items()}
+        centre = (floats(mi, ax), floats(mi, ay))
         # (J, H, W) per detector, node-major
-        vis = None if visible is None else [mi.Bool(np.ascontiguousarray(v, bool).ravel()) for v in visible]
+        vis = None if visible is None else [bools(mi, v) for v in visible]
         gains = [float(v) for v in self.gains]
 
         def evaluate(hv):
@@ -430,7 +433,7 @@ class HeightModel:
     def _partials_dr(self, lin: Linearisation) -> list:
         if lin.partials_dr is None:  # a linearisation built elsewhere: its numpy partials
             mi = self.facets.mi
-            lin.partials_dr = [[mi.Float(np.ascontiguousarray(a, np.float32).ravel()) for a in per]
+            lin.partials_dr = [[floats(mi, a) for a in per]
                                for per in lin.partials]
         return lin.partials_dr
 
@@ -454,13 +457,13 @@ class HeightModel:
     def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
         """d images . dg: (K, H, W) for a change ``dg`` of the corner heights, shadowing held fixed."""
         mi = self.facets.mi
-        out = self.jacobian_dr(lin, mi.Float(np.ascontiguousarray(dg, np.float32).ravel()))
+        out = self.jacobian_dr(lin, floats(mi, dg))
         return np.stack([np.asarray(o, np.float32).reshape(self.shape) for o in out]).astype(float)
 
     def apply_jacobian_t(self, lin: Linearisation, v) -> np.ndarray:
         """The transpose of :meth:`apply_jacobian`: (H + 1, W + 1) for image-space weights ``v`` (K, H, W)."""
         mi = self.facets.mi
-        out = self.jacobian_t_dr(lin, [mi.Float(np.ascontiguousarray(x, np.float32).ravel()) for x in v])
+        out = self.jacobian_t_dr(lin, [floats(mi, x) for x in v])
         return np.asarray(out, np.float32).reshape(self.shape[0] + 1, self.shape[1] + 1).astype(float)
 
 
@@ -557,13 +560,13 @@ class SuperResolvedModel:
     def apply_jacobian(self, lin: Linearisation, dg) -> np.ndarray:
         """d images . dg on the scan grid (K, H, W) for a change ``dg`` of the fine corners."""
         mi = self.fine.facets.mi
-        out = self.jacobian_dr(lin, mi.Float(np.ascontiguousarray(dg, np.float32).ravel()))
+        out = self.jacobian_dr(lin, floats(mi, dg))
         return np.stack([np.asarray(o, np.float32).reshape(self.coarse_shape) for o in out]).astype(float)
 
     def apply_jacobian_t(self, lin: Linearisation, v) -> np.ndarray:
         """The transpose of :meth:`apply_jacobian`: fine corners from scan-grid weights ``v`` (K, H, W)."""
         mi = self.fine.facets.mi
-        out = self.jacobian_t_dr(lin, [mi.Float(np.ascontiguousarray(x, np.float32).ravel()) for x in v])
+        out = self.jacobian_t_dr(lin, [floats(mi, x) for x in v])
         return np.asarray(out, np.float32).reshape(self.shape[0] + 1, self.shape[1] + 1).astype(float)
 
     def scan_heights(self, corners) -> np.ndarray:

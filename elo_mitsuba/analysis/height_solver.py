@@ -47,6 +47,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from ..grid import pixel_size
+from .jit_arrays import floats
 from .noise import MIN_FLAT, estimate_noise
 from .stsa import spike_bound
 from .height_model import (HeightModel, SuperResolvedModel, corners_from_pixels,
@@ -409,7 +410,7 @@ class _NormalEquations:
 
     def _to_dr(self, a) -> list:
         mi = self._mi
-        return [mi.Float(np.ascontiguousarray(x, np.float32).ravel()) for x in a]
+        return [floats(mi, x) for x in a]
 
     def _weighted_projection(self, u: list) -> list:
         """g W (u - m (m^T W u) / (m^T W m)) per pixel, in Dr.Jit (K Floats)."""
@@ -435,7 +436,7 @@ class _NormalEquations:
         model = self.problem.model
         if self.problem.free is not None:
             v = v * self.problem.free
-        ju = model.jacobian_dr(self.lin, self._mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
+        ju = model.jacobian_dr(self.lin, floats(self._mi, v))
         q = self._weighted_projection([g * x for g, x in zip(self._g, ju)])
         out = self._corners_np(model.jacobian_t_dr(self.lin, q)) + self.regulariser_gradient(v)
         return out if self.problem.free is None else out * self.problem.free

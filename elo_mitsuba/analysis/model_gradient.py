@@ -36,6 +36,7 @@ from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from .detector_model import DEFAULT_NODES, FacetModel, to_vector
 from .gradient import MASK_BITS, MIN_CORRECTED, GradientResult, surface_gradient
+from .jit_arrays import floats
 from .noise import check_noise, local_chi2
 from .stsa import MIN_SUM, check_images
 
@@ -283,13 +284,13 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
         flat_pts, flat_beam = mi.Point3f(to_vector(mi, flat_points)), to_vector(mi, flat_dirs)
     flat_model = model.signals(flat_pts, flat_beam, [mi.Vector3f(0.0, 0.0, 1.0)])[0]
     dr.eval(flat_model)
-    measured = [mi.Float(np.asarray(eq26.corrected[n], np.float32).ravel()) for n in model.names]
+    measured = [floats(mi, eq26.corrected[n]) for n in model.names]
     # a detector the facet hides from (corrected image ~0) is left out: three values still fix
     # p, q and s; the model must then agree that it sees (almost) nothing (checked below)
     dark = np.stack([np.asarray(eq26.corrected[n]) <= min_corrected for n in model.names])
     n_dark = dark.sum(axis=0)
     one_dark = n_dark == 1
-    weights = [mi.Float(np.where(one_dark, ~dark[k], True).astype(np.float32).ravel()) for k in range(len(model.names))]
+    weights = [floats(mi, np.where(one_dark, ~dark[k], True)) for k in range(len(model.names))]
     p0 = np.where(start.mask, 0.0, -start.dzdx)
     q0 = np.where(start.mask, 0.0, -start.dzdy)
     if one_dark.any():
@@ -305,8 +306,8 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
                 q0 = np.where(sel, -t * dy, q0)
     p0 = np.clip(p0, -MAX_SLOPE * 0.9, MAX_SLOPE * 0.9).astype(np.float32).ravel()
     q0 = np.clip(q0, -MAX_SLOPE * 0.9, MAX_SLOPE * 0.9).astype(np.float32).ravel()
-    p, q, s, cost, a11, a22, a12, *predicted = _fit(model, pts, beam, measured, weights, flat_model, mi.Float(p0),
-                                                    mi.Float(q0), int(iterations), FD_STEP)
+    p, q, s, cost, a11, a22, a12, *predicted = _fit(model, pts, beam, measured, weights, flat_model, floats(mi, p0),
+                                                    floats(mi, q0), int(iterations), FD_STEP)
     det = a11 * a22 - a12 * a12
 
     residual = np.sqrt(np.maximum(cost, 0.0) / 4.0).reshape(shape)
