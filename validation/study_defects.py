@@ -10,7 +10,7 @@ of ``height_error`` and of the model gradient's ``dzdx_sigma``/``dzdy_sigma``: t
 whose actual error lies within 1x and 2x the stated one (a calibrated Gaussian error bar: 68 % and
 95 %).
 
-Rows D1-D4 of validation/REPORT.md (``python -m validation --only defects``; about 5 min on 2 cores,
+Rows D1-D4 of validation/REPORT.md (``python -m validation --only defects``; about 3 min on 2 cores,
 a figure per surface). ``python -m validation.study_defects [--res 400] [--out out/defects.md]`` writes
 the same measurements as a table with the steps and every region's outcome; ``--seeds 1,2,3`` repeats
 each surface under other noise seeds (one render) and tabulates the steps per seed.
