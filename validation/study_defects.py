@@ -132,10 +132,7 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     pores = None
     if kind == "rough":
         near = rl.near_defects(X, Y)
-        pores = np.zeros(shape, bool)
-        for d in rl.defects():
-            if d["kind"] == "pore":
-                pores |= np.hypot(X - d["x"], Y - d["y"]) < d["radius"]
+        pores = rl.near_defects(X, Y, 0.0, kind="pore")
     elif kind == "steps":
         near = np.zeros(shape, bool)
         for p in sl.steps():

@@ -163,19 +163,24 @@ def rough_gradient(x, y, seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-def near_defects(x, y, distance_mm: float = 1.0, seed: int = SEED) -> np.ndarray:
-    """True where a point lies within ``distance_mm`` of a defect's rim (or inside it).
+def near_defects(x, y, distance_mm: float = 1.0, seed: int = SEED, kind: str | None = None) -> np.ndarray:
+    """True where a point lies within ``distance_mm`` of a defect's rim (or inside it); with
+    ``kind`` (``"pore"`` or ``"bump"``) of that kind's only.
 
     Examples
     --------
     >>> d = defects()[0]
     >>> bool(near_defects(d["x"] + d["radius"] + 0.9, d["y"])), bool(near_defects(d["x"] + d["radius"] + 1.1, d["y"]))
     (True, False)
+    >>> other = "bump" if d["kind"] == "pore" else "pore"
+    >>> bool(near_defects(d["x"], d["y"], 0.0, kind=d["kind"])), bool(near_defects(d["x"], d["y"], 0.0, kind=other))
+    (True, False)
     """
     x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
     out = np.zeros(x.shape, bool)
     for d in defects(seed):
-        out |= np.hypot(x - d["x"], y - d["y"]) <= d["radius"] + distance_mm
+        if kind is None or d["kind"] == kind:
+            out |= np.hypot(x - d["x"], y - d["y"]) <= d["radius"] + distance_mm
     return out
 
 
