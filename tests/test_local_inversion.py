@@ -169,7 +169,9 @@ def test_regulariser_bias_predicts_the_error_of_a_strongly_regularised_solve():
 def test_a_part_cut_off_by_its_cliff_floats_and_its_error_bar_holds_its_offset():
     # a raised square whose cliff the start integrated short (40 %) and smeared: the band of misfit
     # around its wall cuts it off, the relief around is solved again without it, and the square's
-    # error bar covers what is left of its offset error
+    # error bar covers what is left of its offset error. The cut solve fits the relief beside the
+    # band no better here, so its heights are not taken: taken, they left the square 15.9 um off
+    # (median) against 9.1 um, the powder 0.44 against 0.42 um RMS
     from scipy.ndimage import binary_dilation, gaussian_filter
 
     n = 64
@@ -187,11 +189,11 @@ def test_a_part_cut_off_by_its_cliff_floats_and_its_error_bar_holds_its_offset()
                          scales=1, iterations=4)
     inside = part & ~binary_dilation(~part, iterations=3)
     assert res.floating[inside].all()
-    assert "cut across the cliffs" in res.stopped, res.stopped
+    assert "cut across the cliffs: kept" in res.stopped, res.stopped
     powder = ~binary_dilation(part, iterations=6)
     e = res.height - truth
     e = e - np.median(e[powder])
-    assert np.median(np.abs(e[inside])) > 0.005  # the offset is still off (13 um of 300) ...
+    assert 0.005 < np.median(np.abs(e[inside])) < 0.012  # the offset is still off (9 um of 300) ...
     assert np.mean(np.abs(e[inside]) <= 2 * res.height_error[inside]) > 0.9  # ... and says
 
 

@@ -274,3 +274,30 @@ def test_floating_parts_grown_in_a_box_are_those_grown_over_the_whole_field(seed
     for g, w in zip(got, want):
         for a, b in zip(g, w):
             assert np.array_equal(a, b)
+
+
+def _rimmed_plateau():
+    # a plateau 0.1 mm high whose rim falls smoothly over 1.6 mm (a melt square's, not a cliff), its
+    # images the model's own of it; a band of misfit (as the model's error at a rim leaves one) closes
+    # round its top: what the solve holds is already the surface
+    from elo_mitsuba.analysis.step_offsets import search_offsets
+
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    yy, xx = np.mgrid[0:N, 0:N].astype(float)
+    d = np.maximum(np.abs(yy - 31.5), np.abs(xx - 31.5))
+    h = 0.1 * np.clip((24.0 - d) / 8.0, 0.0, 1.0) ** 2 * (3 - 2 * np.clip((24.0 - d) / 8.0, 0.0, 1.0))
+    img = HeightModel(geo, fwhm_mm=FWHM).images(h)
+    flat = HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N)))
+    misfit = np.where((d < 26) & (d >= 14), 1.0, 1e-3)
+
+    def search():
+        return search_offsets(h, misfit, 1e-3, 2.0, img, flat, geo, fwhm_mm=FWHM, noise=2e-3, alpha=1e-3)
+    return h, search
+
+
+def test_a_rim_that_a_clean_step_cannot_describe_is_not_searched():
+    h, search = _rimmed_plateau()
+    out, parts, error = search()
+    assert len(parts) == 1 and parts[0].status.startswith("not searched (no cliff"), parts
+    assert np.array_equal(out, h) and np.isnan(error).all()
+
