@@ -58,6 +58,21 @@ def test_the_pit_is_refined_where_the_field_fits_to_the_noise(pit_case):
     assert _rms(e1, near) < 0.5 * _rms(e0, near), (_rms(e1, near), _rms(e0, near))
 
 
+def test_a_window_gives_its_heights_where_its_misfit_lies_only(pit_case):
+    # around the pit the field's heights (here the start's) fit to the noise; the window, fitted a
+    # little below that, would put noise into them: beyond the flagged area's reach they stay
+    truth, start, res, near = pit_case
+    yy, xx = np.mgrid[0:N, 0:N]
+    window = np.zeros((N, N), bool)
+    for r in res.regions:
+        if r.status.startswith("refined"):
+            window[r.rows[0] + 3:r.rows[1] - 3, r.cols[0] + 3:r.cols[1] - 3] = True
+    beyond = window & (np.hypot(yy - 40, xx - 22) > 12)
+    assert beyond.sum() > 100
+    assert np.array_equal(res.height[beyond], start[beyond])
+    assert not np.allclose(res.height[near], start[near])
+
+
 def test_no_region_fits_worse_and_no_tile_gets_worse(pit_case):
     truth, start, res, near = pit_case
     for r in res.regions:
