@@ -325,6 +325,8 @@ def pore_case():
             out[robust] = invert_heights(img, flat, geo, start=start, fwhm_mm=0.27, uncertainty_probes=0)
         finally:
             local_inversion.ROBUST = saved
+    # with error bars (noise draws): the robust pass's own, and the penalties' disagreement
+    out["bars"] = invert_heights(img, flat, geo, start=start, fwhm_mm=0.27, uncertainty_probes=4)
     r = np.hypot(yy - 30.3, xx - 25.6)
     return truth, out, r <= 1.5, r <= 3.0
 
@@ -351,3 +353,20 @@ def test_a_pore_keeps_the_depth_its_images_ask_for_under_the_robust_curvature(po
     assert rms(robust.height, near) < rms(quadratic.height, near)
     assert rms(robust.height, ~near) < 1.2 * rms(quadratic.height, ~near)
     assert robust.regions[0].misfit_end <= quadratic.regions[0].misfit_end
+
+
+def test_a_pores_error_bar_holds_what_the_penalty_decides(pore_case):
+    # the depth below the beam's reach is the penalty's to fill, and the quadratic and the robust
+    # penalty fill it differently: that difference is in height_error_bias, so the error bar covers
+    # the pore's error, which no noise draw shows
+    truth, out, pit, near = pore_case
+    res = out["bars"]
+    assert [r.status for r in res.regions] == ["refined (robust curvature)"], res.regions
+    e = (res.height - res.height.mean()) - (truth - truth.mean())
+    e -= np.median(e[near & ~pit])
+    gap = np.abs(out[True].height - out[False].height)
+    assert np.all(res.height_error_bias[pit] >= 0.5 * gap[pit])
+    # measured: the pore's 7 pixels within 1x 71 %, its 29 within 3 px within 2x 97 % (without the
+    # difference 14 % and 79 %: the noise draws' 6 um against an error of 15 um)
+    assert np.mean(np.abs(e[pit]) <= res.height_error[pit]) >= 0.5
+    assert np.mean(np.abs(e[near]) <= 2 * res.height_error[near]) >= 0.9

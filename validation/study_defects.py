@@ -278,11 +278,13 @@ def run(ctx):
                     "steps cast shadows of 0.12 mm at 40 degrees of elevation, about half a pixel)")
         elif kind == "rough":
             why = ("the regions at the pores and bumps are refined with a robust curvature penalty on 2x2 sub-pixel "
-                   "facets (docs/inversion.md), which takes the pores from a third of their depth to most of it; "
-                   "what is left within 1 mm is mostly the field's own noise in the rings around the defects and the "
-                   "narrowest pore (0.26 mm radius, 6 pixels inside); at 1500^2 (pores 12 pixels wide) see "
-                   "docs/inversion.md. Inside the pores the error bars still understate the error: the part of the "
-                   "depth the robust pass does not recover is a bias no noise draw shows")
+                   "facets (docs/inversion.md), which takes the pores from a third of their depth to most of it, "
+                   "and a region's heights are taken where its misfit lies (around it the field's fit to the noise); "
+                   "what is left within 1 mm is mostly the field's own long-wavelength noise in the rings around the "
+                   "defects (as beyond 1 mm) and the narrowest pore (0.26 mm radius, 6 pixels inside); under noise "
+                   "seeds 1-6 the ratio is 0.49-0.60 (docs/inversion.md); at 1500^2 (pores 12 pixels wide) see "
+                   "docs/inversion.md. Inside the pores the error bars hold the depth the images leave to the "
+                   "penalty (the robust and the quadratic penalty's difference), which no noise draw shows")
         elif kind == "melt":
             why = ("the start fits to the noise and is kept; the regions flagged lie at the melt squares' rims, "
                    "their refinement fits the images a little better and leaves the heights as they were")

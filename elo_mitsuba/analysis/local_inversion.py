@@ -41,6 +41,7 @@ from typing import Mapping
 import numpy as np
 
 from ..grid import pixel_size
+from ..schema import FWHM_PER_SIGMA
 from .height_solver import ITERATIONS, NODES, ScaleData, frees_curvature, solve_field
 from .noise import CHI2_WINDOW_PX, local_chi2
 
@@ -83,19 +84,6 @@ ROBUST_MAX_MM = 2.0
 #: misfit. Little depends on it: 6.27 / 6.25 / 6.29 um within 1 mm of the defects on the rough
 #: layer as above, grown by 0 / 1 / 3 pixels.
 ROBUST_GROW_PX = 1
-#: A region's heights are taken where its misfit lies: its flagged pixels, less this many along
-#: their edge (the local chi-square over CHI2_WINDOW_PX = 7 pixels flags 3 pixels beyond the
-#: pixel whose misfit it sees), blended into the field's heights over :data:`TAKE_TAPER_PX`
-#: (:func:`taken_weight`). Around the flagged area the field's heights already fit to the noise,
-#: and the window's, fitted a little below what the true surface would leave (0.83-0.88 of it on
-#: the rough layer), put that noise into the relief around the defects. Rough layer (400^2, 0.27 mm
-#: beam, 1 % noise), error within 1 mm of the defects against the start's: the whole window 0.527,
-#: flagged pixels less 0 / 1 / 2 / 3 / 4 0.502 / 0.491 / 0.485 / 0.488 / 0.807 (at 4 the smallest
-#: pores' areas vanish); noise seeds 1-4 0.523 / 0.595 / 0.562 / 0.612 -> 0.489 / 0.572 / 0.529 / 0.598.
-TAKE_ERODE_PX = 2
-#: ... blended over a Gaussian of this many pixels (sigma): 0.5 / 1 / 2 gave 0.498 / 0.502 / 0.506
-#: with nothing eroded.
-TAKE_TAPER_PX = 1.0
 #: A region covering more than this share of the field is not local: left to the field's solve.
 MAX_SHARE = 0.25
 #: Regions refined at most (the largest misfit first).
@@ -219,22 +207,54 @@ def compact_areas(flagged, pixel_mm, max_mm: float = ROBUST_MAX_MM, window: int 
     return out
 
 
-def taken_weight(flagged, erode: int = TAKE_ERODE_PX, taper: float = TAKE_TAPER_PX) -> np.ndarray:
+def take_scale(fwhm_mm: float, pixel_mm) -> tuple[int, float]:
+    """Where a window's heights are taken (:func:`taken_weight`): its flagged pixels less the
+    chi-square window's reach ((:data:`~.noise.CHI2_WINDOW_PX` - 1) / 2 pixels, how far it flags
+    beyond the misfit it sees) and grown by the beam's FWHM (how far the start's blur-mixed relief
+    reaches beyond a defect), blended over the beam's sigma. Returns (pixels to erode, negative to
+    grow; the taper's sigma in pixels).
+
+    Around a defect the field's heights already fit to the noise, and the window's, fitted a little
+    below what the true surface would leave (0.83-0.88 of it on the rough layer), put that noise
+    into the relief around it. Rough layer (0.27 mm beam, 1 % noise), height error within 1 mm of
+    the defects against the start's: at 400^2 (FWHM 1.35 px: erode 2, sigma 0.57 px) the whole
+    window 0.527, the flagged pixels less 0 / 1 / 2 / 3 / 4 (sigma 1 px) 0.502 / 0.491 / 0.485 /
+    0.488 / 0.807 (at 4 the smallest pores vanish), less 2 at sigma 0.57 px 0.487; at 1500^2 (FWHM
+    5.1 px: grow 2, sigma 2.15 px) 0.310 against 0.31 for the whole window, the flagged pixels
+    less 2 at sigma 1 px 0.344 and exactly them 0.337: a fixed count of pixels fits one resolution.
+
+    Examples
+    --------
+    >>> erode, sigma = take_scale(0.27, (0.2, 0.2)); erode, round(sigma, 2)
+    (2, 0.57)
+    >>> take_scale(0.27, (0.0533, 0.0533))[0]
+    -2
+    """
+    px = float(np.mean(pixel_mm))
+    beam = float(fwhm_mm) / px
+    return (CHI2_WINDOW_PX - 1) // 2 - int(round(beam)), float(beam / FWHM_PER_SIGMA)
+
+
+def taken_weight(flagged, erode: int, taper: float) -> np.ndarray:
     """Weight (0-1) of a window's own heights against the field's: 1 on the ``flagged`` pixels
-    less ``erode`` along their edge (an area that would vanish keeps all its pixels), falling to 0
-    over a Gaussian of ``taper`` pixels beyond (:data:`TAKE_ERODE_PX`).
+    less ``erode`` along their edge (grown by -``erode`` if negative; an area that would vanish
+    keeps all its pixels), falling to 0 over a Gaussian of ``taper`` pixels beyond
+    (:func:`take_scale`).
 
     Examples
     --------
     >>> f = np.zeros((20, 20), bool); f[4:13, 4:13] = True; f[15:17, 15:17] = True
-    >>> w = taken_weight(f)
+    >>> w = taken_weight(f, 2, 1.0)
     >>> float(w[8, 8]), float(w[4, 4]) < 0.1, float(w[16, 16]) > 0.5, float(w[0, 19])
     (1.0, True, True, 0.0)
     """
     from scipy.ndimage import binary_erosion, gaussian_filter, label
 
     flagged = np.asarray(flagged, bool)
-    take = binary_erosion(flagged, iterations=erode) if erode > 0 else flagged.copy()
+    from scipy.ndimage import binary_dilation
+
+    take = (binary_erosion(flagged, iterations=erode) if erode > 0
+            else binary_dilation(flagged, iterations=-erode) if erode < 0 else flagged.copy())
     labels, n = label(flagged)
     if n:
         kept = np.zeros(n + 1, bool)
@@ -244,9 +264,10 @@ def taken_weight(flagged, erode: int = TAKE_ERODE_PX, taper: float = TAKE_TAPER_
     return np.clip(2.0 * gaussian_filter(take.astype(float), taper), 0.0, 1.0) if taper > 0 else take.astype(float)
 
 
-def _take_error_bars(result, local, sl, inner) -> None:
+def _take_error_bars(result, local, sl, inner, prior=None) -> None:
     """A robust pass's own noise part and regulariser bias (``local``, its window ``sl``) added in
-    quadrature to the field's in the window's ``inner`` pixels. The window's part is the variance
+    quadrature to the field's in the window's ``inner`` pixels; ``prior``, the robust and the
+    quadratic penalty's difference (mm, as taken), is added to the bias. The window's part is the variance
     that its heights have with the border held, what the robust penalty frees at a pore (noise the
     quadratic penalty damped); the field's holds the long wavelengths a window cannot see. Measured
     on the rough layer (400^2, 1 % noise): at the pores the error bars went from 5.9 to 10.3 um RMS
@@ -256,6 +277,9 @@ def _take_error_bars(result, local, sl, inner) -> None:
     for name in ("height_error", "height_error_bias"):
         field, part = getattr(result, name)[sl], getattr(local, name)
         field[inner] = np.hypot(field[inner], part[inner])
+    if prior is not None:
+        field = result.height_error_bias[sl]
+        field[inner] = np.hypot(field[inner], prior[inner])
 
 
 def _rms(a, sel):
@@ -320,6 +344,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
     candidates = find_regions(np.where(worse, np.inf, chi_solve), limit)
     flagged = worse | (chi_solve > limit)
     pixel = pixel_size(result.height.shape, geometry.field_mm)
+    take = take_scale(fwhm_mm, pixel)
     h, w = result.height.shape
     candidates.sort(key=lambda b: -float(np.max(chi_solve[b[0][0]:b[0][1], b[1][0]:b[1][1]])))
     crop_later = {}
@@ -347,7 +372,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
         sub = geometry.cropped(rows, cols)
         kw = {key: (None if d is None else {n: np.asarray(d[n])[sl] for n in names if n in d})
               for key, d in crop_later.items()}
-        best, best_misfit, origin = None, min(m_solve, m_start), None
+        best, best_misfit, origin, prior = None, min(m_solve, m_start), None, None
         starts = [("solve", result.height[sl])]
         if m_start < m_solve:
             starts.append(("start", result.start_height[sl]))
@@ -378,13 +403,15 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
             sol, m = (solve(best.height, where) if where.any() and frees_curvature(best.height, pixel, where)
                       else (None, np.inf))
             if m <= best_misfit:
+                # what the images leave to the penalty: the quadratic and the robust one disagree
+                prior = np.abs(sol.height - best.height)
                 best, best_misfit, origin = sol, m, origin + " robust"
         if best is not None:
             target = result.height[sl]
-            weight = taken_weight(flagged[sl])
+            weight = taken_weight(flagged[sl], *take)
             target[inner] += (weight * (best.height - target))[inner]
             if best.height_error is not None and result.height_error is not None:
-                _take_error_bars(result, best, sl, inner)
+                _take_error_bars(result, best, sl, inner, None if prior is None else weight * prior)
             # the misfit where the window's heights are mostly taken is the window's (between, the
             # two surfaces differ by about their noise)
             mostly = inner & (weight >= 0.5)
