@@ -193,6 +193,8 @@ def run(ctx):
     # sixteen recordings of object and flat averaged: a quarter of the noise
     sixteen = _case(melt_render, "melt_plate", "flat_plate", melt_truth, noise=0.0025)
     wiener, noise_part = _wiener_floor(melt, noise_free)
+    wiener16, noise16 = _wiener_floor(sixteen, noise_free)
+    bound16 = float(np.hypot(wiener16, noise_free["inv"]))
     wiener_fine, _ = _wiener_floor(melt, noise_free, per_octave=4)
     st.add(Row(
         "I2", "Melt plate, blurred and noisy: the inversion's height RMSE <= 1/2 of the model gradient + integration",
@@ -245,11 +247,18 @@ def run(ctx):
         "Fitting the one noisy flat of I2 with a smooth surface (Legendre, "
         f"in log) does not get there: degree 8 gives {1000 * fits[8]:.1f} um, 3 {1000 * fits[3]:.1f} um (the fit's "
         f"low orders keep the noise, and the heights integrate them), 2 {1000 * fits[2]:.1f} um (a bias of a few "
-        "1e-4 of the flat)",
+        "1e-4 of the flat). Sixteen recordings: their start's noise part is "
+        f"{1000 * noise16:.2f} um and Wiener's oracle estimate (as I2) would still leave {1000 * wiener16:.2f} um of "
+        f"it; with the inversion's noise-free error ({1000 * noise_free['inv']:.2f} um) in quadrature that is "
+        f"{bound16 / sixteen['model']:.2f} of the start, so 0.6 asks for an inversion that adds no noise to the start's "
+        "where it deconvolves the beam; the inversion's own noise part is "
+        f"{1000 * np.sqrt(max(sixteen['inv'] ** 2 - noise_free['inv'] ** 2, 0)):.2f} um, in the finest bands (a "
+        "stiffer curvature penalty trades it against the defects' relief; docs/inversion.md)",
         {"model": clean_flat["model"], "inv": clean_flat["inv"], "floor": clean_flat["floor"],
          "model_noise_free": noise_free["model"], "inv_noise_free": noise_free["inv"],
          "model_four_flats": four_flats["model"], "inv_four_flats": four_flats["inv"],
          "floor_four_flats": four_flats["floor"], "model_sixteen": sixteen["model"], "inv_sixteen": sixteen["inv"],
+         "wiener_floor_sixteen": wiener16, "bound_sixteen": bound16,
          **{f"fit{d}": v for d, v in fits.items()}}))
 
     steep = _case(renderer(res_hills), hills_xml, "flat_plate", hills_height, layout="zeta50")
