@@ -248,11 +248,9 @@ def taken_weight(flagged, erode: int, taper: float) -> np.ndarray:
     >>> float(w[8, 8]), float(w[4, 4]) < 0.1, float(w[16, 16]) > 0.5, float(w[0, 19])
     (1.0, True, True, 0.0)
     """
-    from scipy.ndimage import binary_erosion, gaussian_filter, label
+    from scipy.ndimage import binary_dilation, binary_erosion, gaussian_filter, label
 
     flagged = np.asarray(flagged, bool)
-    from scipy.ndimage import binary_dilation
-
     take = (binary_erosion(flagged, iterations=erode) if erode > 0
             else binary_dilation(flagged, iterations=-erode) if erode < 0 else flagged.copy())
     labels, n = label(flagged)
@@ -267,7 +265,10 @@ def taken_weight(flagged, erode: int, taper: float) -> np.ndarray:
 def _take_error_bars(result, local, sl, inner, prior=None) -> None:
     """A robust pass's own noise part and regulariser bias (``local``, its window ``sl``) added in
     quadrature to the field's in the window's ``inner`` pixels; ``prior``, the robust and the
-    quadratic penalty's difference (mm, as taken), is added to the bias. The window's part is the variance
+    quadratic penalty's difference (mm, as taken), is added to the bias. Over the whole window, where
+    the heights are taken and where they blend into the field's: at a pore's rim the error is the
+    blur-limited shape, and with the window's part weighted as its heights are, a pore's pixels
+    within 3 px were covered within 2x on 86 % against 97 % (tests/test_local_inversion.py). The window's part is the variance
     that its heights have with the border held, what the robust penalty frees at a pore (noise the
     quadratic penalty damped); the field's holds the long wavelengths a window cannot see. Measured
     on the rough layer (400^2, 1 % noise): at the pores the error bars went from 5.9 to 10.3 um RMS
