@@ -268,9 +268,10 @@ def _take_error_bars(result, local, sl, inner, prior=None) -> None:
     quadratic penalty's difference (mm, as taken), is added to the bias. Over the whole window, where
     the heights are taken and where they blend into the field's: at a pore's rim the error is the
     blur-limited shape, and with the window's part weighted as its heights are, a pore's pixels
-    within 3 px were covered within 2x on 86 % against 97 % (tests/test_local_inversion.py). The window's part is the variance
-    that its heights have with the border held, what the robust penalty frees at a pore (noise the
-    quadratic penalty damped); the field's holds the long wavelengths a window cannot see. Measured
+    within 3 px were covered within 2x on 86 % against 97 % (tests/test_local_inversion.py). The
+    window's part is the variance that its heights have with the border held, what the robust
+    penalty frees at a pore (noise the quadratic penalty damped); the field's holds the long
+    wavelengths a window cannot see. Measured
     on the rough layer (400^2, 1 % noise): at the pores the error bars went from 5.9 to 10.3 um RMS
     (actual error 18.7 um; within 1x / 2x of them 26 / 48 -> 46 / 72 % of the pores' pixels),
     within 1 mm of the defects 63 / 90 -> 74 / 96 % (the larger of the two instead: 66 / 92 %,
