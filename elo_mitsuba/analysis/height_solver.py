@@ -580,7 +580,8 @@ def cut_across(setup: _Setup, result: InversionResult, band, settings) -> None:
     if beside.any() and np.mean(trial.misfit[beside] ** 2) >= np.mean(result.misfit[beside] ** 2):
         result.stopped += "; cut across the cliffs: kept (the relief beside them fitted no better)"
         return
-    take_heights(setup, result, res.height)
+    for name in ("height", "misfit", "scale", "predicted", "mask"):  # what take_heights set on the trial
+        setattr(result, name, getattr(trial, name))
     result.stopped += f"; cut across the cliffs: {len(res.history) - 1} steps"
 
 

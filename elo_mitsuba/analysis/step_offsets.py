@@ -632,7 +632,8 @@ def search_offsets(height, misfit, expected: float, limit: float, images: Mappin
         # top edge lies differs by about a facet
         walls, masks, near = {}, {}, None
         for sharp in (False, True):
-            value, s_best, masks[sharp], background, p, b = coarse_search(objective_at(factors[0], sharp), near)
+            value, s_best, masks[sharp], background, p, b = coarse_search(
+                objective_at(factors[0], True) if sharp else first, near)
             walls[sharp] = _settle(objective_at, sharp, background, p, s0, coarse, s_best, value,
                                    spacing, factors)
             near = (s_best, b)
