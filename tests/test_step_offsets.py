@@ -276,7 +276,7 @@ def test_floating_parts_grown_in_a_box_are_those_grown_over_the_whole_field(seed
             assert np.array_equal(a, b)
 
 
-def _rimmed_plateau():
+def _rimmed_plateau(band_misfit=1.0):
     # a plateau 0.1 mm high whose rim falls smoothly over 1.6 mm (a melt square's, not a cliff), its
     # images the model's own of it; a band of misfit (as the model's error at a rim leaves one) closes
     # round its top: what the solve holds is already the surface
@@ -288,16 +288,37 @@ def _rimmed_plateau():
     h = 0.1 * np.clip((24.0 - d) / 8.0, 0.0, 1.0) ** 2 * (3 - 2 * np.clip((24.0 - d) / 8.0, 0.0, 1.0))
     img = HeightModel(geo, fwhm_mm=FWHM).images(h)
     flat = HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N)))
-    misfit = np.where((d < 26) & (d >= 14), 1.0, 1e-3)
+    misfit = np.where((d < 26) & (d >= 14), band_misfit, 1e-3)
 
-    def search():
-        return search_offsets(h, misfit, 1e-3, 2.0, img, flat, geo, fwhm_mm=FWHM, noise=2e-3, alpha=1e-3)
-    return h, search
+    def search(**kw):
+        return search_offsets(h, misfit, 1e-3, 2.0, img, flat, geo, fwhm_mm=FWHM, noise=2e-3, alpha=1e-3, **kw)
+    return h, search, misfit
 
 
 def test_a_rim_that_a_clean_step_cannot_describe_is_not_searched():
-    h, search = _rimmed_plateau()
+    h, search, _ = _rimmed_plateau()
     out, parts, error = search()
     assert len(parts) == 1 and parts[0].status.startswith("not searched (no cliff"), parts
     assert np.array_equal(out, h) and np.isnan(error).all()
+
+
+def test_a_part_whose_band_is_no_cliff_takes_the_bands_error_not_its_step():
+    """Its offset is what the band's heights carry: the noise part scaled by the band's misfit
+    (3 noise levels here, chi-square 9 inside the band), RMS over the band (the band round the
+    part, floating_parts), with the 7x7 chi-square computed here by hand; not the whole 0.1 mm
+    step, which is what the floating part's rule (offset_errors) would state."""
+    from scipy.ndimage import uniform_filter
+
+    from elo_mitsuba.analysis.step_offsets import floating_parts
+
+    h, search, misfit = _rimmed_plateau(band_misfit=3e-3)
+    noise = np.full(h.shape, 2e-3)
+    out, parts, error = search(noise_error=noise)
+    assert len(parts) == 1 and parts[0].status.startswith("not searched (no cliff"), parts
+    chi2 = uniform_filter((misfit / 1e-3) ** 2, 7, mode="nearest")
+    (_, band, _), = floating_parts(chi2, 2.0)
+    want = 2e-3 * np.sqrt(np.mean(np.maximum(chi2[band], 1.0)))
+    assert parts[0].error == pytest.approx(want, rel=1e-9) and 4e-3 < want < 6e-3
+    assert error[31, 31] == pytest.approx(want, rel=1e-9) and np.isnan(error[2, 2])
+    assert np.array_equal(out, h)
 

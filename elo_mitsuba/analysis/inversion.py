@@ -330,7 +330,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         lifted, result.steps, known = search_offsets(result.height, result.misfit, result.expected_misfit, limit,
                                                      images, flats, geometry, fwhm_mm=fwhm_mm, noise=full.noise,
                                                      alpha=full.problem.alpha, later=later, flat_later=flat_later,
-                                                     nodes=nodes, time_budget_s=left())
+                                                     nodes=nodes, time_budget_s=left(),
+                                                     noise_error=result.height_error)
         n_lifted = sum(p.status == "lifted" for p in result.steps)
         if n_lifted:
             take_heights(full, result, lifted)
