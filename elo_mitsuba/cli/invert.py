@@ -230,8 +230,11 @@ def run(args) -> int:
                         f"{p.rows[0]}-{p.rows[1]}, "
                         f"cols {p.cols[0]}-{p.cols[1]}" for p in lifted) + " (header: steps)")
     if res.floating is not None and res.floating.any():
+        rims = sum(p.status.startswith("not searched (no cliff") for p in res.steps)
         print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by cliffs (bands of misfit "
-              "or steep ramps), their offset not measured (channel floating; height_error holds it)")
+              "or steep ramps), their offset not measured (channel floating; height_error holds it)"
+              + (f"; {rims} of them behind bands that are no cliff (relief the heights describe), whose offset "
+                 "carries the band's own error" if rims else ""))
     if res.height_error is not None:
         noise_rms = float(np.sqrt(np.mean(res.height_error_noise ** 2)))
         print(f"height error: {1000 * res.height_error_rms:.3g} um RMS, of which the noise alone {1000 * noise_rms:.3g} "
