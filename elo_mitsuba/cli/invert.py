@@ -130,6 +130,30 @@ def add_parser(subparsers):
     return p
 
 
+def floating_line(res) -> str:
+    """The summary's line on the floating parts of an inversion result (``floating`` set).
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> part = SimpleNamespace(status="not searched (no cliff: a clean step fits 17x worse than the solve)")
+    >>> res = SimpleNamespace(floating=np.array([True, False]), steps=[part], height_error=np.ones(2))
+    >>> floating_line(res).endswith("1 of them behind bands that are no cliff (relief the heights describe), "
+    ...                             "whose offset carries the band's own error")
+    True
+    >>> line = floating_line(SimpleNamespace(floating=np.array([True]), steps=[part], height_error=None))
+    >>> "no height_error without --uncertainty-probes" in line, "band's own error" in line
+    (True, False)
+    """
+    rims = sum(p.status.startswith("not searched (no cliff") for p in res.steps)
+    held = res.height_error is not None
+    return (f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by cliffs (bands of misfit "
+            "or steep ramps), their offset not measured (channel floating"
+            + ("; height_error holds it)" if held else "; no height_error without --uncertainty-probes)")
+            + (f"; {rims} of them behind bands that are no cliff (relief the heights describe), whose offset "
+               "carries the band's own error" if rims and held else ""))
+
+
 def run(args) -> int:
     from ..files import check_output
 
@@ -232,11 +256,7 @@ def run(args) -> int:
                         f"{p.rows[0]}-{p.rows[1]}, "
                         f"cols {p.cols[0]}-{p.cols[1]}" for p in lifted) + " (header: steps)")
     if res.floating is not None and res.floating.any():
-        rims = sum(p.status.startswith("not searched (no cliff") for p in res.steps)
-        print(f"{100 * res.floating.mean():.2f} % of the field floats: parts cut off by cliffs (bands of misfit "
-              "or steep ramps), their offset not measured (channel floating; height_error holds it)"
-              + (f"; {rims} of them behind bands that are no cliff (relief the heights describe), whose offset "
-                 "carries the band's own error" if rims else ""))
+        print(floating_line(res))
     if res.height_error is not None:
         noise_rms = float(np.sqrt(np.mean(res.height_error_noise ** 2)))
         print(f"height error: {1000 * res.height_error_rms:.3g} um RMS, of which the noise alone {1000 * noise_rms:.3g} "
