@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .tools import coverage
+
 NAMES = ("right", "left", "back", "front")
 #: Samples per pixel of the object's render, the synthetic measurement. A real measurement has no
 #: Monte Carlo error, and the simulated one must not carry more than the 1 % noise added to it where
@@ -55,11 +57,6 @@ def _render_pair(xml, res, layout):
         out.append(s.render(quality="default", spp=spp, events=1, seed=3, progress=False))
         del s  # a live scene slows the next one's renders (docs/rendering.md)
     return out
-
-
-def _coverage(err, stated, sel):
-    err, stated = np.abs(err[sel]), stated[sel]
-    return float(np.mean(err <= stated)), float(np.mean(err <= 2 * stated))
 
 
 def step_ok(step: dict) -> bool:
@@ -171,17 +168,17 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     d = d - np.median(d[ref])
     every = np.ones(shape, bool)
     out["height_error"] = {"stated_rms_um": 1e3 * inv.height_error_rms,
-                           "all": _coverage(d, inv.height_error, every),
-                           "near": _coverage(d, inv.height_error, near) if near.any() else (np.nan, np.nan),
-                           "noise_only": _coverage(d, inv.height_error_noise, every),
-                           **({"pores": _coverage(d, inv.height_error, pores)} if pores is not None else {}),
+                           "all": coverage(d, inv.height_error, every),
+                           "near": coverage(d, inv.height_error, near) if near.any() else (np.nan, np.nan),
+                           "noise_only": coverage(d, inv.height_error_noise, every),
+                           **({"pores": coverage(d, inv.height_error, pores)} if pores is not None else {}),
                            "bias_rms_um": 1e3 * float(np.sqrt(np.mean(inv.height_error_bias ** 2)))}
     eps = 1e-3
     gx = (truth_fn(X + eps, Y) - truth_fn(X - eps, Y)) / (2 * eps)
     gy = (truth_fn(X, Y + eps) - truth_fn(X, Y - eps)) / (2 * eps)
     ok = ~mg.mask
-    out["gradient_sigma"] = {"dzdx": _coverage(mg.dzdx - gx, mg.dzdx_sigma, ok),
-                             "dzdy": _coverage(mg.dzdy - gy, mg.dzdy_sigma, ok)}
+    out["gradient_sigma"] = {"dzdx": coverage(mg.dzdx - gx, mg.dzdx_sigma, ok),
+                             "dzdy": coverage(mg.dzdy - gy, mg.dzdy_sigma, ok)}
     flat_area = ok & ~near & (np.hypot(gx, gy) < 1e-3) if kind == "steps" else None
     if flat_area is not None and flat_area.any():
         out["slope_bias"] = (float(np.mean((mg.dzdx - gx)[flat_area])), float(np.mean((mg.dzdy - gy)[flat_area])))

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from .report import Row, StudyResult, verdict_from
+from .tools import coverage
 
 TITLE = "Inverse ELO: height maps by inverting the forward model (melt plate, steep hills, chamber)"
 NAMES = ("right", "left", "back", "front")
@@ -75,8 +76,7 @@ def _case(render, scene, flat_scene, truth_fn, *, layout="zeta25", events=1, noi
     seconds = time.perf_counter() - t0
     cover = (float("nan"), float("nan"))
     if inv.height_error is not None:  # the actual error within 1x / 2x of the stated one
-        e = np.abs((inv.height - inv.height.mean()) - (truth - truth.mean()))
-        cover = (float(np.mean(e <= inv.height_error)), float(np.mean(e <= 2 * inv.height_error)))
+        cover = coverage((inv.height - inv.height.mean()) - (truth - truth.mean()), inv.height_error)
     return {"eq26": _rmse(start_heights(e26, geo), truth), "model": _rmse(start_heights(mg, geo), truth),
             "cover": cover,
             "inv": _rmse(inv.height, truth), "floor": float(np.sqrt(np.mean(inv.height_error_noise ** 2))),
@@ -233,8 +233,9 @@ def run(ctx):
         "recorded flats averaged), and with no noise at all; the inversion's height_error follows the noise", "—",
         _text(clean_flat) + f". No noise: model gradient + integration {1000 * noise_free['model']:.1f} µm, "
         f"inversion {1000 * noise_free['inv']:.1f} µm (ratio {noise_free['inv'] / noise_free['model']:.2f}; "
-        f"{noise_free['steps']} steps), height_error {1000 * noise_free['stated']:.1f} µm RMS, the error within 1x / 2x "
-        f"of it on {100 * noise_free['cover'][0]:.0f} / {100 * noise_free['cover'][1]:.0f} % of the pixels. Four recorded flats averaged (--flat repeated; 1 % noise each): model "
+        f"{noise_free['steps']} steps), height_error {1000 * noise_free['stated']:.1f} µm RMS, the error within "
+        f"1x / 2x of it on {100 * noise_free['cover'][0]:.0f} / {100 * noise_free['cover'][1]:.0f} % of the pixels. "
+        "Four recorded flats averaged (--flat repeated; 1 % noise each): model "
         f"gradient + integration {1000 * four_flats['model']:.1f} µm, inversion {1000 * four_flats['inv']:.1f} µm "
         f"({four_flats['stopped']}), height_error {1000 * four_flats['floor']:.1f} µm. Sixteen recordings of object "
         f"and flat averaged (0.25 % noise each): model gradient + integration {1000 * sixteen['model']:.1f} µm, "

@@ -142,3 +142,12 @@ def check_melt_resolution(field_mm, res):
     if centres_on_vertex_grid(field_mm, res):
         raise ValueError(f"{res} px over {field_mm} mm puts pixel centres on the melt-plate mesh's 0.2 mm vertex "
                          "grid, where beam rays can slip through (row E7); choose another resolution")
+
+
+def coverage(err, stated, sel=None):
+    """Shares of the pixels ``sel`` (all by default) whose actual error ``err`` lies within 1x and
+    2x the stated one ``stated`` (68 % and 95 % for a calibrated Gaussian error bar)."""
+    err, stated = np.abs(np.asarray(err)), np.asarray(stated)
+    if sel is not None:
+        err, stated = err[sel], stated[sel]
+    return float(np.mean(err <= stated)), float(np.mean(err <= 2 * stated))
