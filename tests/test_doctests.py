@@ -24,7 +24,7 @@ MODULES = [
     "elo_mitsuba.objects.rough_layer", "elo_mitsuba.analysis.local_inversion", "elo_mitsuba.scene_files",
     "elo_mitsuba.analysis.step_offsets", "elo_mitsuba.analysis.inversion", "elo_mitsuba.analysis.height_solver",
     "elo_mitsuba.analysis.scan_geometry", "elo_mitsuba.analysis.calibration", "elo_mitsuba.analysis.quadric",
-    "elo_mitsuba.analysis.jit_arrays", "elo_mitsuba.cli.invert", "validation.study_defects",
+    "elo_mitsuba.analysis.jit_arrays", "elo_mitsuba.cli.invert", "validation.study_defects", "elo_mitsuba.analysis.fine_band",
 ]
 #: Modules that document conventions without a runnable example (yet).
 NO_EXAMPLES = {"elo_mitsuba.analysis.noise"}

@@ -19,6 +19,10 @@ shadowing, the beam profile, fixed later events), differentiated by Dr.Jit. In o
    regulariser's bias, the model's slope gain (:data:`MODEL_SLOPE_GAIN`) and a floating part's
    offset, in quadrature; what a single-ray scan leaves open (:func:`start_resolution`) and a
    field-wide bowl larger than the relief (:func:`bowl_check`) where they are found.
+
+When the field's solve took steps, the correction of the start that all of this made is taken in
+full only where the start's misfit exceeds the noise, elsewhere its long wavelengths only
+(:mod:`.fine_band`).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from ..grid import pixel_size
 from ..schema import FWHM_RANGE, is_fwhm
 from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, MAX_ALPHA, NODES, SCALES, TOL, UNCERTAINTY_PROBES,
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
+from .fine_band import band_weight, gated, half_wavelength, low_pass_px
 from .local_inversion import refine_regions, threshold
 from .noise import check_noise, local_chi2
 from .quadric import bowl_exceeds, fit_quadric
@@ -251,7 +256,9 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         :class:`~.height_model.SuperResolvedModel`); the local refinement at defects uses 2.
     local : bool
         Refine, region by region, where the misfit exceeds the noise (:mod:`.local_inversion`),
-        after the field's solve; each region's outcome in ``regions``.
+        after the field's solve; each region's outcome in ``regions``; and take the correction's
+        fine band only where the start's misfit exceeds the noise (:mod:`.fine_band`). False: the
+        field's solve as it ends, everywhere.
     fixed_border : int
         Pixels along the image's edge whose heights stay at the start's (a window cut out of a larger
         height map, whose edge must join it); 0: all heights free, their mean held.
@@ -303,11 +310,15 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     resolution = start_resolution(start, geometry, h0) if hasattr(start, "dzdx") and fwhm_mm == 0 else None
     data = ScaleData(images, flats, later, flat_later, later_error, flat_later_error)
     budget = None if time_budget_s is None else float(time_budget_s)
+    pixel = pixel_size(shape, geometry.field_mm)
     result, full = solve_field(data, geometry, h0, fwhm_mm=fwhm_mm, alpha=alpha, noise=noise, shadows=shadows,
                                nodes=nodes, super_resolution=super_resolution, fixed_border=fixed_border,
                                scales=scales, iterations=iterations, cg_iterations=cg_iterations, tol=tol,
                                discrepancy=discrepancy, budget=budget, progress=progress, t0=t0,
                                uncertainty_probes=uncertainty_probes)
+    # where the start fits to the noise, the solve's finest band is fitted noise (fine_band.py)
+    fine = (band_weight(result.start_misfit, result.expected_misfit, len(geometry.detectors), fwhm_mm, pixel)
+            if local and len(result.history) > 1 else None)
 
     def left():
         return None if budget is None else max(budget - (time.perf_counter() - t0), 0.0)
@@ -324,7 +335,6 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         if result.regions:
             result.stopped += f"; {len(result.regions)} region(s) above the noise, {refined} refined"
     limit = threshold(detectors=len(full.names))
-    pixel = pixel_size(shape, geometry.field_mm)
     known = None
     if local and iterations > 0 and in_time():
         lifted, result.steps, known = search_offsets(result.height, result.misfit, result.expected_misfit, limit,
@@ -344,6 +354,15 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                                             iterations=iterations, budget=budget, t0=t0))
         chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
         result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+    if fine is not None:
+        # the last word, on all that the steps above changed: where the start fitted to the noise,
+        # the correction's long wavelengths only
+        sigma = low_pass_px(fwhm_mm, pixel)
+        take_heights(full, result, h0 + gated(result.height - h0, fine, sigma))
+        chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
+        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+        result.stopped += (f"; its wavelengths below {half_wavelength(sigma):.0f} px taken where the start's "
+                           f"misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)")
     if result.height_error is not None:
         result.height_error_noise = result.height_error
         result.height_error_model = MODEL_SLOPE_GAIN * np.abs(result.height - np.mean(result.height))
