@@ -262,8 +262,10 @@ def run(ctx):
         f"it; with the inversion's noise-free error ({1000 * noise_free['inv']:.2f} um) in quadrature that is "
         f"{bound16 / sixteen['model']:.2f} of the start, so 0.6 asks for an inversion that adds no noise to the start's "
         "where it deconvolves the beam; the inversion's own noise part is "
-        f"{1000 * np.sqrt(max(sixteen['inv'] ** 2 - noise_free['inv'] ** 2, 0)):.2f} um, in the finest bands (a "
-        "stiffer curvature penalty trades it against the defects' relief; docs/inversion.md)",
+        f"{1000 * np.sqrt(max(sixteen['inv'] ** 2 - noise_free['inv'] ** 2, 0)):.2f} um: its correction's fine band "
+        "is taken only where the start's misfit exceeds the noise (analysis/fine_band.py), and what is left lies "
+        "there (the squares and their rims) and at wavelengths beyond 64 px, the start's integrated noise, which "
+        "moves with the noise seed (docs/inversion.md)",
         {"model": clean_flat["model"], "inv": clean_flat["inv"], "floor": clean_flat["floor"],
          "model_noise_free": noise_free["model"], "inv_noise_free": noise_free["inv"],
          "stated_noise_free": noise_free["stated"], "cover1_noise_free": noise_free["cover"][0],
