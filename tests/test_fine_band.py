@@ -1,5 +1,5 @@
-"""The field solve's finest band of correction, taken only where the start's misfit demands it
-(analysis/fine_band.py).
+"""The finest band of invert's correction of the start, taken only where the start's misfit
+demands it (analysis/fine_band.py).
 
 Model images (the inversion's own forward model, no renders) of a raised square with a rim and
 ripples on a blank plate, 0.25 % noise: the solve takes steps (the start does not fit the edges),

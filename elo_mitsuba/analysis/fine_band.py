@@ -1,4 +1,5 @@
-"""The field solve's finest band of correction, taken only where the start's misfit demands it.
+"""The finest band of ``invert``'s correction of the start, taken only where the start's misfit
+demands it.
 
 The field's solve deconvolves the beam: near the Nyquist frequency the blur leaves a third to a half
 of the signal, and the noise of the images comes back amplified there. Where the start already
@@ -98,7 +99,7 @@ def band_weight(start_misfit, expected: float, detectors: int, fwhm_mm: float, p
 
 def gated(correction, weight, sigma_px: float) -> np.ndarray:
     """The ``correction``'s low-pass (Gaussian of ``sigma_px``) everywhere, its remainder times
-    ``weight``: a linear operator, applied alike to the heights' correction and to each noise draw.
+    ``weight``.
 
     Examples
     --------

@@ -361,8 +361,8 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         take_heights(full, result, h0 + gated(result.height - h0, fine, sigma))
         chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
         result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
-        result.stopped += (f"; its wavelengths below {half_wavelength(sigma):.0f} px taken where the start's "
-                           f"misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)")
+        result.stopped += (f"; the correction's wavelengths below {half_wavelength(sigma):.0f} px taken only where "
+                           f"the start's misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)")
     if result.height_error is not None:
         result.height_error_noise = result.height_error
         result.height_error_model = MODEL_SLOPE_GAIN * np.abs(result.height - np.mean(result.height))
