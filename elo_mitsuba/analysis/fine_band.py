@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .local_inversion import MIN_FLAGGED_PX, take_scale, taken_weight, threshold
+from .local_inversion import large_areas, take_scale, taken_weight, threshold
 from .noise import local_chi2
 
 #: Sigma of the low-pass kept everywhere, in beam FWHMs (at least one pixel).
@@ -87,13 +87,7 @@ def band_weight(start_misfit, expected: float, detectors: int, fwhm_mm: float, p
     >>> float(w[15, 15]), float(w[0, 0])
     (1.0, 0.0)
     """
-    from scipy.ndimage import label
-
-    flagged = local_chi2(start_misfit, max(float(expected), 1e-12)) > threshold(detectors=detectors)
-    # as for the regions, an area of fewer than MIN_FLAGGED_PX pixels is the noise's own
-    labels, n = label(flagged)
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    flagged &= sizes[labels] >= MIN_FLAGGED_PX
+    flagged = large_areas(local_chi2(start_misfit, max(float(expected), 1e-12)) > threshold(detectors=detectors))
     return taken_weight(flagged, *take_scale(fwhm_mm, pixel_mm))
 
 

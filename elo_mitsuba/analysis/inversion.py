@@ -346,21 +346,24 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         if n_lifted:
             take_heights(full, result, lifted)
             result.stopped += f"; {n_lifted} of {len(result.steps)} floating part(s) lifted to their shadows"
-    chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-    result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+
+    def floating():  # the local chi-square, the floating parts and their offsets, of the heights as they are now
+        chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
+        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+        return chi2, offset
+
+    chi2, offset = floating()
     band = result.floating & (chi2 > limit)
     if local and band.any() and iterations > 0 and in_time():
         cut_across(full, result, band, dict(cg_iterations=cg_iterations, tol=tol, discrepancy=0.0, progress=progress,
                                             iterations=iterations, budget=budget, t0=t0))
-        chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+        chi2, offset = floating()
     if fine is not None:
         # the last word, on all that the steps above changed: where the start fitted to the noise,
         # the correction's long wavelengths only
         sigma = low_pass_px(fwhm_mm, pixel)
         take_heights(full, result, h0 + gated(result.height - h0, fine, sigma))
-        chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+        chi2, offset = floating()
         result.stopped += (f"; the correction's wavelengths below {half_wavelength(sigma):.0f} px taken only where "
                            f"the start's misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)")
     if result.height_error is not None:

@@ -142,6 +142,23 @@ def threshold(window: int = CHI2_WINDOW_PX, detectors: int = 4, sigmas: float = 
     return 1.0 + sigmas * np.sqrt(2.0 / (window * window * max(detectors - 1, 1)))
 
 
+def large_areas(flagged, min_pixels: int = MIN_FLAGGED_PX) -> np.ndarray:
+    """``flagged`` less its connected areas (4-connected) of fewer than ``min_pixels`` pixels: a
+    defect spreads over the chi-square window, noise flags a handful of pixels.
+
+    Examples
+    --------
+    >>> f = np.zeros((10, 10), bool); f[1:4, 1:4] = True; f[8, 8] = True
+    >>> int(large_areas(f, 9).sum())
+    9
+    """
+    from scipy.ndimage import label
+
+    labels, n = label(np.asarray(flagged, bool))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    return (labels > 0) & (sizes[labels] >= min_pixels)
+
+
 def find_regions(chi2, limit: float, *, margin: int = MARGIN_PX,
                  min_pixels: int = MIN_FLAGGED_PX) -> list[tuple[tuple, tuple, int]]:
     """Windows ``((r0, r1), (c0, c1), flagged pixels)`` around the connected areas of at least
@@ -156,13 +173,11 @@ def find_regions(chi2, limit: float, *, margin: int = MARGIN_PX,
     """
     from scipy.ndimage import find_objects, label
 
-    flagged = np.asarray(chi2) > limit
+    flagged = large_areas(np.asarray(chi2) > limit, min_pixels)
     labels, n = label(flagged)
     h, w = flagged.shape
     boxes = []
     for k, sl in enumerate(find_objects(labels), start=1):
-        if np.sum(labels[sl] == k) < min_pixels:
-            continue
         boxes.append([max(sl[0].start - margin, 0), min(sl[0].stop + margin, h),
                       max(sl[1].start - margin, 0), min(sl[1].stop + margin, w),
                       int(np.sum(labels[sl] == k))])
