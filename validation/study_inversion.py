@@ -260,12 +260,12 @@ def run(ctx):
         "1e-4 of the flat). Sixteen recordings: their start's noise part is "
         f"{1000 * noise16:.2f} um and Wiener's oracle estimate (as I2) would still leave {1000 * wiener16:.2f} um of "
         f"it; with the inversion's noise-free error ({1000 * noise_free['inv']:.2f} um) in quadrature that is "
-        f"{bound16 / sixteen['model']:.2f} of the start, so 0.6 asks for an inversion that adds no noise to the start's "
-        "where it deconvolves the beam; the inversion's own noise part is "
-        f"{1000 * np.sqrt(max(sixteen['inv'] ** 2 - noise_free['inv'] ** 2, 0)):.2f} um: its correction's fine band "
-        "is taken only where the start's misfit exceeds the noise (analysis/fine_band.py), and what is left lies "
-        "there (the squares and their rims) and at wavelengths beyond 64 px, the start's integrated noise, which "
-        "moves with the noise seed (docs/inversion.md)",
+        f"{bound16 / sixteen['model']:.2f} of the start; the inversion's own noise part (its error less the "
+        f"noise-free one, in quadrature) is {1000 * np.sqrt(max(sixteen['inv'] ** 2 - noise_free['inv'] ** 2, 0)):.2f} "
+        "um: its correction's fine band is taken only where the start's misfit exceeds the noise, and its band finer "
+        "than the beam only where the images demand it (analysis/fine_band.py); what is left lies at the squares' "
+        "walls and at wavelengths beyond 64 px, the start's integrated noise, which moves with the noise seed "
+        "(docs/inversion.md)",
         {"model": clean_flat["model"], "inv": clean_flat["inv"], "floor": clean_flat["floor"],
          "model_noise_free": noise_free["model"], "inv_noise_free": noise_free["inv"],
          "stated_noise_free": noise_free["stated"], "cover1_noise_free": noise_free["cover"][0],

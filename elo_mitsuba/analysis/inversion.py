@@ -39,7 +39,7 @@ from ..grid import pixel_size
 from ..schema import FWHM_RANGE, is_fwhm
 from .height_solver import (CG_ITERATIONS, DISCREPANCY, ITERATIONS, MAX_ALPHA, NODES, SCALES, TOL, UNCERTAINTY_PROBES,
                             InversionResult, ScaleData, cut_across, solve_field, take_heights)
-from .fine_band import band_weight, gated, half_wavelength, low_pass_px
+from .fine_band import band_weight, beam_px, gated, half_wavelength, low_pass_px
 from .local_inversion import refine_regions, threshold
 from .noise import check_noise, local_chi2
 from .quadric import bowl_exceeds, fit_quadric
@@ -359,13 +359,20 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                                             iterations=iterations, budget=budget, t0=t0))
         chi2, offset = floating()
     if fine is not None:
-        # the last word, on all that the steps above changed: where the start fitted to the noise,
-        # the correction's long wavelengths only
-        sigma = low_pass_px(fwhm_mm, pixel)
-        take_heights(full, result, h0 + gated(result.height - h0, fine, sigma))
+        # the last word, on all that the steps above changed (fine_band.py): where the start fitted to
+        # the noise the correction's long wavelengths only; elsewhere the correction as the beam sees
+        # it, and whole only where that leaves a misfit above the noise
+        sigma, beam = low_pass_px(fwhm_mm, pixel), beam_px(fwhm_mm, pixel)
+        d = result.height - h0
+        take_heights(full, result, h0 + gated(d, fine, sigma, beam))
+        whole = fine * band_weight(result.misfit, result.expected_misfit, len(geometry.detectors), fwhm_mm, pixel)
+        if beam > 0 and whole.any():
+            take_heights(full, result, h0 + gated(d, fine, sigma, beam, whole))
         chi2, offset = floating()
         result.stopped += (f"; the correction's wavelengths below {half_wavelength(sigma):.0f} px taken only where "
-                           f"the start's misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)")
+                           f"the start's misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)"
+                           + (f", those below {half_wavelength(beam):.0f} px only where the images demand them "
+                              f"({100 * np.mean(whole):.0f} %)" if beam > 0 else ""))
     if result.height_error is not None:
         result.height_error_noise = result.height_error
         result.height_error_model = MODEL_SLOPE_GAIN * np.abs(result.height - np.mean(result.height))
