@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..schema import fwhm_to_sigma
 from .local_inversion import large_areas, take_scale, taken_weight, threshold
 from .noise import local_chi2
 
@@ -111,7 +112,7 @@ def beam_px(fwhm_mm: float, pixel_mm) -> float:
     >>> round(beam_px(0.27, (0.15625, 0.15625)), 2), beam_px(0.0, (0.2, 0.2))
     (0.73, 0.0)
     """
-    return float(float(fwhm_mm) / (2.0 * np.sqrt(2.0 * np.log(2.0))) / float(np.mean(pixel_mm)))
+    return float(fwhm_to_sigma(fwhm_mm) / float(np.mean(pixel_mm)))
 
 
 def gated(correction, weight, sigma_px: float, beam_sigma_px: float = 0.0, whole=None) -> np.ndarray:
