@@ -85,9 +85,10 @@ def half_wavelength(sigma_px: float) -> float:
     return float(np.pi * sigma_px * np.sqrt(2.0 / np.log(2.0)))
 
 
-def band_weight(start_misfit, expected: float, detectors: int, fwhm_mm: float, pixel_mm) -> np.ndarray:
-    """Weight (0-1) of the correction's fine band: 1 where the start's misfit (RMS over the
-    detectors, per pixel) is not noise (local chi-square over ``expected`` above
+def band_weight(misfit, expected: float, detectors: int, fwhm_mm: float, pixel_mm) -> np.ndarray:
+    """Weight (0-1) of the correction's fine band: 1 where ``misfit`` (the start's, or that of
+    the heights with the correction as the beam sees it; RMS over the detectors, per pixel) is not
+    noise (local chi-square over ``expected`` above
     :func:`~.local_inversion.threshold`, in areas of at least
     :data:`~.local_inversion.MIN_FLAGGED_PX` pixels), tapered as
     :func:`~.local_inversion.taken_weight`.
@@ -99,7 +100,7 @@ def band_weight(start_misfit, expected: float, detectors: int, fwhm_mm: float, p
     >>> float(w[15, 15]), float(w[0, 0])
     (1.0, 0.0)
     """
-    flagged = large_areas(local_chi2(start_misfit, max(float(expected), 1e-12)) > threshold(detectors=detectors))
+    flagged = large_areas(local_chi2(misfit, max(float(expected), 1e-12)) > threshold(detectors=detectors))
     return taken_weight(flagged, *take_scale(fwhm_mm, pixel_mm))
 
 

@@ -20,9 +20,10 @@ shadowing, the beam profile, fixed later events), differentiated by Dr.Jit. In o
    offset, in quadrature; what a single-ray scan leaves open (:func:`start_resolution`) and a
    field-wide bowl larger than the relief (:func:`bowl_check`) where they are found.
 
-When the field's solve took steps, the correction of the start that all of this made is taken in
-full only where the start's misfit exceeds the noise, elsewhere its long wavelengths only
-(:mod:`.fine_band`).
+When the field's solve took steps, the correction of the start that all of this made is kept
+only where the start's misfit exceeds the noise, elsewhere its long wavelengths only; where kept,
+its band finer than the beam only where the correction as the beam sees it leaves a misfit above
+the noise (:mod:`.fine_band`).
 """
 
 from __future__ import annotations
@@ -257,8 +258,9 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
     local : bool
         Refine, region by region, where the misfit exceeds the noise (:mod:`.local_inversion`),
         after the field's solve; each region's outcome in ``regions``; and take the correction's
-        fine band only where the start's misfit exceeds the noise (:mod:`.fine_band`). False: the
-        field's solve as it ends, everywhere.
+        fine band only where the start's misfit exceeds the noise, its band finer than the beam
+        only where the images demand it (:mod:`.fine_band`). False: the field's solve as it ends,
+        everywhere.
     fixed_border : int
         Pixels along the image's edge whose heights stay at the start's (a window cut out of a larger
         height map, whose edge must join it); 0: all heights free, their mean held.
@@ -317,8 +319,10 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
                                discrepancy=discrepancy, budget=budget, progress=progress, t0=t0,
                                uncertainty_probes=uncertainty_probes)
     # where the start fits to the noise, the solve's finest band is fitted noise (fine_band.py)
-    fine = (band_weight(result.start_misfit, result.expected_misfit, len(geometry.detectors), fwhm_mm, pixel)
-            if local and len(result.history) > 1 else None)
+    def flagged(misfit):  # where a misfit is not noise, tapered as a region's heights are taken
+        return band_weight(misfit, result.expected_misfit, len(geometry.detectors), fwhm_mm, pixel)
+
+    fine = flagged(result.start_misfit) if local and len(result.history) > 1 else None
 
     def left():
         return None if budget is None else max(budget - (time.perf_counter() - t0), 0.0)
@@ -365,7 +369,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         sigma, beam = low_pass_px(fwhm_mm, pixel), beam_px(fwhm_mm, pixel)
         d = result.height - h0
         take_heights(full, result, h0 + gated(d, fine, sigma, beam))
-        whole = fine * band_weight(result.misfit, result.expected_misfit, len(geometry.detectors), fwhm_mm, pixel)
+        whole = fine * flagged(result.misfit)
         if beam > 0 and whole.any():
             take_heights(full, result, h0 + gated(d, fine, sigma, beam, whole))
         chi2, offset = floating()
