@@ -184,3 +184,28 @@ def real_array(name: str, value, ndim: int | None = 2, *, shape=None):
     if out.size == 0:
         raise EloInputError(f"{name}: an empty array (shape {out.shape})")
     return out
+
+
+def input_file(path, what: str = "", missing: str = ": no such file"):
+    """``path`` as a :class:`~pathlib.Path` of an existing file to read: a folder is named as one
+    (it was reported as "no such file" or by its extension), a missing path by ``missing`` (appended
+    to ``what`` and the path).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     input_file(folder, "calibration")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: calibration ... is a folder; give a file
+    """
+    from pathlib import Path
+
+    p = Path(path)
+    label = f"{what} {p}" if what else str(p)
+    if p.is_dir():
+        raise EloInputError(f"{label} is a folder; give a file")
+    if not p.is_file():
+        raise EloInputError(label + missing)
+    return p

@@ -22,7 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .arguments import real_array, shown
+from .arguments import input_file, real_array, shown
 from .errors import EloInputError
 from .files import atomic_write, check_output
 from .grid import ORIENTATION
@@ -162,9 +162,7 @@ def read_exr(path) -> tuple[dict[str, np.ndarray], dict]:
 
     if not isinstance(path, (str, os.PathLike)) or "\0" in str(path):
         raise EloInputError(f"EXR path {shown(path)}: give a file name")
-    path = Path(path)
-    if not path.is_file():
-        raise EloInputError(f"{path}: no such file")
+    path = input_file(path)
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic != EXR_MAGIC:

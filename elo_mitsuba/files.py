@@ -39,9 +39,10 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
     Raises
     ------
     EloInputError
-        For a suffix not in ``suffixes``, one of ``inputs``, an existing file without ``overwrite``, a path that is
-        a folder, a parent folder that does not exist, is a file or cannot be written (read-only,
-        immutable, ``/proc``: :func:`check_writable_folder`), or, with ``overwrite``, an existing
+        For a suffix not in ``suffixes``, one of ``inputs``, an existing file (or a symbolic link,
+        even a dangling one) without ``overwrite``, a path that is a folder, a parent folder that does
+        not exist, is a file or cannot be written (read-only, immutable, ``/proc``:
+        :func:`check_writable_folder`), or, with ``overwrite``, an existing
         file that cannot be replaced (immutable or append-only).
     """
     if not (isinstance(overwrite, bool) or type(overwrite).__name__ == "bool_"):  # 'no' or 1 would read as consent
@@ -64,15 +65,34 @@ def check_output(path, suffixes: Iterable[str] | None = None, *, overwrite: bool
                                     "(--overwrite does not replace what is being read)")
     if path.exists() and not overwrite:
         raise EloInputError(f"{what} {path} exists; pass --overwrite (Python: overwrite=True) to replace it")
+    if path.is_symlink() and not path.exists() and not overwrite:  # exists() follows the link: False when dangling
+        raise EloInputError(f"{what} {path} exists (a symbolic link to {os.readlink(path)!r}, which does not exist); "
+                            "pass --overwrite (Python: overwrite=True) to replace the link")
+    check_parent_folder(path, what)
+    if path.exists():
+        _check_replaceable(path, what)
+    return path
+
+
+def check_parent_folder(path, what: str = "output") -> Path:
+    """Refuse (one line, naming ``what`` and ``path``) an output whose folder does not exist, is a
+    file, or takes no new files (:func:`check_writable_folder`); return that folder. The one check
+    of an output's folder, for single files (:func:`check_output`) and stores (folders) alike.
+
+    Examples
+    --------
+    >>> check_parent_folder("/no/such/folder/out.zarr")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: output /no/such/folder/out.zarr: directory /no/such/folder does not exist
+    """
+    path = Path(path)
     parent = path.parent
     if not parent.exists():
         raise EloInputError(f"{what} {path}: directory {parent} does not exist")
     if not parent.is_dir():
         raise EloInputError(f"{what} {path}: {parent} is a file, not a directory")
-    check_writable_folder(parent, f"{what} {path}")
-    if path.exists():
-        _check_replaceable(path, what)
-    return path
+    return check_writable_folder(parent, f"{what} {path}")
 
 
 def check_writable_folder(folder, what: str) -> Path:
@@ -137,7 +157,9 @@ def atomic_write(path, write: Callable[[Path], None]) -> Path:
     is left as it was.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}{path.suffix}")
+    # the suffix in lower case: writers test it case-sensitively (np.save appended ".npy" to ".NPY",
+    # so the rename found no file and a stray one was left)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}{path.suffix.lower()}")
     try:
         write(tmp)
         os.replace(tmp, path)

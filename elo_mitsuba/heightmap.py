@@ -32,6 +32,7 @@ writer beside GSF, which Gwyddion and MountainsMap read).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from dataclasses import dataclass
@@ -40,6 +41,7 @@ from typing import Mapping
 
 import numpy as np
 
+from .arguments import input_file
 from .errors import EloInputError
 from .files import atomic_write, check_output
 from .grid import field_xy, pixel_axes
@@ -171,6 +173,22 @@ def write_height(path, height, mask=None, metadata: Mapping | None = None, overw
     return path
 
 
+@contextlib.contextmanager
+def quiet_tifffile():
+    """Hold back tifffile's log lines while a TIFF is read: of a damaged file it logs each tag it
+    cannot read (``<TiffTag.fromfile> raised TiffFileError(...)``) before it raises, and the
+    refusal's one line already names the file and the damage."""
+    import logging
+
+    logger = logging.getLogger("tifffile")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def _gsf_bytes(path, stored, pixel_mm: float, meta: Mapping) -> bytes:
     """A Gwyddion Simple Field file of ``stored`` (mm, NaN = no height) in metres."""
     from .exr import metadata_json
@@ -259,14 +277,15 @@ def read_heightmap(path, units: str | None = None, *, allow_nan: bool = False) -
     path = Path(path)
     if units is not None and units not in HEIGHT_UNITS:
         raise EloInputError(f"--units {units!r} is not known; use one of {', '.join(HEIGHT_UNITS)}")
+    if path.is_dir():  # named as a folder, not by its extension or as missing
+        input_file(path, "height map")
     ext = path.suffix.lower()
     if ext not in HEIGHTMAP_EXTENSIONS:
         raise EloInputError(
             f"height map {str(path)!r} has extension {path.suffix or '(none)'!r}; "
             f"use one of {', '.join(HEIGHTMAP_EXTENSIONS)}"
         )
-    if not path.is_file():
-        raise EloInputError(f"height map {str(path)!r} does not exist")
+    input_file(path, "height map", missing=" does not exist")
     pixel, source, recorded = None, "", None  # recorded: the file's height unit as factor to mm
     try:
         if ext == ".npy":
@@ -291,7 +310,7 @@ def read_heightmap(path, units: str | None = None, *, allow_nan: bool = False) -
         elif ext in (".tif", ".tiff"):
             import tifffile
 
-            with tifffile.TiffFile(path) as tif:
+            with quiet_tifffile(), tifffile.TiffFile(path) as tif:
                 page = tif.pages[0]
                 data = page.asarray()
                 meta = _json_description(page)

@@ -40,7 +40,7 @@ from .runtime import ensure_variant
 from .schema import (AIM_OFFSET, BEAM_FWHM, DETECTORS, MATERIALS, MAX_LENGTH_MM, PROJECTION, SCATTERING, UNITS,
                      WORK_DISTANCE, grid_header, signal_units)
 from .scene_files import (check_detector_placement, check_detectors_apart, declared_parameters, detector_up,
-                          explain_mitsuba_error, not_finite, resolve_scene_path, scene_values)
+                          explain_mitsuba_error, layout_name, not_finite, resolve_scene_path, scene_values)
 
 #: Number of samples (pixels x spp) rendered in one pass; larger jobs are split into passes
 #: (same kernel, different seeds) so that progress can be shown and memory stays bounded.
@@ -93,6 +93,8 @@ class EloScene:
         self.path = resolve_scene_path(scene)
         values = scene_values(detector_layout, params)  # a layout and its dh/dw both given: refused
         declared = declared_parameters(self.path, {k: str(v) for k, v in values.items()})
+        if detector_layout is not None and "layout" in declared:  # the header names the layout used, not the
+            values["layout"] = layout_name(detector_layout)      # file's default (its dh/dw are given explicitly)
         unknown = [k for k in values if k not in declared]
         if unknown:
             allowed = ", ".join(sorted(declared)) or "none"
@@ -103,6 +105,10 @@ class EloScene:
             if not_finite(v):
                 raise EloInputError(f"{self.path}: parameter {k}={str(v)!r} is not a finite number (-D {k}=...): "
                                     "the scene's parameters are lengths (mm), angles and counts")
+        if _number_below_zero(values.get("dw")):  # the shipped scenes place each detector at dw along its own side
+            raise EloInputError(f"{self.path}: parameter dw={values['dw']} is negative (-D dw=...): dw is the "
+                                "detectors' distance from the z-axis, >= 0 mm; a negative one would put the detector "
+                                "named right on the left (and back at the front)")
         self.mi = ensure_variant(variant)
         self.params = {**declared, **{k: str(v) for k, v in values.items()}}
         try:
@@ -618,6 +624,14 @@ def _check_quality(quality) -> None:
     """One line for a quality that is not a preset's name, ``scene`` or ``custom``."""
     if not isinstance(quality, str) or quality not in QUALITIES + ("custom",):
         raise EloInputError(f"quality {shown(quality)}; choose one of {', '.join(QUALITIES)}")
+
+
+def _number_below_zero(value) -> bool:
+    """True for a value that reads as a number < 0 (text such as a material's name is not one)."""
+    try:
+        return float(str(value)) < 0
+    except ValueError:
+        return False
 
 
 def load_scene(scene, variant: str | None = None, detector_layout: str | None = None, **params) -> EloScene:

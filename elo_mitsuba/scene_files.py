@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Mapping
 
 from .constants import DEFAULT_MATERIAL, TABLE1_LAYOUTS
+from .schema import MAX_LENGTH_MM
 from .errors import EloInputError
 from .files import atomic_write, check_output
 from .mesh import check_ply_indices, ply_header, write_mesh
@@ -121,8 +122,15 @@ def _collect_defaults(path: Path, values: dict, declared: dict, depth: int, chai
         raise EloInputError(f"{path}: cannot read ({exc.strerror or exc})") from None
     if root.tag != "scene":
         raise EloInputError(f"{path}: root element is <{root.tag}>, expected <scene>")
+    own: dict[str, str] = {}  # this file's defaults: Mitsuba takes the first of two and ignores the other silently
     for node in root.iter():
         if node.tag == "default" and node.get("name"):
+            name = node.get("name")
+            if name in own:
+                raise EloInputError(f"{path}: <default name={name!r}> is declared twice (value {own[name]!r}, then "
+                                    f"{node.get('value')!r}); Mitsuba would use the first and ignore the second: "
+                                    "keep one")
+            own[name] = node.get("value")
             if not (node.get("value") or "").strip() and node.get("name") not in values:
                 raise EloInputError(f"{path}: <default name={node.get('name')!r}> has no value (Mitsuba would read "
                                     f"it as 0); give it one, or pass -D {node.get('name')}=...")
@@ -212,8 +220,13 @@ def _refuse_value_without_file(path: Path, pattern: str, values: Mapping) -> Non
                             f"{', '.join(allowed)}")
 
 
-def layout_parameters(layout: str | int) -> dict[str, float]:
-    """-D parameters of a Table 1 detector layout: ``"zeta50"``, ``"50"`` or ``50``."""
+def layout_name(layout: str | int) -> str:
+    """The Table 1 name of a detector layout given as ``"zeta50"``, ``"50"``, ``50`` or
+    ``"zeta50deg"``: ``"zeta50"`` (the name a scene's ``layout`` parameter takes).
+
+    >>> layout_name(50), layout_name("ZETA75deg")
+    ('zeta50', 'zeta75')
+    """
     key = str(layout).lower().removeprefix("zeta").removesuffix("deg").strip()
     try:
         zeta = int(float(key))
@@ -222,18 +235,37 @@ def layout_parameters(layout: str | int) -> dict[str, float]:
     if zeta not in TABLE1_LAYOUTS:
         allowed = ", ".join(f"zeta{z}" for z in TABLE1_LAYOUTS)
         raise EloInputError(f"unknown detector layout {layout!r}; Table 1 layouts are {allowed}")
-    dh, dw = TABLE1_LAYOUTS[zeta]
+    return f"zeta{zeta}"
+
+
+def layout_parameters(layout: str | int) -> dict[str, float]:
+    """-D parameters of a Table 1 detector layout: ``"zeta50"``, ``"50"`` or ``50``."""
+    dh, dw = TABLE1_LAYOUTS[int(layout_name(layout).removeprefix("zeta"))]
     return {"dh": dh, "dw": dw}
 
 
 def scene_values(detector_layout: str | int | None, params: Mapping, *, names: Mapping[str, str] | None = None) -> dict:
     """The scene parameters of a Table 1 ``detector_layout`` (sets dh and dw) and ``params``;
     a parameter given both ways is refused, as is ``layout`` (whose file sets only the dh and dw
-    that the layout replaces): one of them would be silently ignored. ``names`` maps a parameter to
-    how the message names it (the CLI's ``--layout``, ``-D dh``)."""
-    if detector_layout is None:
-        return dict(params)
+    that the layout replaces): one of them would be silently ignored. So is a ``layout``
+    parameter in ``params`` together with ``dh`` or ``dw``: the layout's file sets them, and the
+    header would name a layout whose geometry the render does not have. ``names`` maps a
+    parameter to how the message names it (the CLI's ``--layout``, ``-D dh``, a spec's
+    ``fixed.layout``).
+
+    >>> scene_values(None, {"layout": "zeta50", "dh": 100})
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: layout=zeta50 sets dh and dw; dh=100 contradicts it: give the layout or dh/dw, not both
+    """
     names = dict(names or {})
+    if detector_layout is None:
+        clash = [k for k in ("dh", "dw") if k in params and "layout" in params]
+        if clash:
+            k = clash[0]
+            raise EloInputError(f"{names.get('layout', 'layout')}={params['layout']} sets dh and dw; "
+                                f"{names.get(k, k)}={params[k]} contradicts it: give the layout or dh/dw, not both")
+        return dict(params)
     values = layout_parameters(detector_layout)
     clash = [k for k in params if k in values or k == "layout"]
     if clash:
@@ -260,6 +292,10 @@ def check_detector_placement(name: str, center, normal, radius: float, where: st
     if c[2] <= 0:
         raise EloInputError(f"{at}detector {name!r} has its centre at z={c[2]:g} mm, at or below the build plane "
                             "z=0; detectors must be above the plate")
+    if not np.abs(c).max() <= MAX_LENGTH_MM:  # a header could not hold it, nor a reader use it (-D dh=1e12)
+        raise EloInputError(f"{at}detector {name!r} has its centre at ({', '.join(f'{v:.4g}' for v in c)}) mm; "
+                            f"each coordinate must be within {MAX_LENGTH_MM:g} mm of the origin (the longest length "
+                            "a header holds): lower dh or dw")
     low = c[2] - float(radius) * math.sqrt(max(0.0, 1.0 - float(n[2]) ** 2))
     if low <= 0:
         raise EloInputError(f"{at}detector {name!r} (centre z={c[2]:g} mm, radius {float(radius):g} mm) reaches down "
@@ -423,7 +459,7 @@ def write_scene_copy(scene_path, source="athene_flat", *, overwrite: bool = Fals
 
 
 def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: bool = False,
-                face_normals: bool = True, overwrite: bool = False) -> Path:
+                face_normals: bool = True, field_mm: float | None = None, overwrite: bool = False) -> Path:
     """Write a Mitsuba scene that renders ``mesh_path`` like ``scenes_xml/melt_plate.xml``.
 
     The scene is the shipped melt-plate scene with its mesh replaced: same parameters (layout,
@@ -434,14 +470,19 @@ def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: 
     the ATHENE-like chamber instead (``scenes_xml/melt_chamber.xml``, events default 2).
     ``face_normals`` false: the renderer interpolates the mesh's vertex normals (a surface that
     knows its own normals, :func:`~elo_mitsuba.mesh.heightmap_to_mesh`) instead of using each
-    triangle's.
+    triangle's. ``field_mm``: the default of the ``field`` parameter (the scan field, mm), e.g. the
+    extent of the mesh (``elo-mitsuba mesh --scene`` writes the field its height map covers); default
+    the template's 80 mm, which a smaller mesh would not fill (the beam would miss it).
     """
     from xml.sax.saxutils import escape
 
     from .physics.materials import get_material
+    from .schema import LENGTH_RANGE, is_length
 
     material = DEFAULT_MATERIAL if material is None else material
     get_material(material)  # raises EloInputError for an unknown material
+    if field_mm is not None and not is_length(field_mm):
+        raise EloInputError(f"field_mm={field_mm!r}; the scan field must be a length of {LENGTH_RANGE}")
     scene_path = check_output(scene_path, (".xml",), overwrite=overwrite, what="scene")
     mesh_path = Path(mesh_path)
     try:
@@ -461,6 +502,8 @@ def write_scene(scene_path, mesh_path, *, material: str | None = None, chamber: 
         f'<default name="material" value="{DEFAULT_MATERIAL}"/>':
             f'<default name="material" value="{escape(material, {chr(34): "&quot;"})}"/>',
     }
+    if field_mm is not None:
+        replacements['<default name="field" value="80"/>'] = f'<default name="field" value="{float(field_mm):.6g}"/>'
     if not face_normals:
         replacements['<boolean name="face_normals" value="true"/>'] = '<boolean name="face_normals" value="false"/>'
     if chamber:

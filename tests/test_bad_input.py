@@ -120,7 +120,7 @@ CLI_CASES = [
     ("render --events 0", [*R, *OUT, "--events", "0"], "0 must be >= 1"),
     ("render --events 100", [*R, *OUT, "--events", "100"], r"events=100; must be in [1, 10]"),
     ("render --resolution 0", [*R, *OUT, "--resolution", "0"], "0 must be >= 1"),
-    ("render --resolution 100000", [*R, *OUT, "--resolution", "100000"], "of memory"),
+    ("render --resolution 100000", ["render", "flat_plate", *OUT, "--resolution", "100000"], "of memory"),
     ("render --seed -1", [*R, *OUT, "--seed", "-1"], "-1 must be >= 0"),
     ("render --seed 2^32", [*R, *OUT, "--seed", "4294967296"], "is above 4294967295"),
     ("render --seed x", [*R, *OUT, "--seed", "x"], "'x' is not an integer"),

@@ -104,11 +104,17 @@ def test_calibrate_cli(machine, tmp_path):
                  "-o", str(tmp_path / "c.json")]) == 0
     assert main(["calibrate", str(tmp_path / "flat.exr"), "--dh", "272", "-o", str(tmp_path / "d.json")]) == 2
     assert not (tmp_path / "d.json").exists()
-    # several recordings of one set-up: their mean (here one recording twice: the same fit), others refused
+    # several recordings of one set-up: their mean (here two copies of one recording: the same fit);
+    # one file given twice is refused (its mean would claim half the noise), others of another set-up too
+    import shutil
+
+    shutil.copy(tmp_path / "flat.exr", tmp_path / "flat_b.exr")
     assert main(["calibrate", str(tmp_path / "flat.exr"), str(tmp_path / "flat.exr"), "--dh", "272", "--dw", "127",
+                 "-o", str(tmp_path / "c2.json")]) == 2
+    assert main(["calibrate", str(tmp_path / "flat.exr"), str(tmp_path / "flat_b.exr"), "--dh", "272", "--dw", "127",
                  "-o", str(tmp_path / "c2.json")]) == 0
     one, two = (json.loads((tmp_path / f).read_text()) for f in ("c.json", "c2.json"))
-    assert two["source"]["input"] == [str(tmp_path / "flat.exr")] * 2
+    assert two["source"]["input"] == [str(tmp_path / "flat.exr"), str(tmp_path / "flat_b.exr")]
     assert two["detectors"]["right"]["center"] == pytest.approx(one["detectors"]["right"]["center"])
     channels, meta = read_exr(tmp_path / "flat.exr")
     from elo_mitsuba.exr import write_exr

@@ -38,6 +38,8 @@ from typing import Mapping
 
 import numpy as np
 
+from ..arguments import input_file
+from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..files import atomic_write, check_output
 from ..scene_files import check_detector_placement
@@ -123,6 +125,12 @@ def misfit_bound(image, block_pixels: int) -> tuple[float, float]:
     return float(max(MISFIT_FLOOR, MISFIT_NOISE_FACTOR * block_noise)), noise
 
 
+#: A flat-plate image whose spread (max - min) is at most this fraction of its largest value is
+#: uniform and refused: the fit places a detector by how its image varies over the field (the
+#: flat plate's images vary by 20-40 % over an 80 mm field at d_h 272 mm), and a uniform one (a
+#: stuck channel; all pixels 3e38) moved all four detectors 200 mm up with exit 0. Float32
+#: rounding of a real image spreads it by far more than 1e-6.
+UNIFORM_SPREAD = 1e-6
 #: Disc rule of the calibration's model (more nodes than the gradient's: the fit is small).
 CALIBRATION_NODES = (2, 6)
 #: |correlation| above this: the pair is reported as not separable by the data.
@@ -131,6 +139,13 @@ PARAMETERS = ("cx", "cy", "cz", "tilt_a", "tilt_b", "gain", "offset")
 #: Finite-difference steps of the geometry parameters (mm, mm, mm, deg, deg).
 GEOMETRY_STEPS = (0.2, 0.2, 0.2, 0.1, 0.1)
 FORMAT = "elo-mitsuba calibration 1"
+#: The keys of a CALIB.json (:meth:`Calibration.as_dict`) and of each of its detectors
+#: (:meth:`DetectorFit.as_dict`): any other is refused on reading, as the TOML specs do; a
+#: misspelt "gian" was dropped without a word and the gain taken as 1.
+FILE_KEYS = ("format", "units", "detectors", "source")
+DETECTOR_KEYS = ("center", "normal", "radius", "gain", "offset", "sigma", "correlation", "not_separable",
+                 "rms_residual_relative", "blocks_rejected", "blocks", "misfit_bound_relative",
+                 "pixel_noise_relative")
 
 
 @dataclass
@@ -300,6 +315,11 @@ def calibrate(flats: Mapping, nominal: ScanGeometry, *, fit_offset: bool = False
             raise EloInputError(f"flat-plate image {n!r} is {img.shape}, {names[0]!r} {first.shape}")
         if not np.all(np.isfinite(img)):
             raise EloInputError(f"flat-plate image {n!r} holds NaN or Inf; cannot calibrate")
+        if np.ptp(img) <= UNIFORM_SPREAD * np.max(np.abs(img)):
+            where = source.get(n) if isinstance(source, Mapping) else source
+            raise EloInputError(f"{where + ': ' if where else ''}flat-plate image {n!r} holds one value ({float(img.flat[0]):.4g}) at every pixel; a "
+                                "flat plate's image varies over the field with the detector's distance and angle, "
+                                "which is what places it (a stuck or saturated channel, or a test pattern?)")
         data[n], covered = block_mean(img, grid)
         block_pixels = (covered[0] // data[n].shape[0]) * (covered[1] // data[n].shape[1])
         coarse_shape = data[n].shape
@@ -447,9 +467,7 @@ def write_calibration(path, calibration: Calibration, *, overwrite: bool = False
 def read_calibration(path) -> Calibration:
     """Read a ``CALIB.json`` of :func:`write_calibration` (or one written by hand with, per
     detector, ``center``, ``normal``, ``radius`` and optionally ``gain``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise EloInputError(f"{path}: no such calibration file")
+    path = input_file(path, "calibration file")
     try:
         doc = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
@@ -457,11 +475,27 @@ def read_calibration(path) -> Calibration:
     dets = doc.get("detectors") if isinstance(doc, dict) else None
     if not isinstance(dets, dict) or not dets:
         raise EloInputError(f"{path}: no 'detectors' object (per detector: center, normal, radius, gain)")
+    unknown = [k for k in doc if k not in FILE_KEYS]
+    if unknown:
+        raise EloInputError(f"{path}: unknown key {unknown[0]!r}; a calibration file has: {', '.join(FILE_KEYS)}")
+    if "format" in doc and doc["format"] != FORMAT:  # a hand-written file may leave it out
+        raise EloInputError(f"{path}: format {doc['format']!r}; this version reads {FORMAT!r} (written by "
+                            "'elo-mitsuba calibrate')")
+    # the models have these four detectors: another one (a fifth, a misspelt name) ended in a KeyError
+    # after the images were read
+    others = [n for n in dets if n not in DETECTOR_NAMES]
+    if others:
+        raise EloInputError(f"{path}: detector {others[0]!r} is not one of the scan's detectors "
+                            f"{', '.join(DETECTOR_NAMES)}")
     fits = {}
     for name, d in dets.items():
         if not isinstance(d, dict):
             raise EloInputError(f"{path}: detector {name!r} is a JSON {type(d).__name__}; need an object with center, "
                                 "normal, radius")
+        unknown = [k for k in d if k not in DETECTOR_KEYS]
+        if unknown:
+            raise EloInputError(f"{path}: detector {name!r}: unknown key {unknown[0]!r}; a detector has: "
+                                f"{', '.join(DETECTOR_KEYS)}")
         missing = [k for k in ("center", "normal", "radius") if k not in d]
         if missing:
             raise EloInputError(f"{path}: detector {name!r} lacks {', '.join(missing)} (need center, normal, radius)")

@@ -360,6 +360,37 @@ def _trusted_domain(dzdx, dzdy, mask, min_component_size):
     return valid, labels
 
 
+def check_trusted_regions(dzdx, dzdy, mask=None, min_component_size: int | None = None, *,
+                          source: str = "gradient") -> None:
+    """Refuse a gradient no pixel of which can get a height, before any solve: every pixel masked
+    (or not finite), or, with ``min_component_size``, every trusted region (4-connected) smaller
+    than it (the masked and robust solvers drop those). Either wrote an all-NaN height map with
+    exit status 0 and a warning.
+
+    Examples
+    --------
+    >>> g = np.zeros((4, 4))
+    >>> check_trusted_regions(g, g, np.ones((4, 4), bool))
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: gradient: all 16 pixels are masked (untrusted) or not finite; ...
+    >>> check_trusted_regions(g, g, None, 17)
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: --min-component 17: the largest trusted region of gradient has 16 pixels; ...
+    """
+    dzdx, dzdy = _gradient_pair(dzdx, dzdy)
+    valid, labels = _trusted_domain(dzdx, dzdy, mask, 1)
+    if not valid.any():
+        raise EloInputError(f"{source}: all {valid.size} pixels are masked (untrusted) or not finite; no height can be "
+                            "integrated (the mask channel: 1 = untrusted, 0 = trusted)")
+    if min_component_size is not None:
+        largest = int(np.bincount(labels[valid]).max())
+        if largest < whole_number("min_component_size", min_component_size, 1, None):
+            raise EloInputError(f"--min-component {min_component_size}: the largest trusted region of {source} has "
+                                f"{largest} pixels; every region would be dropped: give at most {largest}")
+
+
 def integrate_robust(dzdx, dzdy, field_mm, mask=None, *, scale_mm: float | None = None,
                      iterations: int = ROBUST_ITERATIONS, tol: float = ROBUST_TOL, min_component_size: int = 1,
                      direct_limit: int = 40_000, return_weights: bool = False, progress=None):

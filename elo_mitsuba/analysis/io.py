@@ -20,13 +20,14 @@ from typing import Mapping
 
 import numpy as np
 
+from ..arguments import input_file
 from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..exr import read_exr, write_exr
 from ..files import check_output
 from ..grid import field_xy
 from ..schema import error_channels, event_channel, grid_header
-from ..heightmap import HEIGHT_SUFFIXES, write_height
+from ..heightmap import HEIGHT_SUFFIXES, quiet_tifffile, write_height
 from .stsa import SPIKE, spike_bound
 
 IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
@@ -53,8 +54,7 @@ def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
     suffix = path.suffix.lower()
     if suffix not in IMAGE_SUFFIXES:
         raise EloInputError(f"{path}: unsupported image type {suffix or '(none)'}; use {', '.join(IMAGE_SUFFIXES)}")
-    if not path.is_file():
-        raise EloInputError(f"{path}: no such file")
+    input_file(path)
     meta: dict = {}
     if suffix == ".exr":
         channels, meta = read_exr(path)
@@ -79,7 +79,8 @@ def read_image(path, channel: str | None = None) -> tuple[np.ndarray, dict]:
         import tifffile
 
         try:
-            arr = tifffile.imread(path)
+            with quiet_tifffile():
+                arr = tifffile.imread(path)
         except Exception as exc:
             raise EloInputError(f"{path}: not a readable TIFF ({str(exc).splitlines()[0]})") from None
     arr = np.squeeze(np.asarray(arr))
@@ -148,6 +149,59 @@ def load_detector_set(exr_path=None, files: Mapping | None = None, what: str = "
     return images, meta
 
 
+def check_distinct_detectors(files: Mapping | None, what: str = "images") -> None:
+    """Refuse one file given for two detectors (``{detector: path}``): its images are equal, and
+    the differences of opposite detectors made a gradient of noise with exit status 0.
+
+    Examples
+    --------
+    >>> check_distinct_detectors({"right": "r.npy", "left": "./r.npy"}, "object images")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: ./r.npy: given for both the right and the left detector (object images); ...
+    """
+    seen: dict = {}
+    for n, f in (files or {}).items():
+        if not f:
+            continue
+        other = seen.setdefault(Path(f).resolve(), n)
+        if other != n:
+            raise EloInputError(f"{f}: given for both the {other} and the {n} detector ({what}); each detector has "
+                                "its own image")
+
+
+def check_distinct_scan_files(files: Mapping | None, flat_files: Mapping | None = None) -> None:
+    """:func:`check_distinct_detectors` on a scan's single-channel object files ``{detector: path}``
+    and on each set of its flat-plate files ``{detector: [path, ...]}`` (the i-th of each)."""
+    check_distinct_detectors(files, "object images")
+    lists = {n: list(v or []) for n, v in (flat_files or {}).items()}
+    for i in range(max((len(v) for v in lists.values()), default=0)):
+        check_distinct_detectors({n: v[i] for n, v in lists.items() if i < len(v)}, "flat-plate images")
+
+
+def check_repeated_recordings(flat=(), flat_files: Mapping | None = None, what: str = "--flat") -> None:
+    """Refuse a flat-plate recording given twice (the same file twice in ``flat``, or in one
+    detector's list of ``flat_files``): their mean is the one recording, whose noise the summary
+    and the uncertainties would take as halved.
+
+    Examples
+    --------
+    >>> check_repeated_recordings(["a.exr", "b.exr"])
+    >>> check_repeated_recordings(["a.exr", "./a.exr"])
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: --flat ./a.exr: the same file as --flat a.exr; ...
+    """
+    lists = [(what, list(flat or []))] + [(f"--flat-{n}", list(v or [])) for n, v in (flat_files or {}).items()]
+    for flag, paths in lists:
+        seen: dict = {}
+        for i, p in enumerate(paths):
+            first = seen.setdefault(Path(p).resolve(), i)
+            if first != i:
+                raise EloInputError(f"{flag} {p}: the same file as {flag} {paths[first]}; a mean of a recording with itself "
+                                    "is one recording (its noise not lowered): give each recording once")
+
+
 def read_later_events(path, shape) -> tuple[dict, dict]:
     """Events >= 2 per detector of a forward render with per-event channels (``--events >= 2``),
     e.g. the flat plate in the chamber: (later events in the render's units N_d/N_0, their share
@@ -156,14 +210,92 @@ def read_later_events(path, shape) -> tuple[dict, dict]:
     if int(meta.get("events", 1)) < 2:  # before its per-event channels are looked for
         raise EloInputError(f"{path}: rendered with events={meta.get('events', 1)}; later events need --events >= 2")
     first, _ = read_detector_exr(path, 1)
-    if next(iter(total.values())).shape != tuple(shape):
-        raise EloInputError(f"{path}: {next(iter(total.values())).shape} px, the images {tuple(shape)}")
+    got = next(iter(total.values())).shape
+    if got != tuple(shape):
+        raise EloInputError(f"{path}: the second-event render is {got[1]}x{got[0]} px, the images {shape[1]}x{shape[0]} "
+                            "px; render the flat plate's later events at the images' resolution")
     later, share = {}, {}
     for n in DETECTOR_NAMES:
         t = np.asarray(total[n], float)
         later[n] = t - np.asarray(first[n], float)
         share[n] = np.where(t > 0, later[n] / np.where(t > 0, t, 1.0), 0.0)
     return later, share
+
+
+def check_field(field_mm, meta: Mapping | None, shape, source, *, given: str = "--field",
+                fix: str = "leave it out") -> None:
+    """Refuse a scan field that contradicts the one a header records (``field_mm``): the images
+    (or a gradient) were recorded over the header's field, and slopes and the model's beam taken
+    over another are wrong without a word (--field 40 on 80 mm images: 13x the noise). Nothing to
+    compare without either.
+
+    Examples
+    --------
+    >>> check_field((80.0, 80.0), {"field_mm": [80, 80]}, (4, 4), "a.exr")
+    >>> check_field((40.0, 40.0), {"field_mm": [80, 80]}, (4, 4), "a.exr")
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: a.exr: --field 40x40 mm contradicts the header's field_mm 80x80 mm ...
+    """
+    from ..schema import FIELD
+
+    recorded = (meta or {}).get(FIELD)
+    if field_mm is None or recorded is None:
+        return
+    try:
+        recorded = field_xy(recorded, shape)
+    except (TypeError, ValueError, EloInputError):
+        raise EloInputError(f"{source}: header field_mm {recorded!r} is not one or two lengths in mm") from None
+    field = field_xy(field_mm, shape)
+    if not np.allclose(field, recorded, rtol=1e-6, atol=0):
+        raise EloInputError(f"{source}: {given} {field[0]:g}x{field[1]:g} mm contradicts the header's field_mm "
+                            f"{recorded[0]:g}x{recorded[1]:g} mm (the scan field it was recorded over); {fix}")
+
+
+def check_second_event(path, meta: Mapping | None, source, shape, *, field_mm=None, d_h=None, d_w=None) -> None:
+    """Refuse a ``--second-event`` render of another set-up than the images: its header's field,
+    work distance and projection must be the images' (``meta``, or ``field_mm`` given for images
+    without a header) and each detector centre within that detector's radius of the images'
+    (or of the layout ``d_h``, ``d_w``): a calibration's few mm pass, another layout does not.
+    A render at field 40 mm taken out of 80 mm images raised the gradient's noise 100-fold and
+    gave the calibration tilts of 9 degrees, all with exit status 0.
+    """
+    from ..constants import DETECTOR_DIRECTIONS
+    from ..schema import DETECTORS, FIELD, PROJECTION, WORK_DISTANCE
+
+    _, later = read_exr(path)
+    meta = dict(meta or {})
+    fix = "render the flat plate's later events with the images' geometry"
+    if field_mm is not None:  # images without a header: their field is the one given
+        check_field(field_mm, later, shape, path, fix=fix)
+    else:
+        check_field(meta.get(FIELD), later, shape, path, given=f"the images' ({source}) field", fix=fix)
+    for key in (WORK_DISTANCE, PROJECTION):
+        a, b = meta.get(key), later.get(key)
+        if a is not None and b is not None and (a != b if isinstance(a, str) or isinstance(b, str)
+                                                else not np.isclose(float(a), float(b), rtol=1e-6, atol=0)):
+            raise EloInputError(f"{path}: the second-event render's {key} {b!r} differs from {source}'s {a!r}; {fix}")
+    ours = meta.get(DETECTORS) if isinstance(meta.get(DETECTORS), Mapping) else None
+    if ours is None and d_h is not None and d_w is not None:
+        ours = {n: {"center": [d_w * ex, d_w * ey, d_h], "radius": None} for n, (ex, ey) in DETECTOR_DIRECTIONS.items()}
+        source = "--dh/--dw"
+    theirs = later.get(DETECTORS)
+    if not isinstance(ours, Mapping) or not isinstance(theirs, Mapping):
+        return
+    for n in DETECTOR_NAMES:
+        a, b = ours.get(n), theirs.get(n)
+        if not (isinstance(a, Mapping) and isinstance(b, Mapping)):
+            continue
+        try:
+            gap = float(np.linalg.norm(np.subtract(np.asarray(a["center"], float), np.asarray(b["center"], float))))
+            radius = float(a.get("radius") or b["radius"])
+        except (KeyError, TypeError, ValueError):
+            continue  # a header's own defects are named where it is read
+        if not gap <= radius:
+            raise EloInputError(f"{path}: the second-event render's {n} detector at "
+                                f"{np.round(np.asarray(b['center'], float), 2).tolist()} mm is {gap:.3g} mm from "
+                                f"{source}'s {np.round(np.asarray(a['center'], float), 2).tolist()} (allowed: within its "
+                                f"radius, {radius:g} mm); {fix}")
 
 
 def read_later_errors(path) -> dict | None:
@@ -210,8 +342,41 @@ def check_detector_images(images: Mapping[str, np.ndarray], names: Mapping[str, 
                                 "(e.g. by its neighbours' median)")
 
 
+#: The largest ratio, either way, of a detector image's median to its flat-plate image's
+#: (:func:`check_levels`). An object and its flat plate recorded with one amplifier setting and
+#: unit give corrected images of about 0.1-10 (shadowed or bright facets); a factor 1000 is a
+#: unit (V against mV, counts against N_d/N_0) or a gain setting. Images of 3e38 against a flat of
+#: 0.0015 overflowed the float32 model (NaN refused only when the output was written) and a flat of
+#: 3e38 masked every pixel of a valid object (exit 0).
+MAX_LEVEL_RATIO = 1e3
+
+
+def check_levels(images: Mapping[str, np.ndarray], flats: Mapping[str, np.ndarray], names: Mapping[str, str]):
+    """Refuse an object image whose level is more than :data:`MAX_LEVEL_RATIO` times its flat-plate
+    image's, or less than its inverse (medians of the magnitudes), naming the file and both levels.
+
+    Examples
+    --------
+    >>> flat = {"right": np.full((4, 4), 0.0015)}
+    >>> check_levels({"right": np.full((4, 4), 0.001)}, flat, {"right": "obj.exr"})
+    >>> check_levels({"right": np.full((4, 4), 3e38)}, flat, {"right": "obj.exr"})
+    Traceback (most recent call last):
+    ...
+    elo_mitsuba.errors.EloInputError: obj.exr: the right image's median 3e+38 is 2e+41 x its flat-plate image's 0.0015; ...
+    """
+    for n, img in images.items():
+        level, flat_level = float(np.median(np.abs(img))), float(np.median(np.abs(flats[n])))
+        ratio = level / flat_level if flat_level > 0 else np.inf
+        if not 1.0 / MAX_LEVEL_RATIO <= ratio <= MAX_LEVEL_RATIO:
+            raise EloInputError(f"{names[n]}: the {n} image's median {level:.4g} is {ratio:.3g} x its flat-plate "
+                                f"image's {flat_level:.4g}; "
+                                f"allowed 1/{MAX_LEVEL_RATIO:g} to {MAX_LEVEL_RATIO:g} x: record the object and the flat "
+                                "plate with one amplifier setting and in one unit")
+
+
 def check_signs(images: Mapping[str, np.ndarray], flats: Mapping[str, np.ndarray] | None, names: Mapping[str, str]):
-    """Negative detector images only with a flat-plate image of the same sign (the ratio is > 0).
+    """Negative detector images only with a flat-plate image of the same sign (the ratio is > 0),
+    and the object's level within :data:`MAX_LEVEL_RATIO` of the flat's (:func:`check_levels`).
 
     Without a flat the images are taken as already STSA-corrected ratios, which are >= 0.
     """
@@ -223,6 +388,8 @@ def check_signs(images: Mapping[str, np.ndarray], flats: Mapping[str, np.ndarray
         if flats is not None and negative != (float(flats[n].min()) < 0):
             raise EloInputError(f"{names[n]}: the {n} image and its flat-plate image have opposite signs; "
                                 "record both through the same amplifier")
+    if flats is not None:
+        check_levels(images, flats, names)
 
 
 def write_gradient(path, result, field_mm, d_h, d_w, *, thresholds: Mapping, stsa_corrected: bool,
@@ -297,8 +464,8 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
     ------
     EloInputError
         Missing dzdx/dzdy, infinite gradients, a field that contradicts the header's or is missing,
-        and (unless ``use_mask`` is False) a mask channel with values other than 0 and 1: no
-        threshold is guessed for a mask of another tool.
+        and (unless ``use_mask`` is False) a mask channel with values other than 0 and 1 (no
+        threshold is guessed for a mask of another tool) or NaN at a pixel the mask calls trusted.
     """
     channels, meta = read_exr(path)
     missing = [c for c in ("dzdx", "dzdy") if c not in channels]
@@ -321,11 +488,7 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
             recorded = field_xy(meta["field_mm"], shape)
         except (TypeError, ValueError, EloInputError):
             raise EloInputError(f"{path}: header field_mm {meta['field_mm']!r} is not one or two lengths in mm") from None
-    if field_mm is not None and recorded is not None:
-        given = field_xy(field_mm, shape)
-        if not np.allclose(given, recorded, rtol=1e-6, atol=0):
-            raise EloInputError(f"{path}: field {given[0]:g}x{given[1]:g} mm contradicts the header's field_mm "
-                                f"{recorded[0]:g}x{recorded[1]:g} mm (the gradient's own scan field); leave it out")
+    check_field(field_mm, meta, shape, path)
     field = field_mm if field_mm is not None else recorded
     if field is None:
         raise EloInputError(f"{path}: no 'field_mm' in the header; pass --field FX[,FY] (mm)")
@@ -339,6 +502,14 @@ def read_gradient(path, field_mm=None, use_mask: bool = True) -> dict:
                                 f"{float(m[row, col]):g} at row {row}, column {col}); a mask is 1 = untrusted, "
                                 "0 = trusted")
         mask = m == 1
+        # a pixel the mask calls trusted holds a gradient: NaN there is a defect like Inf, not
+        # another tool's "unknown" (which comes without a mask, or with mask 1)
+        trusted_nan = unknown & ~mask
+        if trusted_nan.any():
+            row, col = np.argwhere(trusted_nan)[0]
+            raise EloInputError(f"{path}: {int(trusted_nan.sum())} pixel(s) hold NaN in dzdx or dzdy where the mask "
+                                f"says trusted (first at row {row}, column {col}); a trusted pixel needs a finite "
+                                "gradient (mark unknown pixels 1 in the mask, or --ignore-mask)")
     if unknown.any():
         mask = unknown if mask is None else mask | unknown
         channels = {**channels, **{c: np.where(unknown, np.float32(0), channels[c]) for c in ("dzdx", "dzdy")}}

@@ -13,8 +13,50 @@ from ..constants import MAX_SEED
 from ..schema import FWHM_RANGE, LENGTH_RANGE, is_fwhm, is_length
 
 
+#: Namespace attribute in which :class:`_StoreOnce` notes the options given while one parser parses;
+#: removed before :meth:`OneLineParser.parse_known_args` returns.
+_GIVEN = "_elo_options_given"
+
+
+def _shown(value) -> str:
+    """An option's parsed value as the user wrote it, near enough (``80,80`` for a field, ``0.5``)."""
+    if isinstance(value, (tuple, list)):
+        return ",".join(_shown(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+class _StoreOnce(argparse._StoreAction):
+    """argparse's ``store`` for an option that takes one value: given twice with different values
+    it is refused in one line (argparse kept the last one silently: ``--resolution 16 --resolution
+    32`` rendered 32^2). The same value twice is harmless and taken, as for a repeated ``-D``.
+    Options meant to repeat use ``action="append"`` (``--flat``, ``-D``) and are not affected."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string is not None:  # positionals are consumed once by argparse itself
+            given = vars(namespace).setdefault(_GIVEN, {})
+            if self.dest in given and given[self.dest][1] != values:
+                first, old = given[self.dest]
+                parser.error(f"{first} {_shown(old)} and {option_string} {_shown(values)}: the option is given "
+                             "twice with different values; give it once")
+            given.setdefault(self.dest, (option_string, values))
+        super().__call__(parser, namespace, values, option_string)
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """Usage errors as one line (what is wrong, and where to look), exit status 2, no usage dump."""
+    """Usage errors as one line (what is wrong, and where to look), exit status 2, no usage dump;
+    an option of one value given twice with different values is such an error (:class:`_StoreOnce`,
+    registered here as the default action, so every sub-command's parser and argument group has it)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.register("action", None, _StoreOnce)
+        self.register("action", "store", _StoreOnce)
+
+    def parse_known_args(self, args=None, namespace=None):
+        parsed, extra = super().parse_known_args(args, namespace)
+        if hasattr(parsed, _GIVEN):  # bookkeeping only: not an option of the command
+            delattr(parsed, _GIVEN)
+        return parsed, extra
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
@@ -153,7 +195,8 @@ def add_scan_arguments(p):
                           help=f"flat-plate image of the {n} detector (repeatable, as --flat)")
     flat.add_argument("--no-flat", action="store_true",
                       help="the inputs are already STSA-corrected (skip the division)")
-    geo = p.add_argument_group("geometry (overrides the EXR headers)")
+    geo = p.add_argument_group("geometry (for images without headers; --dh/--dw override a header's, "
+                               "--field must agree with it)")
     geo.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm, e.g. 80")
     geo.add_argument("--dh", type=length_mm, metavar="MM", help="detector height d_h in mm")
     geo.add_argument("--dw", type=length_mm, metavar="MM", help="detector distance d_w from the z-axis in mm")

@@ -91,9 +91,12 @@ def add_parser(subparsers):
 def run(args) -> int:
     from ..analysis.calibration import calibrate, describe_displacement, write_calibration
     from ..analysis.chain import calibration_start, read_calibration_flats
+    from ..analysis.io import (check_distinct_detectors, check_field, check_repeated_recordings,
+                                   check_second_event)
     from ..files import check_output
 
     out = check_output(args.output, (".json",), overwrite=args.overwrite, what="calibration")
+    check_repeated_recordings(args.flat, what="FLAT.exr")
     flats, header, source = read_calibration_flats(args.flat, {n: getattr(args, n) for n in DETECTOR_NAMES},
                                                    args.event, second_event=args.second_event)
     if scattering_note(header, source):  # images of another g_BSE than the models' (a lobe study)
@@ -102,7 +105,11 @@ def run(args) -> int:
         print(f"note: {source} was rendered with events={header['events']}: the fit's model is the 1st event, and it "
               "moves the detectors to mimic the later events (athene_flat: 9.5-17.5 mm); use --event 1, or "
               "--second-event SIM_FLAT.exr for recordings", file=sys.stderr)
+    check_distinct_detectors({n: getattr(args, n) for n in DETECTOR_NAMES}, "flat-plate images")
     shape = next(iter(flats.values())).shape
+    check_field(args.field, header, shape, source)
+    if args.second_event:
+        check_second_event(args.second_event, header, source, shape, field_mm=args.field, d_h=args.dh, d_w=args.dw)
     nominal = calibration_start(header, shape, source, d_h=args.dh, d_w=args.dw, field_mm=args.field,
                                 radius=args.radius, work_distance_mm=args.wd, projection=args.projection,
                                 material=args.material)

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..schema import scattering_note
+from ..constants import DETECTOR_NAMES
 from ._args import add_scan_arguments, model_inputs, noise_level, scan_files, scan_inputs
 
 DESCRIPTION = """\
@@ -30,9 +31,10 @@ Compute the surface gradient dZ/dx, dZ/dy of the build surface from four detecto
      exact for point detectors and Lambert's law.
 
 Geometry (field, d_h, d_w) comes from the EXR headers written by 'elo-mitsuba render'
-(d_h = detector centre z, d_w = centre distance from the z-axis; the four must agree); --field,
---dh, --dw override it and are required for recorded machine images given as four single-channel
-files (EXR/TIFF/NPY, same orientation: row 0 = +y edge, columns towards +x).
+(d_h = detector centre z, d_w = centre distance from the z-axis; the four must agree); --dh,
+--dw override it (--field must agree with it); --field, --dh, --dw are required for recorded
+machine images given as four single-channel files (EXR/TIFF/NPY, same orientation: row 0 = +y
+edge, columns towards +x).
 
 Output EXR channels: dzdx, dzdy (mm/mm), Mx, My, sum_rl, sum_bf (Eq. 23, material contrast),
 mask (1 = untrusted pixel: a detector masked or dark, a sum or the Eq. 26 denominator near zero,
@@ -124,7 +126,7 @@ def _report_mask(res) -> None:
 
 def run(args) -> int:
     from ..analysis import chain
-    from ..analysis.io import write_gradient
+    from ..analysis.io import check_distinct_scan_files, check_field, check_repeated_recordings, check_second_event, write_gradient
     from ..analysis.plots import preview_gradient
     from ..files import check_output
 
@@ -137,6 +139,8 @@ def run(args) -> int:
             raise EloInputError("--height-passes applies to --method model only")
     elif args.min_denominator is not None:
         raise EloInputError("--min-denominator applies to --method eq26 only (the model has no denominator)")
+    if args.event is not None and args.event < 1:  # it was reported as missing channels right.e0 ...
+        raise EloInputError(f"--event {args.event}: must be >= 1 (the 1st event is 1)")
     for flag in ("min_corrected", "min_sum", "min_denominator"):
         value = getattr(args, flag)
         if value is not None and not np.isfinite(value):
@@ -145,7 +149,18 @@ def run(args) -> int:
     out = check_output(args.output, (".exr",), overwrite=args.overwrite, inputs=read)
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=read)
-    scan = chain.read_scan(**scan_inputs(args), model_discs=args.method == "model")
+    check_repeated_recordings(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES})
+    if args.calibration:  # its one-line refusal before the images are read
+        from ..analysis.calibration import read_calibration
+
+        read_calibration(args.calibration)
+    inputs = scan_inputs(args)
+    scan = chain.read_scan(**inputs, model_discs=args.method == "model")
+    check_distinct_scan_files(inputs["files"], inputs["flat_files"])
+    check_field(args.field, scan.header, scan.shape, scan.source)
+    if args.second_event:
+        check_second_event(args.second_event, scan.header, scan.source, scan.shape, field_mm=args.field, d_h=args.dh,
+                           d_w=args.dw)
     if scattering_note(scan.header, scan.source):  # images of another g_BSE than the models' (a lobe study)
         print(f"note: {scattering_note(scan.header, scan.source)}", file=sys.stderr)
     geo = scan.geo

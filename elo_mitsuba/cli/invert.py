@@ -8,6 +8,8 @@ import time
 
 import numpy as np
 
+from ..arguments import fraction
+from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..budget import check_inversion
 from ..schema import BEAM_FWHM, scattering_note
@@ -174,7 +176,9 @@ def run(args) -> int:
         raise EloInputError(f"--uncertainty-probes {args.uncertainty_probes}: must be >= 0")
     if args.scales is not None and args.scales < 1:
         raise EloInputError(f"--scales {args.scales}: must be >= 1")
-    for flag in ("tol", "alpha", "discrepancy"):
+    if args.tol is not None:  # a share of the objective: 2 stopped after the first step whatever it gained
+        fraction("--tol", args.tol)
+    for flag in ("alpha", "discrepancy"):
         v = getattr(args, flag)
         if v is not None and not (np.isfinite(v) and v >= 0):
             raise EloInputError(f"--{flag} {v}: must be a finite number >= 0")
@@ -187,15 +191,38 @@ def run(args) -> int:
         raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
 
     from ..analysis import chain, height_solver as solver
-    from ..analysis.io import write_inversion
+    from ..analysis.io import check_distinct_scan_files, check_field, check_repeated_recordings, check_second_event, write_inversion
 
-    scan = chain.read_scan(**scan_inputs(args), model_discs=True)
+    check_repeated_recordings(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES})
+    if args.calibration:  # its one-line refusal before the images are read
+        from ..analysis.calibration import read_calibration
+
+        read_calibration(args.calibration)
+    inputs = scan_inputs(args)
+    scan = chain.read_scan(**inputs, model_discs=True)
+    check_distinct_scan_files(inputs["files"], inputs["flat_files"])
+    check_field(args.field, scan.header, scan.shape, scan.source)
+    if args.second_event:
+        check_second_event(args.second_event, scan.header, scan.source, scan.shape, field_mm=args.field, d_h=args.dh,
+                           d_w=args.dw)
+    if args.init and str(args.init).lower().endswith(".exr"):  # a start of another scan field fitted nothing
+        from ..exr import read_exr
+
+        check_field(scan.geo["field_mm"], read_exr(args.init)[1], scan.shape, f"--init {args.init}",
+                    given="the images' field", fix="start from a gradient or heights of the images' scan")
+    if args.scales is not None:  # more than the image can be halved into was cut without a word
+        usable = len(solver.scale_factors(scan.shape, args.scales)) + 1
+        if usable < args.scales:
+            raise EloInputError(f"--scales {args.scales}: a {scan.shape[1]}x{scan.shape[0]} image allows at most "
+                                f"{usable} (each scale halves both sides, down to {solver.MIN_SCALE_PX} px on the "
+                                "shorter one)")
     if scattering_note(scan.header, scan.source):  # images of another g_BSE than the models' (a lobe study)
         print(f"note: {scattering_note(scan.header, scan.source)}", file=sys.stderr)
-    check_inversion(scan.shape, solver.ITERATIONS if args.iterations is None else args.iterations,
-                    solver.SCALES if args.scales is None else args.scales,
-                    solver.UNCERTAINTY_PROBES if args.uncertainty_probes is None else args.uncertainty_probes,
-                    force=args.yes)  # before the model gradient and any render
+    for line in check_inversion(scan.shape, solver.ITERATIONS if args.iterations is None else args.iterations,
+                                solver.SCALES if args.scales is None else args.scales,
+                                solver.UNCERTAINTY_PROBES if args.uncertainty_probes is None
+                                else args.uncertainty_probes, force=args.yes):  # before the model gradient
+        print(f"note: {line}", file=sys.stderr)
     geometry = chain.model_geometry(scan, **model_inputs(args))
     fwhm = scan.beam_fwhm(args.fwhm)
     start = chain.read_start(args.init, scan.shape, geometry.field_mm) if args.init else None

@@ -22,7 +22,9 @@ height unit: --pixel-size and --units are then not needed, and refused when they
 file. A TIFF of another tool gives its pixel size by its resolution tags (inch, cm, mm, um);
 NPY and CSV record none. Pixels without a height (NaN) cannot be meshed: crop or fill them.
 Render the mesh with face_normals=true (flat shading), as the shipped scenes do; --scene writes
-such a scene (the four detectors of the ATHENE set-up, the parameters of scenes_xml/).
+such a scene (the four detectors of the ATHENE set-up, the parameters of scenes_xml/), its scan
+field by default the square the mesh covers (the shorter side of the map between its outer pixel
+centres).
 """
 
 EPILOG = """\
@@ -93,6 +95,10 @@ def run(args) -> int:
         f"{out.stat().st_size / 1e6:.2f} MB"
     )
     if args.scene is not None:
-        write_scene(args.scene, out, material=args.material, overwrite=args.overwrite)
-        print(f"{args.scene}: scene with the four detectors (render: elo-mitsuba render {args.scene} -o OUT.exr)")
+        # the scan field the mesh covers (vertices at the pixel centres; a square film: the shorter side),
+        # not the template's 80 mm, which the beam would mostly scan beside a smaller mesh
+        field = float(min(hi[0] - lo[0], hi[1] - lo[1]))
+        write_scene(args.scene, out, material=args.material, field_mm=field, overwrite=args.overwrite)
+        print(f"{args.scene}: scene with the four detectors, scan field {field:.4g} mm (the mesh's extent; "
+              f"-D field=... for less) (render: elo-mitsuba render {args.scene} -o OUT.exr)")
     return 0

@@ -9,6 +9,10 @@ import numpy as np
 from ..errors import EloInputError
 from ._args import field_arg
 
+#: Trusted regions with fewer pixels get no height (masked and robust solvers): their own zero
+#: mean says nothing of where they lie.
+MIN_COMPONENT = 16
+
 DESCRIPTION = """\
 Integrate a surface gradient (the EXR written by 'elo-mitsuba gradient': channels dzdx, dzdy and
 mask, geometry in the header) into a height map Z(x, y) in mm, known up to a constant (zero mean).
@@ -95,8 +99,9 @@ def add_parser(subparsers):
     p.add_argument("--method", choices=("auto",) + METHODS, default="auto", help="integration solver (default auto)")
     p.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm if the header lacks it")
     p.add_argument("--ignore-mask", action="store_true", help="treat every pixel as trusted")
-    p.add_argument("--min-component", type=int, default=16, metavar="N",
-                   help="masked and robust solvers: trusted regions with fewer pixels are dropped (default 16)")
+    p.add_argument("--min-component", type=int, default=None, metavar="N",
+                   help=f"masked and robust solvers (and auto): trusted regions with fewer pixels are dropped "
+                        f"(default {MIN_COMPONENT})")
     p.add_argument("--preview", metavar="PNG", help="also write a PNG of the height map")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(run=run)
@@ -105,8 +110,8 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     import sys
-    from pathlib import Path
 
+    from ..arguments import input_file
     from ..files import check_output
 
     # the arguments first: a rejected one costs no import of the analysis (scipy, matplotlib)
@@ -115,13 +120,16 @@ def run(args) -> int:
     out = check_output(args.output, HEIGHT_SUFFIXES, overwrite=args.overwrite, inputs=[args.gradient])
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=[args.gradient])
-    if args.min_component < 1:
+    if args.min_component is not None and args.min_component < 1:
         raise EloInputError(f"--min-component {args.min_component}: must be >= 1")
-    if not Path(args.gradient).is_file():
-        raise EloInputError(f"{args.gradient}: no such file")
+    if args.min_component is not None and args.method in ("dct", "fft"):  # it would be taken and not applied
+        raise EloInputError(f"--min-component applies to --method masked, robust or auto; --method {args.method} "
+                            "integrates every pixel (masked ones as flat)")
+    min_component = MIN_COMPONENT if args.min_component is None else args.min_component
+    input_file(args.gradient)
 
     from ..analysis.chain import heights
-    from ..analysis.integrate import check_scan_grid_slopes, perspective_relief_warning
+    from ..analysis.integrate import check_scan_grid_slopes, check_trusted_regions, perspective_relief_warning
     from ..analysis.io import read_gradient
     from ..analysis.plots import preview_height
     from ..schema import PROJECTION, WORK_DISTANCE
@@ -131,6 +139,9 @@ def run(args) -> int:
     dzdx, dzdy, mask = grad["dzdx"], grad["dzdy"], grad["mask"]
     # checked before any work: pixels the output can hold, slopes a perspective beam can land on
     square = _check_pixels(args, out, field, dzdx.shape)
+    # dct and fft give every pixel a height; the others none where all is masked or regions are small
+    check_trusted_regions(dzdx, dzdy, mask, None if args.method in ("dct", "fft") else min_component,
+                          source=str(args.gradient))
     perspective = meta.get(PROJECTION) == "perspective"
     if perspective:
         wd = meta.get(WORK_DISTANCE)
@@ -149,7 +160,7 @@ def run(args) -> int:
 
     rec = heights(dzdx, dzdy, field, mask=mask, method=args.method,
                   projection=meta.get(PROJECTION), work_distance_mm=meta.get(WORK_DISTANCE),
-                  min_component_size=args.min_component, progress=progress)
+                  min_component_size=min_component, progress=progress)
     height, mask_out, method, quality = rec["height"], rec["mask"], rec["method"], rec["quality"]
     if perspective:
         line = perspective_relief_warning(height, mask_out, meta.get(WORK_DISTANCE))

@@ -150,9 +150,9 @@ def run(args) -> int:
             raise EloInputError(f"--resolution {args.resolution} and -D res={params['res']} both set the resolution; "
                                 "give one")
         params["res"] = args.resolution
-    params = scene_values(args.layout, params, names=_FLAGS)
+    scene_values(args.layout, params, names=_FLAGS)  # a layout and its dh/dw both given, named by their flags
     t0 = time.perf_counter()
-    scene = load_scene(args.scene, variant=args.variant, **params)
+    scene = load_scene(args.scene, variant=args.variant, detector_layout=args.layout, **params)
     # the integrator options of the flags, refused where a render would record but not apply them
     # (the one rule of every entry point: options.check_combination)
     given = {"units": args.units} if args.units else {}

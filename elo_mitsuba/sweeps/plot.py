@@ -23,8 +23,10 @@ def _open(store):
     import xarray as xr
 
     path = Path(store)
+    if not path.exists():  # "not a sweep's store" sent users looking at a store that is not there
+        raise EloInputError(f"{path}: no such store; give the .zarr folder that 'elo-mitsuba sweep' wrote")
     if not (path / ".zgroup").is_file():
-        raise EloInputError(f"{path} is not a sweep's Zarr store")
+        raise EloInputError(f"{path} is not a sweep's Zarr store (a folder that 'elo-mitsuba sweep' wrote)")
     try:
         with warnings.catch_warnings():
             # a store whose consolidated metadata is gone still reads (slower): xarray's

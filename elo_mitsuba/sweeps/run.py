@@ -255,7 +255,7 @@ def _one_line(exc: BaseException) -> str:
 
 def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = None,
           threads_per_worker: int | None = None, overwrite: bool = False, progress: bool | None = None,
-          max_batch: int = MAX_BATCH, force: bool = False, worker_wait_s: float = WORKER_WAIT_SECONDS) -> SweepSummary:
+          max_batch: int = MAX_BATCH, force: bool = False, worker_wait_s: float | None = None) -> SweepSummary:
     """Run a design sweep into a Zarr store (see :mod:`elo_mitsuba.sweeps`).
 
     Parameters
@@ -282,9 +282,10 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
         Progress line on stderr (default: when stderr is a terminal).
     force : bool
         Run a sweep whose estimate is over the limits of :mod:`.cost` (CLI ``--yes``).
-    worker_wait_s : float
+    worker_wait_s : float, optional
         How long to wait while no worker is connected (at the start, or after all were lost)
         before stopping with one line; the points stored so far are kept (re-run to resume).
+        Default :data:`WORKER_WAIT_SECONDS`; refused with ``workers=0``, which has no workers to wait for.
 
     Returns
     -------
@@ -321,8 +322,13 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
     """
     require("a sweep")
     workers, address, threads_per_worker = check_resources(workers, scheduler, threads_per_worker)
-    if isinstance(worker_wait_s, bool) or not isinstance(worker_wait_s, (int, float)) or not worker_wait_s > 0:
-        raise EloInputError(f"worker_wait_s={worker_wait_s!r}; must be a number of seconds > 0")
+    if worker_wait_s is not None:
+        if isinstance(worker_wait_s, bool) or not isinstance(worker_wait_s, (int, float)) or not worker_wait_s > 0:
+            raise EloInputError(f"worker_wait_s={worker_wait_s!r}; must be a number of seconds > 0")
+        if workers == 0 and address is None:  # it would be accepted and do nothing
+            raise EloInputError(f"worker_wait_s={worker_wait_s:g} (--worker-wait) waits for Dask workers, and "
+                                "workers=0 (--workers 0) renders in this process without any; drop one of them")
+    worker_wait_s = WORKER_WAIT_SECONDS if worker_wait_s is None else worker_wait_s
     max_batch = _whole("max_batch", max_batch, 1)
     spec, layout, _, path, store_layout = prepare(spec, output, overwrite=overwrite, workers=workers or 1,
                                                   force=force, create=False)

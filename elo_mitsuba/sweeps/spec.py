@@ -352,6 +352,8 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
             _fail(source, f"zip.{name}: the group's name is also a swept parameter; name it differently")
         axes.append(Axis(name, tuple(members)))
     _check_store_names(source, axes)
+    _check_scene_values(source, fixed, axes)
+    _check_detector_moves(source, axes)
     if "res" in seen and resolution is not None:
         _fail(source, "res is swept and render.resolution is set; give one of them")
     n = math.prod(len(a) for a in axes)
@@ -376,6 +378,9 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
     if channels != "all" and not (isinstance(channels, list) and all(isinstance(c, str) for c in channels)):
         _fail(source, f"keep.channels = {channels!r}; give \"all\" or a list of channel names (\"right\", \"right.e2\")")
     downsample = _integer(source, "keep.downsample", keep.get("downsample", 1), 1, 4096)
+    if downsample > 1 and not channels:  # it applies to kept images only: accepted, it would change nothing
+        _fail(source, f"keep.downsample = {downsample} shrinks kept images, and keep.channels keeps none; give "
+              "keep.channels (\"all\" or a list) too, or drop keep.downsample")
     metrics = keep.get("metrics")
     if metrics is not None:
         from .metrics import METRICS
@@ -396,6 +401,40 @@ def _parse(t: dict, text: str, source: str, base: Path) -> SweepSpec:
     if resolution is not None and resolution % downsample:
         _fail(source, f"keep.downsample = {downsample} does not divide render.resolution = {resolution}")
     return spec
+
+
+def _where(axes) -> dict:
+    """Where the spec gives each swept key (``vary.dh``, ``zip.position.dh``), for messages."""
+    return {m.key: (f"zip.{a.name}.{m.key}" if a.zipped else f"vary.{m.key}") for a in axes for m in a.members}
+
+
+def _check_scene_values(source, fixed: dict, axes) -> None:
+    """A ``layout`` and the ``dh``/``dw`` it sets, both fixed or swept, refused as the render command
+    refuses ``-D layout=... -D dh=...`` (:func:`~elo_mitsuba.scene_files.scene_values`, the one rule):
+    the store would name a layout whose geometry its points do not have."""
+    from ..scene_files import scene_values
+
+    where = {**{k: f"fixed.{k}" for k in fixed}, **_where(axes)}
+    first = {**fixed, **{m.key: m.values[0] for a in axes for m in a.members if m.target == "scene"}}
+    try:
+        scene_values(None, first, names=where)
+    except EloInputError as exc:
+        _fail(source, str(exc))
+
+
+def _check_detector_moves(source, axes) -> None:
+    """One attribute swept for all detectors (``detectors.radius``) and for one of them
+    (``right.radius``): the one detector's value wins at every point (the worker applies
+    ``detectors`` first), so its images would not vary along the other dimension, which the store
+    says they do."""
+    where = _where(axes)
+    moves = [m for a in axes for m in a.members if m.target == "detector"]
+    for every in (m for m in moves if m.detector == ALL_DETECTORS):
+        one = next((m for m in moves if m.detector != ALL_DETECTORS and m.attribute == every.attribute), None)
+        if one is not None:
+            _fail(source, f"{where[one.key]} and {where[every.key]} both set the {one.attribute} of {one.detector!r} "
+                  f"({one.key} wins, so {one.detector!r} would not vary with {every.key}); sweep each detector's "
+                  f"{one.attribute} by its name, or only {every.key}")
 
 
 def _check_integrator_applies(source, integrator: dict, render: dict, axes) -> None:

@@ -34,6 +34,7 @@ import numpy as np
 
 from .._version import __version__
 from ..errors import EloInputError
+from ..files import check_parent_folder
 
 STATUS_PENDING, STATUS_DONE, STATUS_FAILED = 0, 1, 2
 #: Longest error text kept per point (fixed-width strings: Zarr 2 stores them natively).
@@ -52,8 +53,9 @@ def image_variable(channel: str) -> str:
 
 
 def zarr_path(path, writer: str) -> Path:
-    """``path`` as a Path if it names a ``*.zarr`` store in an existing folder (``writer`` says who
-    writes it, for the message); else one line.
+    """``path`` as a Path if it names a ``*.zarr`` store in an existing folder that takes new files
+    (:func:`~elo_mitsuba.files.check_parent_folder`; ``writer`` says who writes it, for the
+    message); else one line.
 
     Examples
     --------
@@ -65,8 +67,9 @@ def zarr_path(path, writer: str) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".zarr":
         raise EloInputError(f"output {path}: {writer} writes a Zarr store; the name must end in .zarr")
-    if not path.parent.is_dir():
-        raise EloInputError(f"output {path}: directory {path.parent} does not exist")
+    if path.exists() and not path.is_dir():
+        raise EloInputError(f"output {path} is a file; {writer} writes a Zarr store (a folder): choose another name")
+    check_parent_folder(path, "output")  # missing, a file, or taking no new files (/proc): one line, before any work
     return path
 
 
