@@ -370,3 +370,47 @@ def test_a_pores_error_bar_holds_what_the_penalty_decides(pore_case):
     # difference 14 % and 79 %: the noise draws' 6 um against an error of 15 um)
     assert np.mean(np.abs(e[pit]) <= res.height_error[pit]) >= 0.5
     assert np.mean(np.abs(e[near]) <= 2 * res.height_error[near]) >= 0.9
+
+
+def test_a_smooth_bump_is_not_given_the_robust_curvature_it_does_not_need(monkeypatch):
+    """A bump 3 pixels in radius and 0.12 mm high ((1 - t^2)^2, slopes to 0.3) on the pore case's
+    relief and set-up, the start blurred over half a pixel: the quadratic refinement fits it, the
+    robust pass's drop of the chi-square is no more than noise alone gives (local_inversion.
+    robust_significant), and taken anyway it fits the noise into the bump."""
+    from scipy.ndimage import gaussian_filter
+
+    from elo_mitsuba.analysis import local_inversion
+    from elo_mitsuba.analysis.height_model import SuperResolvedModel
+
+    n, f = 64, 4
+    geo = ScanGeometry.nominal((n, n), 0.2 * n, 100.0, 150.0)
+
+    def surface(y, x):
+        t = np.minimum(np.hypot(y - 30.3, x - 25.6) / 3.0, 1.0)
+        return 0.04 * np.sin(2 * np.pi * x / n) * np.cos(2 * np.pi * y / n) + 0.12 * (1 - t * t) ** 2
+
+    fine = (np.arange(f * n + 1) - f / 2) / f
+    yc, xc = np.meshgrid(fine, fine, indexing="ij")
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    truth = surface(yy, xx)
+    rng = np.random.default_rng(5)
+    images = SuperResolvedModel(geo, f, fwhm_mm=0.27).evaluate(surface(yc, xc)).images
+    img = {k: v * (1 + 0.01 * rng.standard_normal(v.shape)) for k, v in zip(geo.detectors, images)}
+    flat = {k: v * (1 + 0.01 * rng.standard_normal(v.shape))
+            for k, v in HeightModel(geo, fwhm_mm=0.27, shadows=False).images(np.zeros((n, n))).items()}
+    relief = surface(yy, xx) - 0.12 * (1 - np.minimum(np.hypot(yy - 30.3, xx - 25.6) / 3.0, 1.0) ** 2) ** 2
+    start = relief + gaussian_filter(truth - relief, 0.5)
+    near = np.hypot(yy - 30.3, xx - 25.6) <= 5.0
+
+    def error(h):
+        e = h - truth
+        return float(np.sqrt(np.mean((e - np.median(e[~near]))[near] ** 2)))
+
+    tested = invert_heights(img, flat, geo, start=start, fwhm_mm=0.27, uncertainty_probes=0)
+    monkeypatch.setattr(local_inversion, "robust_significant", lambda *a, **k: True)
+    always = invert_heights(img, flat, geo, start=start, fwhm_mm=0.27, uncertainty_probes=0)
+    # measured: start 3.0 um, quadratic 1.4 um, the robust pass taken 4.2 um
+    assert [r.status for r in tested.regions] == ["refined (robust curvature not significant)"], tested.regions
+    assert [r.status for r in always.regions] == ["refined (robust curvature)"], always.regions
+    assert error(tested.height) < 0.6 * error(start)
+    assert error(always.height) > 2 * error(tested.height)
