@@ -68,6 +68,14 @@ def d(tmp_path_factory):
     _second_event(d / "se_dh.exr", flat, fmeta, detectors=dets)
     _second_event(d / "se_ok.exr", flat, fmeta)
     write_exr(d / "h40.exr", {"height": np.zeros((16, 16))}, {"field_mm": [40.0, 40.0]})
+    # starts of another size, with a NaN; an object whose header lacks one detector
+    np.save(d / "h_small.npy", np.zeros((8, 8)))
+    h_nan = np.zeros((16, 16))
+    h_nan[2, 2] = np.nan
+    np.save(d / "h_nan.npy", h_nan)
+    no_front = json.loads(json.dumps(ometa))
+    del no_front["detectors"]["front"]
+    write_exr(d / "corr_nofront.exr", obj, no_front)
     # calibrations: a fifth detector, a misspelt key, another format
     good = {"format": "elo-mitsuba calibration 1",
             "detectors": {n: {k: g[k] for k in ("center", "normal", "radius")} for n, g in fmeta["detectors"].items()}}
@@ -180,6 +188,12 @@ CASES = [
     # J25: --scales beyond the image, --tol beyond a fraction
     ("J25 invert --scales 100", [*INV, "--scales", "100"], "--scales 100: a 16x16 image allows at most 1"),
     ("J25 invert --tol 2", [*INV, "--tol", "2"], "--tol=2.0; must be a number in [0, 1)"),
+    # I24: which rule failed, and what is missing
+    ("I24 invert --init of another size", [*INV, "--init", "{d}/h_small.npy"],
+     "--init {d}/h_small.npy: heights of 8x8 px, the images 16x16 px"),
+    ("I24 invert --init with NaN", [*INV, "--init", "{d}/h_nan.npy"], "--init {d}/h_nan.npy: 1 height(s) NaN or Inf"),
+    ("I24 gradient header lacks one detector", ["gradient", "--flat", "{d}/flat.exr", "{d}/corr_nofront.exr", "-o",
+                                                "{d}/new.exr"], "header lacks the detector front;"),
 ]
 
 

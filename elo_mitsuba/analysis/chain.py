@@ -542,8 +542,13 @@ def read_start(path, shape, field_mm):
     else:
         raise EloInputError(f"--init {path}: use a gradient or height .exr, or a .npy of heights")
     h = np.asarray(h, float)
-    if h.shape != tuple(shape) or not np.all(np.isfinite(h)):
-        raise EloInputError(f"--init {path}: heights must be finite and {shape[1]}x{shape[0]} px")
+    if h.shape != tuple(shape):
+        got = f"{h.shape[1]}x{h.shape[0]} px" if h.ndim == 2 else f"shape {h.shape}"
+        raise EloInputError(f"--init {path}: heights of {got}, the images {shape[1]}x{shape[0]} px; give the start "
+                            "at the images' resolution")
+    if not np.all(np.isfinite(h)):
+        raise EloInputError(f"--init {path}: {int(np.sum(~np.isfinite(h)))} height(s) NaN or Inf; a start needs a "
+                            "finite height at every pixel")
     return h - h.mean()
 
 

@@ -149,8 +149,9 @@ class ScanGeometry:
         detectors as discs (centre, normal, radius each required)."""
         dets, source = header.detectors, header.source
         if not isinstance(dets, Mapping) or not all(n in dets for n in DETECTOR_NAMES):
-            raise EloInputError(f"{source}: header lacks the detectors {', '.join(DETECTOR_NAMES)}; "
-                                "pass --dh and --dw (mm) and, if not 25, --radius")
+            missing = [n for n in DETECTOR_NAMES if not isinstance(dets, Mapping) or n not in dets]
+            raise EloInputError(f"{source}: header lacks the detector{'s' if len(missing) > 1 else ''} "
+                                f"{', '.join(missing)}; pass --dh and --dw (mm) and, if not 25, --radius")
         discs = {}
         for name in DETECTOR_NAMES:
             d = dets[name]
