@@ -76,6 +76,8 @@ def d(tmp_path_factory):
     no_front = json.loads(json.dumps(ometa))
     del no_front["detectors"]["front"]
     write_exr(d / "corr_nofront.exr", obj, no_front)
+    write_exr(d / "corr_unob.exr", obj, {**ometa, "materials": {k: "Unob" for k in ometa["materials"]}})
+    _raw_exr(d / "rect_nometa.exr", {k: v[:, :8] for k, v in obj.items()}, {})
     # calibrations: a fifth detector, a misspelt key, another format
     good = {"format": "elo-mitsuba calibration 1",
             "detectors": {n: {k: g[k] for k in ("center", "normal", "radius")} for n, g in fmeta["detectors"].items()}}
@@ -194,6 +196,10 @@ CASES = [
     ("I24 invert --init with NaN", [*INV, "--init", "{d}/h_nan.npy"], "--init {d}/h_nan.npy: 1 height(s) NaN or Inf"),
     ("I24 gradient header lacks one detector", ["gradient", "--flat", "{d}/flat.exr", "{d}/corr_nofront.exr", "-o",
                                                 "{d}/new.exr"], "header lacks the detector front;"),
+    ("I24 gradient header of an unknown material", ["gradient", "--flat", "{d}/flat.exr", "{d}/corr_unob.exr", "-o",
+                                                    "{d}/new.exr"], "{d}/corr_unob.exr: header unknown material 'Unob'"),
+    ("I24 gradient object without header, of another size",
+     ["gradient", "--flat", "{d}/flat.exr", "{d}/rect_nometa.exr", "-o", "{d}/new.exr"], "{d}/flat.exr"),
 ]
 
 

@@ -195,7 +195,9 @@ def read_scan(object_exr=None, *, files: Mapping | None = None, flat: Sequence =
 
     # Geometry: explicit values win; otherwise the object header, else the flat header.
     header = meta if meta else flat_meta
-    source = object_exr or next((r.label for r in recordings if r.header), None) or "command line"
+    # the file whose header is read (an object without one takes the flat's)
+    source = (object_exr if meta else None) or next((r.label for r in recordings if r.header), None) \
+        or object_exr or "command line"
     if not header and (field_mm is None or d_h is None or d_w is None):
         what = (f"{source} has no elo-mitsuba geometry header (not written by 'elo-mitsuba render')"
                 if (object_exr or flat) else "single-channel inputs carry no geometry")

@@ -159,6 +159,13 @@ class ScanGeometry:
                 discs[name] = Disc(d["center"], d["normal"], d["radius"])
             except (KeyError, TypeError) as exc:
                 raise EloInputError(f"{source}: detector {name!r} lacks {exc} (need center, normal, radius)") from None
+        if material is None and header.material is not None:  # the header's: its file is named
+            from ..physics import get_material
+
+            try:
+                get_material(header.material)
+            except EloInputError as exc:
+                raise EloInputError(f"{source}: header {exc}") from None
         return cls(field_mm=header.field_mm, shape=shape, detectors=discs,
                    work_distance_mm=header.work_distance_mm, projection=header.projection,
                    aim_offset_mm=header.aim_offset_mm, material=header.material if material is None else material)
