@@ -126,6 +126,16 @@ def make_bsdf(mi):
     return make
 
 
+def raw_exr(path, channels, header_json: str) -> None:
+    """An EXR written past write_exr's checks (NaN pixels, any header text), as other tools may."""
+    import numpy as np
+    import OpenEXR
+
+    header = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage, "elo_mitsuba": header_json}
+    with OpenEXR.File(header, {k: np.asarray(v, np.float32) for k, v in channels.items()}) as f:
+        f.write(str(path))
+
+
 def one_line_error(call) -> str:
     """The message of the EloInputError that ``call()`` raises, checked to be one line."""
     from elo_mitsuba import EloInputError

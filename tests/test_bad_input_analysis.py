@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
-from conftest import one_line_error
+from conftest import one_line_error, raw_exr
 from elo_mitsuba.cli import main
 from elo_mitsuba.exr import read_exr, write_exr
 
@@ -24,15 +24,6 @@ def _main(argv):
         return main(argv)
     except SystemExit as exc:
         return exc.code
-
-
-def _raw_exr(path, channels, meta):
-    """An EXR written past write_exr's checks (NaN pixels), as other tools may."""
-    import OpenEXR
-
-    header = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage, "elo_mitsuba": json.dumps(meta)}
-    with OpenEXR.File(header, {k: np.asarray(v, np.float32) for k, v in channels.items()}) as f:
-        f.write(str(path))
 
 
 def _second_event(path, channels, meta, **changes):
@@ -57,9 +48,9 @@ def d(tmp_path_factory):
     write_exr(d / "allmask.exr", {**grad, "mask": np.ones_like(grad["mask"])}, gmeta)
     nan = {**grad, "dzdx": grad["dzdx"].copy(), "mask": np.zeros_like(grad["mask"])}
     nan["dzdx"][3, 3] = np.nan
-    _raw_exr(d / "nan_trusted.exr", nan, gmeta)
+    raw_exr(d / "nan_trusted.exr", nan, json.dumps(gmeta))
     nan["mask"][3, 3] = 1
-    _raw_exr(d / "nan_masked.exr", nan, gmeta)
+    raw_exr(d / "nan_masked.exr", nan, json.dumps(gmeta))
     # second-event renders of another field, another detector height; heights of another field
     _second_event(d / "se_f40.exr", flat, fmeta, field_mm=[40.0, 40.0])
     dets = json.loads(json.dumps(fmeta["detectors"]))
@@ -77,7 +68,7 @@ def d(tmp_path_factory):
     del no_front["detectors"]["front"]
     write_exr(d / "corr_nofront.exr", obj, no_front)
     write_exr(d / "corr_unob.exr", obj, {**ometa, "materials": {k: "Unob" for k in ometa["materials"]}})
-    _raw_exr(d / "rect_nometa.exr", {k: v[:, :8] for k, v in obj.items()}, {})
+    raw_exr(d / "rect_nometa.exr", {k: v[:, :8] for k, v in obj.items()}, json.dumps({}))
     # calibrations: a fifth detector, a misspelt key, another format
     good = {"format": "elo-mitsuba calibration 1",
             "detectors": {n: {k: g[k] for k in ("center", "normal", "radius")} for n, g in fmeta["detectors"].items()}}

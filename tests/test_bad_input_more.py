@@ -22,22 +22,13 @@ import numpy as np
 import pytest
 
 import elo_mitsuba as em
-from conftest import one_line_error
+from conftest import one_line_error, raw_exr
 from elo_mitsuba.cli import main
 from elo_mitsuba.exr import read_exr, write_exr
 from elo_mitsuba.options import EloOptions, check_combination
 from elo_mitsuba.scene_files import portable_scene_text, scene_values, scenes_dir
 
 SENTINEL = b"written by the user"
-
-
-def _raw_exr(path, channels, header_json):
-    """An EXR written past write_exr's checks (NaN pixels, any header text), as other tools may."""
-    import OpenEXR
-
-    header = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage, "elo_mitsuba": header_json}
-    with OpenEXR.File(header, {k: np.asarray(v, np.float32) for k, v in channels.items()}) as f:
-        f.write(str(path))
 
 
 @pytest.fixture(scope="module")
@@ -51,12 +42,12 @@ def d(tmp_path_factory):
     grad, gmeta = read_exr(d / "grad.exr")
     grad = {k: v.copy() for k, v in grad.items()}
     grad["dzdx"][2, 3], grad["dzdy"][1, 1] = np.nan, np.inf
-    _raw_exr(d / "nan_grad.exr", grad, json.dumps(gmeta))
+    raw_exr(d / "nan_grad.exr", grad, json.dumps(gmeta))
     flat_images, fmeta = read_exr(d / "flat.exr")
     # flats of another beam pivot or projection (the images of the flat carry its beam's tilts)
-    _raw_exr(d / "flat_wd300.exr", flat_images, json.dumps({**fmeta, "work_distance_mm": 300.0}))
-    _raw_exr(d / "flat_ortho.exr", flat_images, json.dumps({**fmeta, "projection": "orthographic"}))
-    _raw_exr(d / "flat_volts.exr", {k: v * 300.0 for k, v in flat_images.items()}, json.dumps({**fmeta, "units": "V"}))
+    raw_exr(d / "flat_wd300.exr", flat_images, json.dumps({**fmeta, "work_distance_mm": 300.0}))
+    raw_exr(d / "flat_ortho.exr", flat_images, json.dumps({**fmeta, "projection": "orthographic"}))
+    raw_exr(d / "flat_volts.exr", {k: v * 300.0 for k, v in flat_images.items()}, json.dumps({**fmeta, "units": "V"}))
     good = {"detectors": {n: {k: g[k] for k in ("center", "normal", "radius")} for n, g in fmeta["detectors"].items()}}
 
     def calibration(name, **right):
@@ -94,8 +85,8 @@ def d(tmp_path_factory):
     np.save(d / "zero_size.npy", np.zeros((0,)))
     (d / "garbage.npy").write_bytes(b"\x00not an array")
     obj, ometa = read_exr(d / "corr.exr")
-    _raw_exr(d / "list_header.exr", obj, json.dumps([1, 2]))
-    _raw_exr(d / "list_header_grad.exr", read_exr(d / "grad.exr")[0], json.dumps(["field_mm", 80]))
+    raw_exr(d / "list_header.exr", obj, json.dumps([1, 2]))
+    raw_exr(d / "list_header_grad.exr", read_exr(d / "grad.exr")[0], json.dumps(["field_mm", 80]))
     data = (d / "corr.exr").read_bytes()
     (d / "cut_pixels.exr").write_bytes(data[:-100])  # header whole, the pixel data cut short
     (d / "cut_header.exr").write_bytes(data[:300])
@@ -774,7 +765,7 @@ def test_nan_in_a_gradient_is_unknown_not_spread(d):
     grad, meta = read_exr(d / "grad.exr")
     grad = {k: v.copy() for k, v in grad.items() if k != "mask"}
     grad["dzdx"][2, 3] = np.nan
-    _raw_exr(d / "only_nan.exr", grad, json.dumps(meta))
+    raw_exr(d / "only_nan.exr", grad, json.dumps(meta))
     g = read_gradient(d / "only_nan.exr")
     assert g["dzdx"][2, 3] == 0 and g["mask"][2, 3] and np.all(np.isfinite(g["dzdx"]))
     assert g["mask"].sum() == 1

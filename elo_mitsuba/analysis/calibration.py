@@ -464,6 +464,13 @@ def write_calibration(path, calibration: Calibration, *, overwrite: bool = False
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text + "\n"))
 
 
+def _known_keys(doc, allowed, where: str, what: str) -> None:
+    """Refuse a key of ``doc`` not in ``allowed`` (a misspelt one would be ignored), naming ``where``."""
+    unknown = [k for k in doc if k not in allowed]
+    if unknown:
+        raise EloInputError(f"{where} unknown key {unknown[0]!r}; {what} has: {', '.join(allowed)}")
+
+
 def read_calibration(path) -> Calibration:
     """Read a ``CALIB.json`` of :func:`write_calibration` (or one written by hand with, per
     detector, ``center``, ``normal``, ``radius`` and optionally ``gain``)."""
@@ -475,9 +482,7 @@ def read_calibration(path) -> Calibration:
     dets = doc.get("detectors") if isinstance(doc, dict) else None
     if not isinstance(dets, dict) or not dets:
         raise EloInputError(f"{path}: no 'detectors' object (per detector: center, normal, radius, gain)")
-    unknown = [k for k in doc if k not in FILE_KEYS]
-    if unknown:
-        raise EloInputError(f"{path}: unknown key {unknown[0]!r}; a calibration file has: {', '.join(FILE_KEYS)}")
+    _known_keys(doc, FILE_KEYS, f"{path}:", "a calibration file")
     if "format" in doc and doc["format"] != FORMAT:  # a hand-written file may leave it out
         raise EloInputError(f"{path}: format {doc['format']!r}; this version reads {FORMAT!r} (written by "
                             "'elo-mitsuba calibrate')")
@@ -492,10 +497,7 @@ def read_calibration(path) -> Calibration:
         if not isinstance(d, dict):
             raise EloInputError(f"{path}: detector {name!r} is a JSON {type(d).__name__}; need an object with center, "
                                 "normal, radius")
-        unknown = [k for k in d if k not in DETECTOR_KEYS]
-        if unknown:
-            raise EloInputError(f"{path}: detector {name!r}: unknown key {unknown[0]!r}; a detector has: "
-                                f"{', '.join(DETECTOR_KEYS)}")
+        _known_keys(d, DETECTOR_KEYS, f"{path}: detector {name!r}:", "a detector")
         missing = [k for k in ("center", "normal", "radius") if k not in d]
         if missing:
             raise EloInputError(f"{path}: detector {name!r} lacks {', '.join(missing)} (need center, normal, radius)")

@@ -444,7 +444,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
         sub = geometry.cropped(rows, cols)
         kw = {key: (None if d is None else {n: np.asarray(d[n])[sl] for n in names if n in d})
               for key, d in crop_later.items()}
-        best, best_misfit, origin, prior = None, min(m_solve, m_start), None, None
+        best, best_misfit, origin, prior, note = None, min(m_solve, m_start), None, None, ""
         starts = [("solve", result.height[sl])]
         if m_start < m_solve:
             starts.append(("start", result.start_height[sl]))
@@ -479,7 +479,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
                 noise_drop = _null_drop(solve, best, data, where, expected, result.noise, seed=rows[0] * w + cols[0])
                 drop = _chi(best.misfit, where, expected) - _chi(sol.misfit, where, expected)
                 if not robust_significant(drop, noise_drop, int(where.sum()) * (len(names) - 1)):
-                    sol, m, region.status = None, np.inf, " (robust curvature not significant)"
+                    sol, m, note = None, np.inf, " (robust curvature not significant)"
             if m <= best_misfit:
                 # what the images leave to the penalty: the quadratic and the robust one disagree
                 prior = np.abs(sol.height - best.height)
@@ -498,7 +498,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
             result.mask[sl][mostly] = best.mask[mostly]
             for n in names:
                 result.predicted[n][sl][mostly] = best.predicted[n][mostly]
-            region.status = ("refined" if origin.startswith("solve") else "refined from the start") + region.status
+            region.status = ("refined" if origin.startswith("solve") else "refined from the start") + note
             if origin.endswith("robust"):
                 region.status += " (robust curvature)"
         elif m_start < m_solve:
