@@ -221,6 +221,30 @@ def scan_inputs(args) -> dict:
                 event=args.event, field_mm=args.field, d_h=args.dh, d_w=args.dw, material=args.material)
 
 
+def read_checked_scan(args, *, model_discs: bool):
+    """:func:`~elo_mitsuba.analysis.chain.read_scan` of :func:`add_scan_arguments`'s flags, with the
+    checks of what the flags say against each other and the headers ('gradient', 'invert'): a flat
+    file repeated, a calibration file (read first: its one line before the images), one file for two
+    detectors, ``--field`` against the headers, a ``--second-event`` render of another set-up."""
+    from ..analysis import chain
+    from ..analysis.io import check_distinct_scan_files, check_field, check_repeated_recordings, check_second_event
+    from ..constants import DETECTOR_NAMES
+
+    check_repeated_recordings(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES})
+    if args.calibration:
+        from ..analysis.calibration import read_calibration
+
+        read_calibration(args.calibration)
+    inputs = scan_inputs(args)
+    scan = chain.read_scan(**inputs, model_discs=model_discs)
+    check_distinct_scan_files(inputs["files"], inputs["flat_files"])
+    check_field(args.field, scan.header, scan.shape, scan.source)
+    if getattr(args, "second_event", None):
+        check_second_event(args.second_event, scan.header, scan.source, scan.shape, field_mm=args.field, d_h=args.dh,
+                           d_w=args.dw)
+    return scan
+
+
 def scan_files(args) -> list:
     """Every file :func:`add_scan_arguments`'s flags name (for the check that no output replaces one)."""
     from ..constants import DETECTOR_NAMES

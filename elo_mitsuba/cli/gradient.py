@@ -10,8 +10,7 @@ import numpy as np
 
 from ..errors import EloInputError
 from ..schema import scattering_note
-from ..constants import DETECTOR_NAMES
-from ._args import add_scan_arguments, model_inputs, noise_level, scan_files, scan_inputs
+from ._args import add_scan_arguments, model_inputs, noise_level, read_checked_scan, scan_files
 
 DESCRIPTION = """\
 Compute the surface gradient dZ/dx, dZ/dy of the build surface from four detector images
@@ -126,7 +125,7 @@ def _report_mask(res) -> None:
 
 def run(args) -> int:
     from ..analysis import chain
-    from ..analysis.io import check_distinct_scan_files, check_field, check_repeated_recordings, check_second_event, write_gradient
+    from ..analysis.io import write_gradient
     from ..analysis.plots import preview_gradient
     from ..files import check_output
 
@@ -149,18 +148,7 @@ def run(args) -> int:
     out = check_output(args.output, (".exr",), overwrite=args.overwrite, inputs=read)
     if args.preview:
         check_output(args.preview, (".png",), overwrite=args.overwrite, what="preview", inputs=read)
-    check_repeated_recordings(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES})
-    if args.calibration:  # its one-line refusal before the images are read
-        from ..analysis.calibration import read_calibration
-
-        read_calibration(args.calibration)
-    inputs = scan_inputs(args)
-    scan = chain.read_scan(**inputs, model_discs=args.method == "model")
-    check_distinct_scan_files(inputs["files"], inputs["flat_files"])
-    check_field(args.field, scan.header, scan.shape, scan.source)
-    if args.second_event:
-        check_second_event(args.second_event, scan.header, scan.source, scan.shape, field_mm=args.field, d_h=args.dh,
-                           d_w=args.dw)
+    scan = read_checked_scan(args, model_discs=args.method == "model")
     if scattering_note(scan.header, scan.source):  # images of another g_BSE than the models' (a lobe study)
         print(f"note: {scattering_note(scan.header, scan.source)}", file=sys.stderr)
     geo = scan.geo

@@ -9,12 +9,11 @@ import time
 import numpy as np
 
 from ..arguments import fraction
-from ..constants import DETECTOR_NAMES
 from ..errors import EloInputError
 from ..budget import check_inversion
 from ..schema import BEAM_FWHM, scattering_note
-from ._args import (add_scan_arguments, add_yes, fwhm_arg, model_inputs, noise_level, positive_float, scan_files,
-                    scan_inputs)
+from ._args import (add_scan_arguments, add_yes, fwhm_arg, model_inputs, noise_level, positive_float,
+                    read_checked_scan, scan_files)
 
 DESCRIPTION = """\
 Solve for the height map itself: the heights whose modelled images (the renderer's 1st event with
@@ -191,20 +190,9 @@ def run(args) -> int:
         raise EloInputError("--no-flat: the inversion needs the flat-plate images (their ratio cancels the gains)")
 
     from ..analysis import chain, height_solver as solver
-    from ..analysis.io import check_distinct_scan_files, check_field, check_repeated_recordings, check_second_event, write_inversion
+    from ..analysis.io import check_field, write_inversion
 
-    check_repeated_recordings(args.flat, {n: getattr(args, f"flat_{n}") for n in DETECTOR_NAMES})
-    if args.calibration:  # its one-line refusal before the images are read
-        from ..analysis.calibration import read_calibration
-
-        read_calibration(args.calibration)
-    inputs = scan_inputs(args)
-    scan = chain.read_scan(**inputs, model_discs=True)
-    check_distinct_scan_files(inputs["files"], inputs["flat_files"])
-    check_field(args.field, scan.header, scan.shape, scan.source)
-    if args.second_event:
-        check_second_event(args.second_event, scan.header, scan.source, scan.shape, field_mm=args.field, d_h=args.dh,
-                           d_w=args.dw)
+    scan = read_checked_scan(args, model_discs=True)
     if args.init and str(args.init).lower().endswith(".exr"):  # a start of another scan field fitted nothing
         from ..exr import read_exr
 
