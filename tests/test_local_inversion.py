@@ -18,19 +18,33 @@ N = 128
 FWHM = 0.25
 
 
+def _pit():
+    yy, xx = np.mgrid[0:N, 0:N].astype(float)
+    relief = 0.05 * np.sin(2 * np.pi * xx / N) * np.cos(2 * np.pi * yy / N)
+    pit = -0.06 * np.exp(-((yy - 40) ** 2 + (xx - 22) ** 2) / 3.0)
+    return relief, pit
+
+
+def pit_case_inputs():
+    """The pit's noisy images, flats and geometry."""
+    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
+    relief, pit = _pit()
+    rng = np.random.default_rng(3)
+    img = {n: v * (1 + 0.003 * rng.standard_normal(v.shape))
+           for n, v in HeightModel(geo, fwhm_mm=FWHM).images(relief + pit).items()}
+    flat = {n: v * (1 + 0.003 * rng.standard_normal(v.shape))
+            for n, v in HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N))).items()}
+    return img, flat, geo
+
+
 @pytest.fixture(scope="module")
 def pit_case():
     from scipy.ndimage import gaussian_filter
 
-    geo = ScanGeometry.nominal((N, N), 0.2 * N, 100.0, 150.0)
     yy, xx = np.mgrid[0:N, 0:N].astype(float)
-    relief = 0.05 * np.sin(2 * np.pi * xx / N) * np.cos(2 * np.pi * yy / N)
-    pit = -0.06 * np.exp(-((yy - 40) ** 2 + (xx - 22) ** 2) / 3.0)
+    relief, pit = _pit()
     truth = relief + pit
-    rng = np.random.default_rng(3)
-    img = {n: v * (1 + 0.003 * rng.standard_normal(v.shape)) for n, v in HeightModel(geo, fwhm_mm=FWHM).images(truth).items()}
-    flat = {n: v * (1 + 0.003 * rng.standard_normal(v.shape))
-            for n, v in HeightModel(geo, fwhm_mm=FWHM, shadows=False).images(np.zeros((N, N))).items()}
+    img, flat, geo = pit_case_inputs()
     start = relief + gaussian_filter(pit, 3.0)
     # the start's misfit is a little above the noise over the field (the pit's share of 16384
     # pixels): at a discrepancy of 2 the field passes as fitting to its noise, the pit's region not
@@ -79,6 +93,18 @@ def test_no_region_fits_worse_and_no_tile_gets_worse(pit_case):
         assert r.misfit_end <= min(r.misfit_start, r.misfit_solve) + 1e-9, r
     e0 = np.abs((start - start.mean()) - (truth - truth.mean()))
     e1 = np.abs((res.height - res.height.mean()) - (truth - truth.mean()))
+    # the heights returned (the window's blended into the field's), as the whole field's model sees
+    # them: their misfit is the one reported, and no worse than the start's
+    img, flat, geo = pit_case_inputs()
+    again = invert_heights(img, flat, geo, start=res.height, fwhm_mm=FWHM, noise=res.noise, iterations=0,
+                           uncertainty_probes=0, local=False)
+    taken = [r for r in res.regions if r.status.startswith("refined")]
+    assert taken
+    for r in taken:
+        inner = (slice(r.rows[0] + 3, r.rows[1] - 3), slice(r.cols[0] + 3, r.cols[1] - 3))
+        m = _rms(again.start_misfit[inner], np.ones_like(again.start_misfit[inner], bool)) / res.expected_misfit
+        assert abs(m - r.misfit_taken) < 0.02 * m, (m, r)
+        assert m <= r.misfit_start, (m, r)
     t = 16
     tiles0 = np.sqrt((e0 ** 2).reshape(N // t, t, N // t, t).mean(axis=(1, 3)))
     tiles1 = np.sqrt((e1 ** 2).reshape(N // t, t, N // t, t).mean(axis=(1, 3)))
@@ -414,3 +440,22 @@ def test_a_smooth_bump_is_not_given_the_robust_curvature_it_does_not_need(monkey
     assert [r.status for r in always.regions] == ["refined (robust curvature)"], always.regions
     assert error(tested.height) < 0.6 * error(start)
     assert error(always.height) > 2 * error(tested.height)
+
+
+def test_heights_that_fit_worse_once_blended_are_not_taken(monkeypatch):
+    # the window's solution fits, but what would be returned (here blended the wrong way round, a
+    # stand-in for a taper that cuts through relief the window moved) fits worse than the start
+    from scipy.ndimage import gaussian_filter
+
+    from elo_mitsuba.analysis import local_inversion
+
+    relief, pit = _pit()
+    img, flat, geo = pit_case_inputs()
+    start = relief + gaussian_filter(pit, 3.0)
+    monkeypatch.setattr(local_inversion, "ROBUST", False)
+    monkeypatch.setattr(local_inversion, "taken_weight", lambda flagged, *a: -np.ones(np.shape(flagged)))
+    res = invert_heights(img, flat, geo, start=start, fwhm_mm=FWHM, noise=0.003 * np.sqrt(2), iterations=6,
+                         discrepancy=2.0, uncertainty_probes=0)
+    assert res.regions and all(r.status.startswith("kept (blended heights fitted worse)") for r in res.regions), res.regions
+    assert all(r.misfit_taken > r.misfit_start for r in res.regions)
+    assert np.array_equal(res.height, start)

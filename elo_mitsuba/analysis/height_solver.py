@@ -625,7 +625,7 @@ def data_term(images: Mapping, flats: Mapping, geometry, *, fwhm_mm: float, nois
     return value
 
 
-def _misfit_of(setup: _Setup, heights) -> np.ndarray:
+def misfit_of(setup: _Setup, heights) -> np.ndarray:
     """The misfit (RMS over the detectors, per pixel) of pixel heights ``heights``."""
     problem = setup.problem
     corners = problem.start_corners(heights)
@@ -941,7 +941,7 @@ def solve_field(data: ScaleData, geometry, h0, *, fwhm_mm: float, alpha, noise, 
     if robust is not None and np.any(robust) and iterations > 0:
         result = solve_robust(full, result, robust, settings)
     result = _with_uncertainty(result, uncertainty_probes, cg_iterations)
-    result.start_misfit = _misfit_of(full, h0)
+    result.start_misfit = misfit_of(full, h0)
     result.expected_misfit = float(result.discrepancy_level / discrepancy) if discrepancy > 0 else float(
         np.sqrt(full.noise ** 2 * (1.0 - 1.0 / len(full.names)) + full.model_var))
     return result, full
