@@ -47,7 +47,7 @@ import numpy as np
 
 from ..grid import pixel_size
 from ..schema import FWHM_PER_SIGMA
-from .height_solver import ITERATIONS, NODES, ScaleData, misfit_of, frees_curvature, solve_field
+from .height_solver import ITERATIONS, NODES, ScaleData, frees_curvature, misfit_of, solve_field
 from .noise import CHI2_WINDOW_PX, local_chi2
 
 #: Threshold of a window's mean chi-square per datum, in standard deviations of pure noise's.
@@ -463,7 +463,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
         data = region_data = ScaleData({n: np.asarray(images[n])[sl] for n in names},
                                        {n: np.asarray(flats[n])[sl] for n in names}, **kw)
 
-        models = {}  # the window's set-ups (quadratic, robust) on its own data, to weigh what is taken
+        field_model = {}  # the window's set-up under the field's model (its own data), to weigh what is taken
 
         def solve(h0, robust=None, data=data):
             sol, setup = solve_field(data, sub, h0, fwhm_mm=fwhm_mm, alpha=result.alpha, noise=result.noise,
@@ -472,8 +472,8 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
                                      fixed_border=FIXED_BORDER_PX, scales=1,
                                      iterations=ITERATIONS if iterations is None else iterations, discrepancy=0.0,
                                      robust=robust, uncertainty_probes=0 if robust is None else probes)
-            if data is region_data:
-                models["quadratic" if robust is None else "robust"] = setup
+            if data is region_data and robust is None:
+                field_model["setup"] = setup
             return sol, _rms(sol.misfit, inner) / expected
 
         for origin_name, h0 in starts:
@@ -504,8 +504,9 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
         if best is not None:
             # what is returned is the window's heights blended into the field's: it must fit no worse
             weight = taken_weight(flagged[sl], *take)
-            taken = np.where(inner, result.height[sl] + weight * (best.height - result.height[sl]), result.height[sl])
-            region.misfit_taken = _rms(misfit_of(models["quadratic"], taken), inner) / expected
+            here = result.height[sl]
+            taken = np.where(inner, here + weight * (best.height - here), here)
+            region.misfit_taken = _rms(misfit_of(field_model["setup"], taken), inner) / expected
             if not origin.endswith("robust") and region.misfit_taken > m_start:
                 # never worse than the start. Not held to the field's solve: at a cliff's band, which
                 # no facet model fits, a blend fitted 9.83 against the solve's 9.81 noise levels (the
