@@ -459,3 +459,21 @@ def test_heights_that_fit_worse_once_blended_are_not_taken(monkeypatch):
     assert res.regions and all(r.status.startswith("kept (blended heights fitted worse)") for r in res.regions), res.regions
     assert all(r.misfit_taken > r.misfit_start for r in res.regions)
     assert np.array_equal(res.height, start)
+
+
+def test_a_region_without_heights_taken_is_written_to_the_header(pit_case, tmp_path):
+    # a region kept (no solution taken) has no misfit of returned heights: the header is strict JSON
+    import dataclasses
+
+    from elo_mitsuba.analysis.io import write_inversion
+    from elo_mitsuba.analysis.local_inversion import Region
+    from elo_mitsuba.exr import read_exr
+
+    truth, start, res, near = pit_case
+    _, _, geo = pit_case_inputs()
+    kept = Region((0, 20), (0, 20), 12, 1.2, 1.1, 1.1, "kept")
+    out = write_inversion(tmp_path / "inv.exr", dataclasses.replace(res, regions=[*res.regions, kept]), geo,
+                          untrusted=res.mask)
+    _, meta = read_exr(out)
+    assert meta["regions"][-1]["status"] == "kept" and meta["regions"][-1]["misfit_taken"] is None
+    assert meta["regions"][0]["misfit_taken"] == pytest.approx(res.regions[0].misfit_taken)

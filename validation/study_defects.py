@@ -409,7 +409,8 @@ def report(results) -> str:
             lines += ["", f"Slope bias of the model gradient over the flat powder ({r['kind']}): "
                       f"dZ/dx {r['slope_bias'][0]:+.2e}, dZ/dy {r['slope_bias'][1]:+.2e} (absolute)"]
         lines += ["", f"Regions of {r['kind']}: {len(r['regions'])}; " + "; ".join(
-            f"{g['status']} ({g['misfit_start']:.2f} -> {g['misfit_end']:.2f}, returned {g['misfit_taken']:.2f})"
+            f"{g['status']} ({g['misfit_start']:.2f} -> {g['misfit_end']:.2f}"
+            + (f", returned {g['misfit_taken']:.2f})" if g["misfit_taken"] is not None else ")")
             for g in r["regions"][:12])]
     return "\n".join(lines + [""])
 

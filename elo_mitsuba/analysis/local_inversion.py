@@ -150,14 +150,16 @@ class Region:
     seconds: float = 0.0
 
     def as_dict(self) -> dict:
-        """The region as a plain dict (for a JSON report).
+        """The region as a plain dict (for a JSON report: a misfit it does not have is None).
 
         Examples
         --------
-        >>> Region((0, 10), (5, 20), 12, 2.0, 1.8, 1.1, "refined").as_dict()["status"]
-        'refined'
+        >>> d = Region((0, 10), (5, 20), 12, 2.0, 1.8, 1.1, "kept").as_dict()
+        >>> d["status"], d["misfit_end"], d["misfit_taken"]
+        ('kept', 1.1, None)
         """
-        return dataclasses.asdict(self)
+        return {k: None if isinstance(v, float) and not np.isfinite(v) else v
+                for k, v in dataclasses.asdict(self).items()}
 
 
 def threshold(window: int = CHI2_WINDOW_PX, detectors: int = 4, sigmas: float = SIGMAS) -> float:
