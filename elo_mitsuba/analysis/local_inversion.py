@@ -502,7 +502,6 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
                 # what the images leave to the penalty: the quadratic and the robust one disagree
                 prior = np.abs(sol.height - best.height)
                 best, best_misfit, origin = sol, m, origin + " robust"
-        taken = None
         if best is not None:
             # what is returned is the window's heights blended into the field's: it must fit no worse
             weight = taken_weight(flagged[sl], *take)
