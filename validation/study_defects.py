@@ -13,7 +13,9 @@ whose actual error lies within 1x and 2x the stated one (a calibrated Gaussian e
 Rows D1-D4 of validation/REPORT.md (``python -m validation --only defects``; about 3 min on 2 cores,
 a figure per surface). ``python -m validation.study_defects [--res 400] [--out out/defects.md]`` writes
 the same measurements as a table with the steps and every region's outcome; ``--seeds 1,2,3`` repeats
-each surface under other noise seeds (one render) and tabulates the steps per seed.
+each surface under other noise seeds (one render) and tabulates the steps and the rough layer per
+seed, and, with three seeds or more, what they say of the rough layer in expectation
+(:func:`expected_change`).
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ NAMES = ("right", "left", "back", "front")
 #: Measured there: within 1 mm of the defects ``invert`` ends at 0.56 of its start on 16-spp
 #: renders and at 0.47 on 64-spp ones. The flat plate, smooth, keeps the preset's count (0.17 %).
 MEASUREMENT_SPP = 64
+#: Where around each defect of the rough layer the seeds' mean change is shown (mm from its rim,
+#: outwards; up to 0: inside): the rim, where the beam blur mixes the normals, and beyond it, where
+#: the start is already close and a refinement's heights can only add their own noise.
+RINGS_MM = ((-np.inf, 0.0), (0.0, 0.2), (0.2, 0.4), (0.4, 1.0))
 
 
 def _rmse(h, truth, sel=None):
@@ -175,16 +181,22 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     out["worst_tile_um"] = float(1e3 * change[worst])
     out["worst_tile_start_um"] = float(1e3 * tiles(e_st)[worst])
     out["tiles_worse"], out["tiles"] = int(np.sum(change > 1e-9)), int(change.size)  # > 1e-6 µm
+    # each tile's mean squared error (um^2), for what several noise seeds say of it (expected_change)
+    out["tile_mse"] = (1e6 * tiles(e_st) ** 2, 1e6 * tiles(e_inv) ** 2)
     if kind == "rough":  # each defect on its own (its rim and 1 mm around), errors on the same level
         out["defects"] = []
         for dd in rl.defects():
             m = np.hypot(X - dd["x"], Y - dd["y"]) <= dd["radius"] + 1.0
+            beyond = np.hypot(X - dd["x"], Y - dd["y"]) - dd["radius"]
+            rings = [(beyond > lo) & (beyond <= hi) for lo, hi in RINGS_MM]
             # ... and on its own level (the neighbourhood's mean error removed): its shape, without
             # the start's long-wavelength offset there, which no local refinement can see
             out["defects"].append({"kind": dd["kind"], "radius_mm": float(dd["radius"]),
                                    "start": float(np.sqrt(np.mean(e_st[m] ** 2))),
                                    "invert": float(np.sqrt(np.mean(e_inv[m] ** 2))),
-                                   "start_shape": float(np.std(e_st[m])), "invert_shape": float(np.std(e_inv[m]))})
+                                   "start_shape": float(np.std(e_st[m])), "invert_shape": float(np.std(e_inv[m])),
+                                   "rings": [(1e6 * float(np.mean(e_st[k] ** 2)), 1e6 * float(np.mean(e_inv[k] ** 2)))
+                                             if k.any() else None for k in rings]})
     # error bars (errors relative to the trusted field's level where parts float)
     d = inv.height - truth
     ref = ~inv.floating if inv.floating is not None and inv.floating.any() else np.ones(shape, bool)
@@ -268,6 +280,74 @@ def rough_seed_table(results) -> list[str]:
                      f"{r['near_ratio']:.2f} | {_tile(r, True)} | {_worse(d)} of {len(d)} | "
                      f"{max(x['invert'] / x['start'] for x in d):.2f} | {_worse(d, True)} of {len(d)} |")
     return lines
+
+
+def expected_change(results) -> list[str]:
+    """Markdown lines: what several noise seeds say of "nowhere worse" in expectation. One seed's
+    worst tile is one draw of the noise: a tile holding a few pixels of a refined defect's rim gets
+    worse under one seed and better under the next. Over the seeds, each 4 mm tile's change of the
+    mean squared error (``invert`` less the start, µm²) has a mean and a standard error; a tile is
+    worse in expectation where the mean lies above 0 by more than two of them. The same around each
+    defect, ring by ring (:data:`RINGS_MM`).
+
+    Examples
+    --------
+    >>> z = np.zeros((2, 2))
+    >>> rs = [{"tile_mse": (z + 10.0, z + np.array([[10.0, 4.0], [10.0, 10.0 + d]])), "defects": [
+    ...        {"kind": "pore", "radius_mm": 0.3, "rings": [(900.0, 90.0 + d), None, (9.0, 15.0 + d), None]}]}
+    ...       for d in (0.5, -0.5, 0.4, -0.2)]
+    >>> lines = expected_change(rs)
+    >>> print(lines[0])
+    Over 4 noise seeds, each 4 mm tile's mean squared error, `invert` less the start (mean ± standard error): 2 of 4 tiles changed under some seed, 1 with a mean above 0, 0 of them beyond two standard errors; the largest mean +0.05 ± 0.24 µm² of the start's 10.0 µm².
+    >>> print(lines[-1])
+    | pore, 0.30 mm | -810.0 ± 0.2 (900.0) | · | +6.0 ± 0.2 (9.0) **worse** | · |
+    """
+    tiles = np.array([np.asarray(r["tile_mse"][1]) - np.asarray(r["tile_mse"][0]) for r in results])
+    k = len(results)
+    mean, se = tiles.mean(axis=0), tiles.std(axis=0, ddof=1) / np.sqrt(k)
+    changed = np.any(np.abs(tiles) > 1e-9, axis=0)
+    above = changed & (mean > 0)
+    worse = above & (mean > 2 * se)
+
+    def largest(where):
+        t = np.unravel_index(int(np.argmax(np.where(where, mean, -np.inf))), mean.shape)
+        return (f"{_um2(mean[t])} ± {_um2(se[t], sign=False)} µm² of the start's "
+                f"{np.mean([np.asarray(r['tile_mse'][0])[t] for r in results]):.1f} µm²")
+    lines = [f"Over {k} noise seeds, each 4 mm tile's mean squared error, `invert` less the start (mean ± standard "
+             f"error): {int(changed.sum())} of {mean.size} tiles changed under some seed, {int(above.sum())} with a "
+             f"mean above 0, {int(worse.sum())} of them beyond two standard errors"
+             + (f" (the largest {largest(worse)})" if worse.any() else "") + f"; the largest mean {largest(changed)}.",
+             ""]
+
+    def ring(lo, hi):
+        return "inside" if lo == -np.inf else f"{lo:g}-{hi:g} mm beyond the rim"
+    lines += ["Around each defect, ring by ring (squared error, µm²: `invert` less the start, mean ± standard error "
+              "over the seeds; in brackets the start's; **worse**: above 0 by more than two standard errors):", "",
+              "| defect | " + " | ".join(ring(lo, hi) for lo, hi in RINGS_MM) + " |",
+              "|---" * (len(RINGS_MM) + 1) + "|"]
+    for j, d in enumerate(results[0]["defects"]):
+        cells = []
+        for i in range(len(RINGS_MM)):
+            got = [r["defects"][j]["rings"][i] for r in results]
+            if any(g is None for g in got):  # a ring beyond the field's edge
+                cells.append("·")
+                continue
+            dm = np.array([g[1] - g[0] for g in got])
+            m, e = dm.mean(), dm.std(ddof=1) / np.sqrt(k)
+            cells.append(f"{_um2(m, decimals=1)} ± {_um2(e, False, 1)} ({np.mean([g[0] for g in got]):.1f})"
+                         + (" **worse**" if m > 2 * e else ""))
+        lines.append(f"| {d['kind']}, {d['radius_mm']:.2f} mm | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _um2(v, sign=True, decimals=2) -> str:
+    """A change of squared error (µm²) to ``decimals`` decimals, or two digits where it is smaller.
+
+    >>> _um2(-1258.21, decimals=1), _um2(2.4e-4), _um2(0.05, sign=False)
+    ('-1258.2', '+2.4e-04', '0.05')
+    """
+    sign = "+" if sign else ""
+    return f"{v:{sign}.{decimals}f}" if abs(v) >= 10.0 ** -decimals or v == 0 else f"{v:{sign}.1e}"
 
 
 def _tile(r, brief=False) -> str:
@@ -441,7 +521,9 @@ def main(argv=None):
     ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     ap.add_argument("--seeds", default="7", metavar="K,K,...",
                     help="noise seeds (default 7, the REPORT's); with several, each surface is measured once per "
-                         "seed (the renders are shared) and the steps get a table of what the noise moves")
+                         "seed (the renders are shared), the steps and the rough layer get a table per seed, and with "
+                         "three or more what the seeds say in expectation (each tile's and each defect's rings' mean "
+                         "change against the start; ten seeds of the rough layer take about 9 min on 2 cores)")
     args = ap.parse_args(argv)
     if Path(args.out).exists() and not args.overwrite:
         ap.error(f"--out {args.out} exists: pass --overwrite to replace it")
@@ -458,13 +540,15 @@ def main(argv=None):
             layout = LAYOUTS[kind]
             for seed in seeds:
                 results.append(run_surface(kind, res, Path(tmp), layout=layout, seed=seed))
-                print(json.dumps({k: v for k, v in results[-1].items() if k not in ("regions", "figure")},
+                print(json.dumps({k: v for k, v in results[-1].items() if k not in ("regions", "figure", "tile_mse")},
                                  default=float), flush=True)
     text = report(results)
     rough = [r for r in results if "defects" in r]
     if len(seeds) > 1 and rough:
         text += "\n".join(["", f"The rough layer under {len(seeds)} noise seeds ({rough[0]['res']}²):", "",
                            *rough_seed_table(rough), ""])
+        if len(rough) > 2:
+            text += "\n".join(["", *expected_change(rough), ""])
     by_seed = [r for r in results if "steps" in r]
     if len(seeds) > 1 and by_seed:
         text += "\n".join(["", f"Steps under {len(seeds)} noise seeds (steps {by_seed[0]['res']}²; mm; spread: sample "
