@@ -333,8 +333,10 @@ def _chi(misfit, where, expected) -> float:
 
 def _take_error_bars(result, local, sl, inner, prior=None) -> None:
     """A robust pass's own noise part and regulariser bias (``local``, its window ``sl``) added in
-    quadrature to the field's in the window's ``inner`` pixels; ``prior``, the robust and the
-    quadratic penalty's difference (mm, as taken), is added to the bias. Over the whole window, where
+    quadrature to the field's in the window's ``inner`` pixels (a quadratic refinement has none of
+    its own: the field's stand); ``prior``, the robust and the quadratic penalty's difference (mm, as
+    taken), is added to the bias, whichever of the two is kept: where the robust pass is not
+    significant, the images do not tell the two apart. Over the whole window, where
     the heights are taken and where they blend into the field's: at a pore's rim the error is the
     blur-limited shape, and with the window's part weighted as its heights are, a pore's pixels
     within 3 px were covered within 2x on 86 % against 97 % (tests/test_local_inversion.py). The
@@ -347,7 +349,8 @@ def _take_error_bars(result, local, sl, inner, prior=None) -> None:
     the pores 43 / 65 %)."""
     for name in ("height_error", "height_error_bias"):
         field, part = getattr(result, name)[sl], getattr(local, name)
-        field[inner] = np.hypot(field[inner], part[inner])
+        if part is not None:  # a quadratic refinement's own noise is not drawn: the field's stands
+            field[inner] = np.hypot(field[inner], part[inner])
     if prior is not None:
         field = result.height_error_bias[sl]
         field[inner] = np.hypot(field[inner], prior[inner])
@@ -497,6 +500,9 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
                 noise_drop = _null_drop(solve, best, data, where, expected, result.noise, seed=rows[0] * w + cols[0])
                 drop = _chi(best.misfit, where, expected) - _chi(sol.misfit, where, expected)
                 if not robust_significant(drop, noise_drop, int(where.sum()) * (len(names) - 1)):
+                    # the images do not tell the two penalties apart: what they leave to the penalty
+                    # is the quadratic heights' bias as much as it would be the robust ones'
+                    prior = np.abs(sol.height - best.height)
                     sol, m, note = None, np.inf, " (robust curvature not significant)"
             if m <= best_misfit:
                 # what the images leave to the penalty: the quadratic and the robust one disagree
@@ -518,7 +524,7 @@ def refine_regions(result, images: Mapping, flats: Mapping, geometry, *, fwhm_mm
         if best is not None:
             target = result.height[sl]
             target[inner] = taken[inner]
-            if best.height_error is not None and result.height_error is not None:
+            if result.height_error is not None:
                 _take_error_bars(result, best, sl, inner, None if prior is None else weight * prior)
             # the misfit where the window's heights are mostly taken is the window's (between, the
             # two surfaces differ by about their noise)
