@@ -197,7 +197,7 @@ def test_study_defects_writes_what_several_seeds_say_without_rendering(tmp_path,
                 "searched": 0, "figure": None}
 
     monkeypatch.setattr(sd, "run_surface", fake)
-    out = tmp_path / "rough.md"
+    out = tmp_path / "table"
     sd.main(["--only", "rough", "--seeds", "1,2,3", "--out", str(out)])
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert len(lines) == 3 and all("tile_mse" not in line for line in lines)
