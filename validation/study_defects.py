@@ -186,8 +186,8 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     if kind == "rough":  # each defect on its own (its rim and 1 mm around), errors on the same level
         out["defects"] = []
         for dd in rl.defects():
-            m = np.hypot(X - dd["x"], Y - dd["y"]) <= dd["radius"] + 1.0
-            beyond = np.hypot(X - dd["x"], Y - dd["y"]) - dd["radius"]
+            beyond = np.hypot(X - dd["x"], Y - dd["y"]) - dd["radius"]  # distance from the rim, outwards
+            m = beyond <= 1.0
             rings = [(beyond > lo) & (beyond <= hi) for lo, hi in RINGS_MM]
             # ... and on its own level (the neighbourhood's mean error removed): its shape, without
             # the start's long-wavelength offset there, which no local refinement can see
