@@ -17,7 +17,7 @@ import json, resource, sys, time, tempfile
 import numpy as np
 import elo_mitsuba as em
 from elo_mitsuba.analysis.scan_geometry import ScanGeometry
-from elo_mitsuba.analysis.model_gradient import model_gradient
+from elo_mitsuba.analysis.model_gradient import model_gradient_refined
 from elo_mitsuba.analysis.inversion import invert_heights, start_heights
 em.ensure_variant()
 surface, res = sys.argv[1], int(sys.argv[2])
@@ -44,7 +44,7 @@ del obj, flat
 truth = geo.landing_heights(truth_fn)
 rmse = lambda h: float(np.sqrt(np.mean(((h - h.mean()) - (truth - truth.mean())) ** 2)))
 t = time.perf_counter()
-mg = model_gradient(img, fl, geo)
+mg = model_gradient_refined(img, fl, geo)  # the start `invert` takes
 t_mg = time.perf_counter() - t
 inv = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)
 t_all = time.perf_counter() - t

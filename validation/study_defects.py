@@ -104,7 +104,7 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     """Render one surface (``rough``, ``steps``, ``hills`` or ``melt``), add noise, and measure."""
     from elo_mitsuba.analysis import surface_gradient
     from elo_mitsuba.analysis.inversion import invert_heights, start_heights
-    from elo_mitsuba.analysis.model_gradient import model_gradient
+    from elo_mitsuba.analysis.model_gradient import model_gradient_refined
     from elo_mitsuba.analysis.scan_geometry import ScanGeometry
     from elo_mitsuba.mesh import mesh_surface_height
     from elo_mitsuba.objects import melt_plate as mp
@@ -143,7 +143,7 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     else:
         near = np.zeros(shape, bool)
     e26 = surface_gradient(img, fl, geo.field_mm, *geo.symmetric_layout())
-    mg = model_gradient(img, fl, geo)
+    mg = model_gradient_refined(img, fl, geo)  # the start `invert` takes
     h_start = start_heights(mg, geo)
     t0 = time.perf_counter()
     inv = invert_heights(img, fl, geo, start=mg, fwhm_mm=0.27)

@@ -34,7 +34,7 @@ def _case(render, scene, flat_scene, truth_fn, *, layout="zeta25", events=1, noi
     (``start_only``: the model gradient + integration alone, for :func:`_wiener_floor`)."""
     from elo_mitsuba.analysis import mean_flat, surface_gradient
     from elo_mitsuba.analysis.inversion import invert_heights, start_heights
-    from elo_mitsuba.analysis.model_gradient import model_gradient
+    from elo_mitsuba.analysis.model_gradient import model_gradient_refined
     from elo_mitsuba.analysis.scan_geometry import ScanGeometry
 
     obj = render(scene, layout, events, quality)
@@ -54,7 +54,7 @@ def _case(render, scene, flat_scene, truth_fn, *, layout="zeta25", events=1, noi
         later_f = {n: flat.channels[n] - flat.channels[f"{n}.e1"] for n in NAMES}
         share = {n: later_f[n] / flat.channels[n] for n in NAMES}
     e26 = surface_gradient(img, fl, geo.field_mm, *geo.symmetric_layout())
-    mg = model_gradient(img, fl, geo, flat_second_event=share)
+    mg = model_gradient_refined(img, fl, geo, flat_second_event=share)  # the start `invert` takes
     if start_only:
         start = start_heights(mg, geo)
         return {"model": _rmse(start, truth), "start_h": start, "truth": truth}
@@ -123,14 +123,14 @@ def _fitted_flat_start(case, degree):
     from numpy.polynomial import legendre
 
     from elo_mitsuba.analysis.inversion import start_heights
-    from elo_mitsuba.analysis.model_gradient import model_gradient
+    from elo_mitsuba.analysis.model_gradient import model_gradient_refined
 
     img, fl, geo = case["data"]
     h, w = geo.shape
     py = legendre.legvander((np.arange(h) + 0.5) / h * 2 - 1, degree)
     px = legendre.legvander((np.arange(w) + 0.5) / w * 2 - 1, degree)
     fitted = {n: np.exp(py @ (np.linalg.pinv(py) @ np.log(f) @ np.linalg.pinv(px).T) @ px.T) for n, f in fl.items()}
-    return _rmse(start_heights(model_gradient(img, fitted, geo), geo), case["truth"])
+    return _rmse(start_heights(model_gradient_refined(img, fitted, geo), geo), case["truth"])
 
 
 def _text(c, unit="µm", scale=1000.0):
