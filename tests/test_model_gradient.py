@@ -273,16 +273,18 @@ def test_passes_refused_before_work(passes):
         model_gradient_refined({}, {}, None, passes=passes)
 
 
-@pytest.mark.parametrize("aim, slope", [((30.0, 0.0), (0.0, 0.0)), ((30.0, 0.0), (0.3, 0.0)),
-                                        ((-20.0, 15.0), (-0.2, 0.1))])
-def test_the_fits_noise_bias_is_removed(mi, aim, slope):
+# the level facet's bias is the smallest (3e-5) and its differences' fourth-order term the largest
+@pytest.mark.parametrize("aim, slope, left", [((30.0, 0.0), (0.0, 0.0), 0.15), ((30.0, 0.0), (0.3, 0.0), 0.05),
+                                              ((-20.0, 15.0), (-0.2, 0.1), 0.05)])
+def test_the_fits_noise_bias_is_removed(mi, aim, slope, left):
     """The per-pixel fit is nonlinear in the images, so 1 % noise biases it: at second order by
     1/2 sum_k sigma_k^2 d^2 p / d C_k^2, which off the field's centre does not cancel (the detectors
     are seen asymmetrically) and integrates into a bowl of micrometres (the rough layer's start
     over ten noise seeds). The mean over the noise, by Gauss-Hermite quadrature (5 nodes per
-    detector, 625 pixels of one aim point), against the fit's value without noise: the correction
-    leaves at most a tenth of the bias (measured 1-5 %; with the noise taken as equal on the four
-    detectors instead of proportional to their signal, 10-13 % on the sloped facets)."""
+    detector, 625 nodes of one aim point, each on a 2 x 2 tile of pixels), against the fit's value
+    without noise: the correction leaves at most ``left`` of the bias (measured 1 % on the sloped
+    facets, 10 % = 3e-6 on the level one; with the noise taken as equal on the four detectors
+    instead of proportional to their signal, 6-10 % on the tilted one at (-20, 15) mm, which then fails)."""
     import itertools
 
     nodes, weights = np.polynomial.hermite_e.hermegauss(5)
@@ -290,13 +292,15 @@ def test_the_fits_noise_bias_is_removed(mi, aim, slope):
     grid = list(itertools.product(range(5), repeat=4))
     z = np.array([[nodes[i] for i in g] for g in grid])
     w = np.array([np.prod([weights[i] for i in g]) for g in grid])
-    shape = (25, 25)
+    shape = (50, 50)  # each node on a 2 x 2 tile of pixels: the bias's four sign patterns
     base = ScanGeometry.nominal(shape, 0.01, 272, 127)
     geo = ScanGeometry(field_mm=base.field_mm, shape=shape, detectors=base.detectors, aim_offset_mm=aim)
     flat = model_images(geo)
     obj = model_images(geo, np.full(shape, slope[0]), np.full(shape, slope[1]))
     sigma = 0.01
-    noisy = {n: (obj[n].ravel() * (1 + sigma * z[:, k])).reshape(shape) for k, n in enumerate(DETECTOR_NAMES)}
+    tiles = np.ones((2, 2))
+    noisy = {n: obj[n] * (1 + sigma * np.kron(z[:, k].reshape(25, 25), tiles)) for k, n in enumerate(DETECTOR_NAMES)}
+    w = np.kron(w.reshape(25, 25), tiles).ravel() / 4
     level = sigma * np.mean([np.mean(obj[n] / flat[n]) for n in DETECTOR_NAMES])
     exact = model_gradient(obj, flat, geo, noise=level, noise_bias=False)
     for bias_removed in (False, True):
@@ -307,4 +311,4 @@ def test_the_fits_noise_bias_is_removed(mi, aim, slope):
             assert max(abs(m) for m in mean) > 3e-5, mean  # the fit's own precision: 2e-8
         else:
             for b, a in zip(before, mean):
-                assert abs(a) <= 0.1 * abs(b) + 1e-6, (before, mean)
+                assert abs(a) <= left * abs(b) + 1e-6, (before, mean)

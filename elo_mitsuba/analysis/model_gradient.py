@@ -74,20 +74,20 @@ MAX_SLOPE = 5.7
 #: at 1.0 mm); below this the first pass's error stays under 1 um. A pass costs about as much as the
 #: first (1500^2: 3.9 s for one, 4.9 s for two).
 AUTO_RELIEF_MM = 0.05
-#: The fit's noise bias (:func:`_noise_bias`): refits of each pixel with one detector's value moved
+#: The fit's noise bias (:func:`_noise_bias`): each pixel refitted with its detectors' values moved
 #: by +- this many noise levels. At 1 % noise the quadrature of tests/test_model_gradient.py leaves
-#: 1-5 % of the bias with 2, 5-30 % with 1 (float32 refits: the moves shift p by a few 1e-3, the
-#: bias is 1e-5-1e-4), 1-9 % with 3 (the fourth-order terms).
-BIAS_STEP = 2.0
-#: Levenberg-Marquardt iterations of each refit, from the fitted (p, q): with 4 the bias differs from
-#: 10's by 4e-6 RMS (1e-4 RMS of the bias itself; sine relief 0.3 mm, 400^2, 1 % noise).
+#: 1 % of the bias on tilted facets with 1, 10 % on a level one (there the bias is 3e-5 and the
+#: differences' fourth-order term -3e-6); with 1.5 / 2 / 3 that term grows to 18 / 26 / 47 %.
+BIAS_STEP = 1.0
+#: Levenberg-Marquardt iterations of each refit, from the fitted (p, q): with 4 the correction
+#: differs from 10's by 1.2e-6 RMS (it is 1.8e-4 RMS itself; sine relief 0.3 mm, 400^2, 1 % noise).
 BIAS_ITERATIONS = 4
-#: Lanes per kernel launch of the refits (2K moves x pixels): 4M floats per array.
+#: Lanes per kernel launch of the refits (two per pixel): 4M floats per array.
 BIAS_LANES = 1 << 22
 #: Largest bias taken, in the slope's standard deviations: beyond, the fit is not smooth over the
-#: noise's reach. On the validation layers (400^2, 1 % noise) the bias is 0.003-0.009 of the
-#: standard deviation (median), at most 0.68 on the hills, and beyond 1 on 0.03 % of the stepped
-#: layer's pixels (at its cliffs' feet).
+#: noise's reach (a facet near a masking line). On the validation layers (400^2 and 512^2, 1 % noise
+#: on object and flat) the per-pixel estimate is 0.001-0.005 of the standard deviation (median),
+#: 0.04-0.23 (99th percentile), beyond 1 on 0.003 % of the steep hills' pixels and nowhere else.
 BIAS_MAX = 1.0
 #: median of chi^2 with one degree of freedom
 _CHI2_1_MEDIAN = 0.454936
@@ -197,34 +197,42 @@ def _fit(model, points, beam, measured, weights, flat_model, p0, q0, iterations,
     return [np.asarray(v, dtype=np.float64) for v in out]
 
 
-def _noise_bias(model, points, dirs, measured, weights, flat_model, p, q, noise, level):
-    """The fit's own bias at the images' noise level ``noise`` (corrected units, each detector's),
-    to second order: b = 1/2 noise^2 sum_k d^2 p / d C_k^2 (and the same of q), the second
-    derivatives by central differences of refits with each detector's value moved by
-    +-:data:`BIAS_STEP` noise levels from the fitted (p, q). All 2K refits of a pixel run in one
-    kernel (their lanes side by side, :data:`BIAS_LANES` at most per launch). Numpy in and out:
-    ``points``, ``dirs`` (N, 3); ``measured``, ``weights``, ``flat_model`` (K, N); ``p``, ``q`` (N,)."""
+def _noise_bias(model, points, dirs, measured, weights, flat_model, p, q, noise, level, shape):
+    """The fit's own bias at the images' noise ``noise`` (corrected units), detector k's noise being
+    ``noise * level[k]``, to second order: b = 1/2 sum_k sigma_k^2 d^2 p / d C_k^2 (and the same of
+    q). Each pixel is refitted twice from the fitted (p, q), with all its detectors' values moved by
+    +- :data:`BIAS_STEP` noise levels, by the signs of one row of a 4 x 4 Hadamard matrix, the row
+    set by the pixel's place in its 2 x 2 tile: the central difference of the two refits is
+    sum_jk r_j r_k h_j h_k d^2 p / d C_j d C_k, and over the four rows the products r_j r_k of
+    j != k cancel. What a single pixel keeps of them is a pattern at the Nyquist frequency, of the
+    bias's own size (1e-4 at 1 % noise against the slope's scatter of 1e-2), which integration
+    takes to nanometres. Two refits instead of the eight of the diagonal's own differences; both
+    run in one kernel (their lanes side by side, :data:`BIAS_LANES` at most per launch). Numpy in
+    and out: ``points``, ``dirs`` (N, 3); ``measured``, ``weights``, ``flat_model``, ``level``
+    (K, N); ``p``, ``q`` (N,); ``shape`` the image's (N pixels in C order)."""
     mi = model.mi
     k_det, n_px = measured.shape
-    moves = np.concatenate([np.eye(k_det), -np.eye(k_det)]) * BIAS_STEP   # (2K, K), in noise levels
+    hadamard = np.array([[1, 1, 1, 1], [1, -1, 1, -1], [1, 1, -1, -1], [1, -1, -1, 1]], float)[:, :k_det]
+    rows, cols = np.indices(shape).reshape(2, -1)
+    signs = hadamard[2 * (rows % 2) + cols % 2].T                      # (K, N)
     bias_p, bias_q = np.zeros(n_px), np.zeros(n_px)
-    chunk = max(BIAS_LANES // len(moves), 1)
+    chunk = max(BIAS_LANES // 2, 1)
     for a in range(0, n_px, chunk):
         sl = slice(a, min(a + chunk, n_px))
-        m = sl.stop - sl.start
 
-        def tile(v):  # (K, m) -> K arrays of 2K * m lanes, one block per move
-            return np.tile(v[:, sl], (1, len(moves)))
-        moved = tile(measured) + np.repeat(moves.T, m, axis=1) * tile(noise * level)
-        pk, qk, *_ = _fit(model, mi.Point3f(to_vector(mi, np.tile(points[sl], (len(moves), 1)))),
-                          to_vector(mi, np.tile(dirs[sl], (len(moves), 1))),
-                          [floats(mi, v) for v in moved], [floats(mi, v) for v in tile(weights)],
-                          [floats(mi, v) for v in tile(flat_model)], floats(mi, np.tile(p[sl], len(moves))),
-                          floats(mi, np.tile(q[sl], len(moves))), BIAS_ITERATIONS, FD_STEP)
-        # sum over the moves of (p(C +- h_k e_k) - p(C)) / h_k^2, times sigma_k^2 / 2
+        def both(v):  # (K, m) -> K arrays of 2 m lanes, the + move's then the - move's
+            return np.tile(v[:, sl], (1, 2))
+        move = BIAS_STEP * noise * level[:, sl] * signs[:, sl]
+        moved = both(measured) + np.concatenate([move, -move], axis=1)
+        pk, qk, *_ = _fit(model, mi.Point3f(to_vector(mi, np.tile(points[sl], (2, 1)))),
+                          to_vector(mi, np.tile(dirs[sl], (2, 1))),
+                          [floats(mi, v) for v in moved], [floats(mi, v) for v in both(weights)],
+                          [floats(mi, v) for v in both(flat_model)], floats(mi, np.tile(p[sl], 2)),
+                          floats(mi, np.tile(q[sl], 2)), BIAS_ITERATIONS, FD_STEP)
+        m = sl.stop - sl.start
         scale = 0.5 / BIAS_STEP ** 2
-        bias_p[sl] = scale * (pk.reshape(len(moves), m) - p[sl]).sum(axis=0)
-        bias_q[sl] = scale * (qk.reshape(len(moves), m) - q[sl]).sum(axis=0)
+        bias_p[sl] = scale * (pk.reshape(2, m) - p[sl]).sum(axis=0)
+        bias_q[sl] = scale * (qk.reshape(2, m) - q[sl]).sum(axis=0)
     return bias_p, bias_q
 
 
@@ -387,7 +395,7 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
         level = np.where(mean > 0, np.maximum(fitted, 0.0) / np.where(mean > 0, mean, 1.0), 1.0)
         as_np = lambda vs: np.stack([np.asarray(v, np.float64) for v in vs])
         bias_p, bias_q = _noise_bias(model, points.reshape(-1, 3), np.asarray(dirs).reshape(-1, 3), as_np(measured),
-                                     as_np(weights), as_np(flat_model), p, q, noise, level)
+                                     as_np(weights), as_np(flat_model), p, q, noise, level, shape)
         # the expansion holds where the bias is small against the slope's own scatter; beyond, the
         # fit is not smooth over the noise's reach (a facet near a masking line, a refit that left
         # for another minimum) and its bias is not known
