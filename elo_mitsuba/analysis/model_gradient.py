@@ -30,9 +30,10 @@ signal (the noise of a ratio of two recordings is relative). At the field's cent
 symmetry cancels it; off the centre it does not, and it grows with the distance: a slope bias of
 about 1.3e-4 at the edge of an 80 mm field at 1 % noise on object and flat (zeta25), which integrates
 into a bowl of micrometres that no noise seed averages away. It is removed per pixel
-(:func:`_noise_bias`): the second derivatives from refits with one detector's value moved by
-+-:data:`BIAS_STEP` noise levels. Against the mean over the noise by quadrature the correction
-leaves 1-5 % of the bias (tests/test_model_gradient.py).
+(:func:`_noise_bias`: two refits with the four values moved by +-:data:`BIAS_STEP` noise levels
+under Hadamard signs that cancel the cross-terms over 2 x 2 pixels). Against the mean over the
+noise by quadrature the correction leaves 1 % of the bias on tilted facets, 10 % on a level one
+(tests/test_model_gradient.py).
 """
 
 from __future__ import annotations
