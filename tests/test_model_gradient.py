@@ -312,3 +312,12 @@ def test_the_fits_noise_bias_is_removed(mi, aim, slope, left):
         else:
             for b, a in zip(before, mean):
                 assert abs(a) <= left * abs(b) + 1e-6, (before, mean)
+
+
+@pytest.mark.parametrize("value", ["yes", 1, None])
+def test_noise_bias_must_be_a_bool(value):
+    from elo_mitsuba.errors import EloInputError
+
+    geo = ScanGeometry.nominal((4, 4), 20, 272, 127)
+    with pytest.raises(EloInputError, match="noise_bias"):
+        model_gradient(model_images(geo), model_images(geo), geo, noise_bias=value)

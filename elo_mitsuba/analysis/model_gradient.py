@@ -38,7 +38,7 @@ of the opposite sign on sharp-walled relief, the beam blur it does not model: on
 (512^2, 0.27 mm beam) a bowl of -2.0 um without any noise, which the noise bias offsets at 1 %
 noise, so that removing the noise bias alone took its start from 3.8 to 4.2 um (1500^2: 1.6 to
 2.0 um), while on the rough layer (smooth at the beam's scale) it took the error away from the
-defects from 4.91 to 4.66 um (ten noise seeds) and on the steep hills the start from 41 to 33 um
+defects from 4.91 to 4.66 um (ten noise seeds) and on the steep hills the start from 36 to 33 um
 (docs/analysis.md).
 """
 
@@ -317,6 +317,8 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
     from ..arguments import fraction, real_array, shown, whole_number
 
     whole_number("iterations", iterations, 1, 1000)
+    if not isinstance(noise_bias, (bool, np.bool_)):
+        raise EloInputError(f"noise_bias={shown(noise_bias)}: must be True or False")
     fraction("min_corrected", min_corrected)
     fraction("min_sum", min_sum, 0.0, 2.0)  # R^C + L^C is 2 on a flat plate
     fraction("geometric_margin", geometric_margin)
