@@ -362,13 +362,16 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
         flat_pts, flat_beam = mi.Point3f(to_vector(mi, flat_points)), to_vector(mi, flat_dirs)
     flat_model = model.signals(flat_pts, flat_beam, [mi.Vector3f(0.0, 0.0, 1.0)])[0]
     dr.eval(flat_model)
-    measured = [floats(mi, eq26.corrected[n]) for n in model.names]
+    # float32 as the kernels see them: the noise bias's refits move these values
+    measured_np = np.stack([np.asarray(eq26.corrected[n], np.float32).ravel() for n in model.names]).astype(float)
+    measured = [floats(mi, v) for v in measured_np]
     # a detector the facet hides from (corrected image ~0) is left out: three values still fix
     # p, q and s; the model must then agree that it sees (almost) nothing (checked below)
     dark = np.stack([np.asarray(eq26.corrected[n]) <= min_corrected for n in model.names])
     n_dark = dark.sum(axis=0)
     one_dark = n_dark == 1
-    weights = [floats(mi, np.where(one_dark, ~dark[k], True)) for k in range(len(model.names))]
+    weights_np = np.stack([np.where(one_dark, ~dark[k], True).ravel() for k in range(len(model.names))]).astype(float)
+    weights = [floats(mi, v) for v in weights_np]
     p0 = np.where(start.mask, 0.0, -start.dzdx)
     q0 = np.where(start.mask, 0.0, -start.dzdy)
     if one_dark.any():
@@ -403,9 +406,9 @@ def model_gradient(images: Mapping, flats: Mapping | None, geometry, *, heights=
         fitted = np.stack(predicted)
         mean = np.mean(fitted, axis=0)
         level = np.where(mean > 0, np.maximum(fitted, 0.0) / np.where(mean > 0, mean, 1.0), 1.0)
-        as_np = lambda vs: np.stack([np.asarray(v, np.float64) for v in vs])
-        bias_p, bias_q = _noise_bias(model, points.reshape(-1, 3), np.asarray(dirs).reshape(-1, 3), as_np(measured),
-                                     as_np(weights), as_np(flat_model), p, q, noise, level, shape)
+        bias_p, bias_q = _noise_bias(model, points.reshape(-1, 3), np.asarray(dirs).reshape(-1, 3), measured_np,
+                                     weights_np, np.stack([np.asarray(v, float) for v in flat_model]), p, q, noise,
+                                     level, shape)
         # the expansion holds where the bias is small against the slope's own scatter; beyond, the
         # fit is not smooth over the noise's reach (a facet near a masking line, a refit that left
         # for another minimum) and its bias is not known
