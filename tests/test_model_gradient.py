@@ -308,7 +308,7 @@ def test_the_fits_noise_bias_is_removed(mi, aim, slope, left):
         mean = [np.sum(w * g.ravel()) - np.mean(e) for g, e in ((res.dzdx, exact.dzdx), (res.dzdy, exact.dzdy))]
         if not bias_removed:
             before = mean
-            assert max(abs(m) for m in mean) > 3e-5, mean  # the fit's own precision: 2e-8
+            assert max(abs(m) for m in mean) > 1e-5, mean  # smallest 3.3e-5; the fit's own precision 2e-8
         else:
             for b, a in zip(before, mean):
                 assert abs(a) <= left * abs(b) + 1e-6, (before, mean)
