@@ -283,6 +283,16 @@ CLI_CASES = [
     ("benchmark --out is a folder", ["benchmark", "--out", "{d}/folder.md"], "is a folder"),
     # -- the command itself
     ("unknown command", ["paint", "x"], "invalid choice: 'paint'"),
+    # an empty value (an unset shell variable) was taken as the option not given: no preview, rc 0
+    ("render --preview empty", ["render", "flat_plate", *OUT, "--preview", ""], "--preview '': empty; give a value"),
+    ("gradient --preview empty", ["gradient", *G_FLAT, "{d}/corr.exr", "-o", "{d}/g.exr", "--preview", ""],
+     "--preview '': empty; give a value"),
+    ("invert --preview empty", ["invert", *G_FLAT, "{d}/corr.exr", "-o", "{d}/h.exr", "--preview", ""],
+     "--preview '': empty; give a value"),
+    ("reconstruct --preview empty", ["reconstruct", "{d}/flat.exr", "-o", "{d}/h.npy", "--preview", ""],
+     "--preview '': empty; give a value"),
+    ("gradient --flat empty", ["gradient", "--flat", "", "{d}/corr.exr", "-o", "{d}/g.exr"],
+     "--flat '': empty; give a value"),
 ]
 
 

@@ -95,6 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     if not hasattr(args, "run"):
         parser.print_help()
         return 2
+    command = parser.commands.get(argv[0], parser)
+    for action in command._actions:
+        value = getattr(args, action.dest, None)
+        # an empty string (an unset shell variable) would be taken as 'not given': the option silently unapplied
+        if action.option_strings and (value == "" or (isinstance(value, list) and "" in value)):
+            command.error(f"{action.option_strings[-1]} '': empty; give a value")
     try:
         result = args.run(args)
     except EloError as exc:
