@@ -49,6 +49,34 @@ def _environment(extra: dict | None = None) -> dict:
     return env
 
 
+def pytest_addoption(parser):
+    parser.addoption("--other-isa", action="store_true",
+                     help="compile this process's Dr.Jit kernels for AVX2 instead of the host's widest vectors "
+                          "(golden_cases.OTHER_ISA: 8 lanes on an AVX-512 host, 4 on an AVX2 one): another "
+                          "CPU's rounding on this machine, to check that no tolerance depends on the host")
+
+
+def pytest_configure(config):
+    if not config.getoption("--other-isa", default=False):
+        return
+    import platform
+
+    from golden_cases import OTHER_ISA, llvm_target, set_llvm_target
+
+    width = llvm_target()["vector_width"]
+    if platform.machine() not in ("x86_64", "AMD64") or width not in OTHER_ISA:
+        raise pytest.UsageError(f"--other-isa: an x86-64 host with {' or '.join(map(str, OTHER_ISA))}-lane vectors "
+                                f"is needed (this one: {platform.machine()}, {width} lanes)")
+    set_llvm_target(*OTHER_ISA[width])
+
+
+def same_isa_as_subprocesses(request) -> None:
+    """Skip a test that compares this process's renders bit for bit with another process's (a Dask
+    worker's): under --other-isa only this process compiles for the other instruction set."""
+    if request.config.getoption("--other-isa", default=False):
+        pytest.skip("--other-isa switches this process's instruction set, not its worker processes'")
+
+
 def pytest_collection_finish(session):
     started = session.config.stash.setdefault(_BACKGROUND_KEY, {})
     modules = {Path(str(item.fspath)).name for item in session.items}

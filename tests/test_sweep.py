@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import same_isa_as_subprocesses
 from elo_mitsuba.cli import main
 
 xr = pytest.importorskip("xarray")
@@ -83,9 +84,10 @@ channels = "all"
 """
 
 
-def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
+def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys, request):
     """Through --scheduler: every point's images equal a direct EloScene.render of the same
     parameters and seed, bit for bit, and the metrics are those of the images."""
+    same_isa_as_subprocesses(request)
     import elo_mitsuba as em
 
     sched_file, _ = cluster
@@ -127,11 +129,12 @@ def test_cluster_sweep_equals_direct_renders(cluster, tmp_path, capsys):
     assert err.count("\n") == 0 and "no metric 'nonsense'" in err and "signal_mean" in err
 
 
-def test_resume_skips_done_points_and_records_failures(cluster, tmp_path, capsys, monkeypatch):
+def test_resume_skips_done_points_and_records_failures(cluster, tmp_path, capsys, monkeypatch, request):
     """A point that fails while rendering is recorded with its one-line error and the others are
     kept; re-running the command renders only what is not done (here on the cluster); another
     spec on the same store is refused. (A value that fails in any position is refused before
     the store exists, tests/test_sweep_faults.py; the failure here is injected.)"""
+    same_isa_as_subprocesses(request)
     import elo_mitsuba.sweeps.worker as worker
     from elo_mitsuba import EloInputError
 
