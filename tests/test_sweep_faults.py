@@ -219,6 +219,10 @@ BAD_ARGUMENTS = {
     "scheduler_unreachable": ({"scheduler": "tcp://127.0.0.1:9"},
                               "cannot reach the Dask scheduler tcp://127.0.0.1:9: nothing listens there"),
     "worker_wait": ({"worker_wait_s": -1}, "worker_wait_s=-1"),
+    # an infinite wait reached Dask, which gave up at once, after the store was made
+    "worker_wait_inf": ({"worker_wait_s": float("inf")}, "worker_wait_s=inf (--worker-wait); must be a number"),
+    "worker_wait_nan": ({"worker_wait_s": float("nan")}, "worker_wait_s=nan"),
+    "worker_wait_year": ({"worker_wait_s": 3.2e7}, "at most 604800 (a week)"),
 }
 
 

@@ -55,8 +55,8 @@ def add_parser(subparsers):
     p.add_argument("--threads", type=positive_int, metavar="N",
                    help="Dr.Jit threads per worker (default: the host's cores / its workers)")
     p.add_argument("--worker-wait", type=number, metavar="S",
-                   help="stop (with what is stored kept) when no worker is connected for S seconds (default 60; "
-                        "not with --workers 0, which has no workers)")
+                   help="stop (with what is stored kept) when no worker is connected for S seconds (default 60, "
+                        "at most 604800, a week; not with --workers 0, which has no workers)")
     p.add_argument("--yes", action="store_true",
                    help="run a sweep whose estimate (printed when refused) is over the limits: above 4 h on this "
                         "machine or 2 million store files")

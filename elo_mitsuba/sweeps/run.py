@@ -181,6 +181,9 @@ CONNECT_SECONDS = 10
 #: Default seconds a sweep waits while no Dask worker is connected (at the start, or after all
 #: were lost) before it stops with one line (``worker_wait_s``, CLI ``--worker-wait``).
 WORKER_WAIT_SECONDS = 60.0
+#: The longest ``worker_wait_s``: a week (Dask's timeouts take no infinity; a longer wait is a sweep
+#: left hanging, not a setting).
+MAX_WORKER_WAIT_SECONDS = 7 * 86400.0
 #: Most Dr.Jit threads per worker on a cluster whose hosts this client cannot see.
 MAX_THREADS = 1024
 
@@ -323,8 +326,10 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
     require("a sweep")
     workers, address, threads_per_worker = check_resources(workers, scheduler, threads_per_worker)
     if worker_wait_s is not None:
-        if isinstance(worker_wait_s, bool) or not isinstance(worker_wait_s, (int, float)) or not worker_wait_s > 0:
-            raise EloInputError(f"worker_wait_s={worker_wait_s!r}; must be a number of seconds > 0")
+        if isinstance(worker_wait_s, bool) or not isinstance(worker_wait_s, (int, float)) \
+                or not 0 < worker_wait_s <= MAX_WORKER_WAIT_SECONDS:
+            raise EloInputError(f"worker_wait_s={worker_wait_s!r} (--worker-wait); must be a number of seconds > 0 "
+                                f"and at most {MAX_WORKER_WAIT_SECONDS:g} (a week)")
         if workers == 0 and address is None:  # it would be accepted and do nothing
             raise EloInputError(f"worker_wait_s={worker_wait_s:g} (--worker-wait) waits for Dask workers, and "
                                 "workers=0 (--workers 0) renders in this process without any; drop one of them")
