@@ -181,8 +181,8 @@ CONNECT_SECONDS = 10
 #: Default seconds a sweep waits while no Dask worker is connected (at the start, or after all
 #: were lost) before it stops with one line (``worker_wait_s``, CLI ``--worker-wait``).
 WORKER_WAIT_SECONDS = 60.0
-#: The longest ``worker_wait_s``: a week (Dask's timeouts take no infinity; a longer wait is a sweep
-#: left hanging, not a setting).
+#: The longest ``worker_wait_s``: a week (given an infinite wait, Dask's wait for workers gave up at
+#: once; a longer wait is a sweep left hanging, not a setting).
 MAX_WORKER_WAIT_SECONDS = 7 * 86400.0
 #: Most Dr.Jit threads per worker on a cluster whose hosts this client cannot see.
 MAX_THREADS = 1024
@@ -288,7 +288,8 @@ def sweep(spec, output, *, workers: int | None = None, scheduler: str | None = N
     worker_wait_s : float, optional
         How long to wait while no worker is connected (at the start, or after all were lost)
         before stopping with one line; the points stored so far are kept (re-run to resume).
-        Default :data:`WORKER_WAIT_SECONDS`; refused with ``workers=0``, which has no workers to wait for.
+        Default :data:`WORKER_WAIT_SECONDS`, at most :data:`MAX_WORKER_WAIT_SECONDS`; refused with
+        ``workers=0``, which has no workers to wait for.
 
     Returns
     -------
