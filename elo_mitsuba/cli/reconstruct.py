@@ -98,7 +98,9 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, metavar="HEIGHT.(exr|tif|gsf|npy)", help="height map to write")
     p.add_argument("--method", choices=("auto",) + METHODS, default="auto", help="integration solver (default auto)")
     p.add_argument("--field", type=field_arg, metavar="FX[,FY]", help="scan field in mm if the header lacks it")
-    p.add_argument("--ignore-mask", action="store_true", help="treat every pixel as trusted")
+    p.add_argument("--ignore-mask", action="store_true",
+                   help="treat every pixel as trusted: masked pixels enter with the slopes the EXR holds there "
+                        "(0 in a gradient written by 'elo-mitsuba gradient', so they pull the heights flat)")
     p.add_argument("--min-component", type=int, default=None, metavar="N",
                    help=f"masked and robust solvers (and auto): trusted regions with fewer pixels are dropped "
                         f"(default {MIN_COMPONENT})")
