@@ -351,9 +351,10 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
             take_heights(full, result, lifted)
             result.stopped += f"; {n_lifted} of {len(result.steps)} floating part(s) lifted to their shadows"
 
-    def floating():  # the local chi-square, the floating parts and their offsets, of the heights as they are now
+    def floating(tied=None):  # the local chi-square, the floating parts and their offsets, of the heights as they are now
         chi2 = local_chi2(result.misfit, max(result.expected_misfit, 1e-12))
-        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel)
+        result.floating, offset = offset_errors(result.height, chi2, limit, known, pixel, tied=tied,
+                                                noise_error=result.height_error)
         return chi2, offset
 
     chi2, offset = floating()
@@ -367,12 +368,13 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         # the noise the correction's long wavelengths only; elsewhere the correction as the beam sees
         # it, and whole only where that leaves a misfit above the noise
         sigma, beam = low_pass_px(fwhm_mm, pixel), beam_px(fwhm_mm, pixel)
+        tied = ~result.floating  # what a band of misfit cuts off now, the gating's, has its offset measured
         d = result.height - h0
         take_heights(full, result, h0 + gated(d, fine, sigma, beam))
         whole = fine * flagged(result.misfit)
         if beam > 0 and whole.any():
             take_heights(full, result, h0 + gated(d, fine, sigma, beam, whole))
-        chi2, offset = floating()
+        chi2, offset = floating(tied)
         result.stopped += (f"; the correction's wavelengths below {half_wavelength(sigma):.0f} px taken only where "
                            f"the start's misfit exceeds the noise ({100 * np.mean(fine):.0f} % of the field)"
                            + (f", those below {half_wavelength(beam):.0f} px only where the images demand them "
