@@ -67,20 +67,21 @@ def test_where_the_start_fits_the_solves_fine_band_is_dropped_and_the_edges_keep
     assert _rms(res.height, truth) < 0.95 * _rms(full.height, truth)
 
 
-def test_a_part_that_only_the_dropped_fine_band_cuts_off_states_the_bands_error_not_its_step(square_case):
-    """Where the fine band is dropped the misfit rises above the noise along the square's rim, and
-    the square floats (cut off by that band). Its offset was measured through the rim before: it
-    states the band's error, not the whole step (measured: 1.11 um stated against 1.14 um actual on
-    the floating pixels, 0.79 against 0.73 um overall; as the whole step, 23.1 and 14.3 um)."""
+def test_a_part_that_only_the_dropped_fine_band_cuts_off_does_not_float_and_states_its_bands_error(square_case):
+    """Where the fine band is dropped the misfit rises above the noise along the square's rim, a
+    band that cuts the square off. Its offset was measured through the rim before: it does not
+    float, and it states the band's error, not the whole step (measured: on the square 1.11 um
+    stated against 1.16 um actual, 0.79 against 0.73 um overall; as a floating part with its
+    whole step, 38 % of the field, 23.1 um stated there and 14.3 um overall)."""
     truth, res, _, _, _ = square_case
-    assert res.floating.mean() > 0.2
+    assert res.floating is None or not res.floating.any()
     d = res.height - truth
-    d = d - np.median(d[~res.floating])
-    f = res.floating
+    d = d - np.median(d)
+    square = truth > 0.01
 
     def rms(a):
         return float(np.sqrt(np.mean(a ** 2)))
-    assert 0.5 < rms(res.height_error[f]) / rms(d[f]) < 2.0
+    assert 0.5 < rms(res.height_error[square]) / rms(d[square]) < 2.0
     assert 0.5 < rms(res.height_error) / rms(d) < 2.0
     assert np.mean(np.abs(d) <= 2 * res.height_error) >= 0.9
 

@@ -314,8 +314,9 @@ def test_offset_errors_take_a_measured_offset_uncertainty_where_one_is_known():
 
 
 def test_offset_errors_of_a_part_tied_before_take_its_bands_error_not_the_step():
-    # the same square, cut off only by misfit the later heights added: its band's own error, the
-    # noise part scaled by the band's chi-square (1 um x 3); a part not tied before keeps the step
+    # the same square, cut off only by misfit the later heights added: not floating, its band's own
+    # error, the noise part scaled by the band's chi-square (1 um x 3); a part not tied before
+    # floats with the step
     h = np.zeros((40, 40))
     h[10:30, 10:30] = 0.3
     chi2 = np.ones((40, 40))
@@ -323,9 +324,9 @@ def test_offset_errors_of_a_part_tied_before_take_its_bands_error_not_the_step()
     chi2[12:28, 12:28] = 1.0
     noise = np.full((40, 40), 1e-3)
     floating, error = offset_errors(h, chi2, 2.0, tied=np.ones((40, 40), bool), noise_error=noise)
-    assert floating[20, 20] and error[20, 20] == pytest.approx(3e-3) and error[9, 20] == pytest.approx(3e-3)
-    _, error = offset_errors(h, chi2, 2.0, tied=np.zeros((40, 40), bool), noise_error=noise)
-    assert error[20, 20] == pytest.approx(0.3)
+    assert not floating.any() and error[20, 20] == pytest.approx(3e-3) and error[9, 20] == pytest.approx(3e-3)
+    floating, error = offset_errors(h, chi2, 2.0, tied=np.zeros((40, 40), bool), noise_error=noise)
+    assert floating[20, 20] and error[20, 20] == pytest.approx(0.3)
 
 
 @pytest.fixture(scope="module")

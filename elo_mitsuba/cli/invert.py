@@ -67,8 +67,8 @@ the height above or below the mean, as the model and the renderer disagree on a 
 a floating part's offset in quadrature; measured coverage in
 validation/REPORT.md, rows D1-D4), floating (1 = a part cut off by bands of misfit or by a small
 cliff's ramp, e.g. a raised part's cliff: no trusted pixel ties its offset to the field's;
-height_error holds the whole step, the step its shadows show, or, where the band is no cliff or
-only the dropped fine band's misfit, the band's own error); the geometry, the solver's
+height_error holds the whole step, the step its shadows show, or, where the band is no cliff,
+the band's own error); the geometry, the solver's
 history, the local refinement's regions and height_error_rms_mm in the header, with the object's
 and the flat's own relative noise (noise_object, noise_flat; the summary line says the flat's
 share). .npy/.tif: the height alone, NaN where the mask says untrusted.
