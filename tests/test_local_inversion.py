@@ -298,13 +298,19 @@ def test_a_window_of_the_scan_sees_the_shadows_the_whole_scan_sees():
     assert np.array_equal(window[:, :, 5:-5, 5:-5], full[:, :, rows[0] + 5:rows[1] - 5, cols[0] + 5:cols[1] - 5])
 
 
-def test_offset_errors_take_a_measured_offset_uncertainty_where_one_is_known():
-    # the raised square of the doctest: 100 % of its step without, the known 0.02 mm with
+def _raised_square():
+    """offset_errors' doctest: a square raised 0.3 mm, its band of misfit (chi-square 9) around it."""
     h = np.zeros((40, 40))
     h[10:30, 10:30] = 0.3
     chi2 = np.ones((40, 40))
     chi2[8:32, 8:32] = 9.0
     chi2[12:28, 12:28] = 1.0
+    return h, chi2
+
+
+def test_offset_errors_take_a_measured_offset_uncertainty_where_one_is_known():
+    # 100 % of its step without, the known 0.02 mm with
+    h, chi2 = _raised_square()
     known = np.full((40, 40), np.nan)
     known[11:29, 11:29] = 0.02
     _, plain = offset_errors(h, chi2, 2.0)
@@ -314,14 +320,10 @@ def test_offset_errors_take_a_measured_offset_uncertainty_where_one_is_known():
 
 
 def test_offset_errors_of_a_part_tied_before_take_its_bands_error_not_the_step():
-    # the same square, cut off only by misfit the later heights added: not floating, its band's own
+    # the square, cut off only by misfit the later heights added: not floating, its band's own
     # error, the noise part scaled by the band's chi-square (1 um x 3); a part not tied before
     # floats with the step
-    h = np.zeros((40, 40))
-    h[10:30, 10:30] = 0.3
-    chi2 = np.ones((40, 40))
-    chi2[8:32, 8:32] = 9.0
-    chi2[12:28, 12:28] = 1.0
+    h, chi2 = _raised_square()
     noise = np.full((40, 40), 1e-3)
     floating, error = offset_errors(h, chi2, 2.0, tied=np.ones((40, 40), bool), noise_error=noise)
     assert not floating.any() and error[20, 20] == pytest.approx(3e-3) and error[9, 20] == pytest.approx(3e-3)
