@@ -329,6 +329,9 @@ def test_offset_errors_of_a_part_tied_before_take_its_bands_error_not_the_step()
     assert not floating.any() and error[20, 20] == pytest.approx(3e-3) and error[9, 20] == pytest.approx(3e-3)
     floating, error = offset_errors(h, chi2, 2.0, tied=np.zeros((40, 40), bool), noise_error=noise)
     assert floating[20, 20] and error[20, 20] == pytest.approx(0.3)
+    # whether it floats does not depend on error bars being drawn
+    floating, error = offset_errors(h, chi2, 2.0, tied=np.ones((40, 40), bool))
+    assert not floating.any() and not error.any()
 
 
 @pytest.fixture(scope="module")

@@ -348,16 +348,15 @@ def offset_errors(height, chi2, limit: float, known=None, pixel_mm=None, *, tied
     mostly hold one takes it instead. Given ``pixel_mm`` (x, y), the parts that only a small
     cliff's ramp cuts off count too (:func:`edge_parts`).
 
-    ``tied`` (H, W bool) and ``noise_error`` (H, W, mm): the pixels that earlier heights of the same
-    solve tied to the field's largest part, and those heights' noise part. A part whose pixels
-    mostly lie there is cut off only by misfit that the later heights added, not by a cliff; its
-    offset was measured through the pixels now in its band: it does not float, and its pixels and
-    its band's take the band's own error (:func:`band_error`, as a band that is no cliff) instead
-    of the whole step. On the melt plate
-    (512^2, 0.27 mm beam) the correction's fine band, dropped where the start fitted
-    (:mod:`.fine_band`), leaves misfit above the noise along the squares' rims: 7 % of the field
-    (0.25 % noise) and 24 % (none) floated with 57 and 44 um RMS stated, against an actual
-    error there of 1.6 and 1.1 um.
+    ``tied`` (H, W bool) and ``noise_error`` (H, W, mm; optional): the pixels that earlier heights
+    of the same solve tied to the field's largest part, and those heights' noise part. A part whose
+    pixels mostly lie there is cut off only by misfit that the later heights added, not by a cliff;
+    its offset was measured through the pixels now in its band: it does not float, and its pixels
+    and its band's take the band's own error (:func:`band_error`, as a band that is no cliff)
+    instead of the whole step. On the melt plate (512^2, 0.27 mm beam) the correction's fine band,
+    dropped where the start fitted (:mod:`.fine_band`), leaves misfit above the noise along the
+    squares' rims: 7 % of the field (0.25 % noise) and 24 % (none) floated with 57 and 44 um RMS
+    stated, against an actual error there of 1.6 and 1.1 um.
 
     Returns
     -------
@@ -380,9 +379,10 @@ def offset_errors(height, chi2, limit: float, known=None, pixel_mm=None, *, tied
         step = abs(float(np.median(height[comp]) - np.median(height[ring])))
         if known is not None and np.mean(np.isfinite(known[comp])) > 0.5:
             step = float(np.nanmedian(known[comp]))
-        elif tied is not None and noise_error is not None and np.mean(tied[comp]) > 0.5:
+        elif tied is not None and np.mean(tied[comp]) > 0.5:
             # not floating: earlier heights measured its offset
-            error[comp | band] = np.maximum(error[comp | band], band_error(noise_error, chi2, band))
+            if noise_error is not None:
+                error[comp | band] = np.maximum(error[comp | band], band_error(noise_error, chi2, band))
             continue
         sel = comp | band
         floating |= sel
