@@ -368,7 +368,7 @@ def invert_heights(images: Mapping, flats: Mapping, geometry, *, start=None, fwh
         # the noise the correction's long wavelengths only; elsewhere the correction as the beam sees
         # it, and whole only where that leaves a misfit above the noise
         sigma, beam = low_pass_px(fwhm_mm, pixel), beam_px(fwhm_mm, pixel)
-        tied = ~result.floating  # what a band of misfit cuts off now, the gating's, has its offset measured
+        tied = ~result.floating  # a part the gating's misfit cuts off below was measured through these
         d = result.height - h0
         take_heights(full, result, h0 + gated(d, fine, sigma, beam))
         whole = fine * flagged(result.misfit)

@@ -376,14 +376,14 @@ def offset_errors(height, chi2, limit: float, known=None, pixel_mm=None, *, tied
     floating = np.zeros(np.shape(chi2), bool)
     error = np.zeros(np.shape(chi2))
     for comp, band, ring in all_parts(height, chi2, limit, pixel_mm):
-        step = abs(float(np.median(height[comp]) - np.median(height[ring])))
-        if known is not None and np.mean(np.isfinite(known[comp])) > 0.5:
-            step = float(np.nanmedian(known[comp]))
-        elif tied is not None and np.mean(tied[comp]) > 0.5:
+        measured = known is not None and np.mean(np.isfinite(known[comp])) > 0.5
+        if not measured and tied is not None and np.mean(tied[comp]) > 0.5:
             # not floating: earlier heights measured its offset
             if noise_error is not None:
                 error[comp | band] = np.maximum(error[comp | band], band_error(noise_error, chi2, band))
             continue
+        step = (float(np.nanmedian(known[comp])) if measured
+                else abs(float(np.median(height[comp]) - np.median(height[ring]))))
         sel = comp | band
         floating |= sel
         error[sel] = np.maximum(error[sel], step)
