@@ -185,7 +185,7 @@ def test_study_defects_writes_what_several_seeds_say_without_rendering(tmp_path,
         rng = np.random.default_rng(seed)
         err = {"all": 0.005, "near": 0.012, "far": 0.005}
         ring = [(900.0, 90.0 + rng.normal()), (50.0, 40.0), (10.0, 15.0 + rng.normal()), (9.0, 9.0)]
-        return {"kind": kind, "res": res, "layout": layout, "seed": seed, "seconds": 1.0, "stopped": "",
+        return {"kind": kind, "res": res, "layout": layout, "seed": seed, "noise": noise, "seconds": 1.0, "stopped": "",
                 "near_share": 0.01, "eq26": err, "start": err, "invert": {**err, "near": 0.006},
                 "near_ratio": 0.5, "worst_tile_um": 0.001, "worst_tile_start_um": 4.0, "tiles_worse": 1, "tiles": 4,
                 "tile_mse": (np.full((2, 2), 16.0), np.full((2, 2), 16.0) + rng.normal(size=(2, 2))),
@@ -198,10 +198,16 @@ def test_study_defects_writes_what_several_seeds_say_without_rendering(tmp_path,
 
     monkeypatch.setattr(sd, "run_surface", fake)
     out = tmp_path / "table"
-    sd.main(["--only", "rough", "--seeds", "1,2,3", "--out", str(out)])
+    sd.main(["--only", "rough", "--seeds", "1,2,3", "--noise", "0.0025", "--out", str(out)])
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert len(lines) == 3 and all("tile_mse" not in line for line in lines)
+    assert {line["noise"] for line in lines} == {0.0025}
     text = out.read_text()
+    assert "0.25 % noise on object and flat" in text
+    for bad in ("nan", "-0.01", "1"):  # one line, exit 2, before any surface runs
+        with pytest.raises(SystemExit) as stop:
+            sd.main(["--only", "rough", "--noise", bad, "--out", str(tmp_path / "never")])
+        assert stop.value.code == 2 and "--noise" in capsys.readouterr().err
     assert "Over 3 noise seeds, each 4 mm tile's mean squared error" in text
     row = next(line for line in text.splitlines() if line.startswith("| pore, 0.30 mm |"))
     assert row.count("|") == 6 and "**worse**" in row  # the 0.2-0.4 mm ring: +5 ± about 0.6
