@@ -194,16 +194,21 @@ def test_study_defects_writes_what_several_seeds_say_without_rendering(tmp_path,
                 "height_error": {"stated_rms_um": 5.0, "all": (0.7, 0.95), "near": (0.7, 0.95),
                                  "noise_only": (0.7, 0.95), "bias_rms_um": 1.0},
                 "gradient_sigma": {"dzdx": (0.7, 0.95), "dzdy": (0.7, 0.95)}, "regions": [], "lifted": [],
-                "searched": 0, "figure": None}
+                "searched": 0, "figure": None,
+                "_errors": (np.full((8, 8), noise), np.full((8, 8), noise / 2), np.ones((8, 8), bool))}
 
     monkeypatch.setattr(sd, "run_surface", fake)
     out = tmp_path / "table"
-    sd.main(["--only", "rough", "--seeds", "1,2,3", "--noise", "0.0025", "--out", str(out)])
+    sd.main(["--only", "rough", "--seeds", "1,2,3", "--noise", "0.0025", "--shared-noise", "--out", str(out)])
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert len(lines) == 3 and all("tile_mse" not in line for line in lines)
     assert {line["noise"] for line in lines} == {0.0025}
     text = out.read_text()
     assert "0.25 % noise on object and flat" in text
+    # against the noise-free run: the fake's noise parts are flat, so all of them lie beyond 1 mm
+    table = text[text.index("start noise that `invert` keeps"):].splitlines()
+    shared = next(line for line in table if line.startswith("| 1 |"))
+    assert "| 2.5 µm | 1.3 µm | nan | 0.50 |" in shared, shared  # sqrt(36 - 1.56) / sqrt(144 - 6.25)
     for bad in ("nan", "-0.01", "1"):  # one line, exit 2, before any surface runs
         with pytest.raises(SystemExit) as stop:
             sd.main(["--only", "rough", "--noise", bad, "--out", str(tmp_path / "never")])

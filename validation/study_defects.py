@@ -15,7 +15,9 @@ a figure per surface). ``python -m validation.study_defects [--res 400] [--out o
 the same measurements as a table with the steps and every region's outcome; ``--seeds 1,2,3`` repeats
 each surface under other noise seeds (one render) and tabulates the steps and the rough layer per
 seed, and, with three seeds or more, what they say of the rough layer in expectation
-(:func:`expected_change`).
+(:func:`expected_change`); ``--noise 0.0025`` measures at another noise level (sixteen recordings
+averaged), and ``--shared-noise`` how much of each seed's near ratio is the start's integrated noise
+that the inversion keeps (:func:`shared_noise_lines`).
 """
 
 from __future__ import annotations
@@ -185,6 +187,9 @@ def run_surface(kind: str, res: int, tmp: Path, *, layout: str, noise: float = 0
     # each tile's mean squared error (um^2), for what several noise seeds say of it (expected_change)
     out["tile_mse"] = (1e6 * tiles(e_st) ** 2, 1e6 * tiles(e_inv) ** 2)
     if kind == "rough":  # each defect on its own (its rim and 1 mm around), errors on the same level
+        # the errors with their means removed, for what a noise-free run shares with them (shared_noise_lines)
+        out["_errors"] = (h_start - h_start.mean() - (truth - truth.mean()),
+                          inv.height - inv.height.mean() - (truth - truth.mean()), near)
         out["defects"] = []
         for dd in rl.defects():
             beyond = np.hypot(X - dd["x"], Y - dd["y"]) - dd["radius"]  # distance from the rim, outwards
@@ -338,6 +343,42 @@ def expected_change(results) -> list[str]:
             cells.append(f"{_um2(m, decimals=1)} ± {_um2(e, False, 1)} ({np.mean([g[0] for g in got]):.1f})"
                          + (" **worse**" if m > 2 * e else ""))
         lines.append(f"| {d['kind']}, {d['radius_mm']:.2f} mm | " + " | ".join(cells) + " |")
+    return lines
+
+
+def shared_noise_lines(results, clean, sigma_mm: float = 1.0) -> list[str]:
+    """Markdown lines: how much of each seed's near ratio is the start's integrated noise that the
+    inversion keeps. ``clean``: the same surface without noise (the same renders). Per seed, the
+    noise's part of each error (the noisy run's less the noise-free run's), its wavelengths beyond
+    ``sigma_mm`` (a Gaussian of that sigma) and within 1 mm of the defects: the start's and
+    ``invert``'s, their correlation, and the near ratio with that shared part set aside from both,
+    sqrt(I² - L_i²) / sqrt(S² - L_s²).
+
+    Examples
+    --------
+    >>> z = np.zeros((40, 40)); near = np.zeros((40, 40), bool); near[10:30, 10:30] = True
+    >>> base = {"res": 40, "_errors": (z + 0.0, z + 0.0, near)}
+    >>> wave = 0.004 * np.cos(np.arange(40) / 40 * np.pi)[None, :] * np.ones((40, 1))
+    >>> r = {**base, "seed": 1, "start": {"near": 0.012}, "invert": {"near": 0.006}, "near_ratio": 0.5,
+    ...      "_errors": (wave, wave, near)}
+    >>> shared_noise_lines([r], base)[-1]
+    '| 1 | 12.0 -> 6.0 µm | 0.50 | 1.7 µm | 1.7 µm | 1.00 | 0.48 |'
+    """
+    from scipy.ndimage import gaussian_filter
+
+    s0, i0, _ = clean["_errors"]
+    sigma = sigma_mm * clean["res"] / 80.0  # the studies' field is 80 mm
+    lines = [f"| noise seed | within 1 mm of the defects | near ratio | start's noise beyond {sigma_mm:g} mm | "
+             "invert's | correlation | near ratio without it |", "|---|---|---|---|---|---|---|"]
+    for r in results:
+        s1, i1, near = r["_errors"]
+        ls, li = (gaussian_filter(a - b, sigma)[near] for a, b in ((s1, s0), (i1, i0)))
+        big_s, big_i = r["start"]["near"], r["invert"]["near"]
+        rms_s, rms_i = float(np.sqrt(np.mean(ls ** 2))), float(np.sqrt(np.mean(li ** 2)))
+        corr = float(np.corrcoef(ls, li)[0, 1]) if np.std(ls) > 0 and np.std(li) > 0 else float("nan")
+        without = np.sqrt(max(big_i ** 2 - rms_i ** 2, 0.0) / max(big_s ** 2 - rms_s ** 2, 1e-30))
+        lines.append(f"| {r['seed']} | {1e3 * big_s:.1f} -> {1e3 * big_i:.1f} µm | {r['near_ratio']:.2f} | "
+                     f"{1e3 * rms_s:.1f} µm | {1e3 * rms_i:.1f} µm | {corr:.2f} | {without:.2f} |")
     return lines
 
 
@@ -530,6 +571,9 @@ def main(argv=None):
                          "seed (the renders are shared), the steps and the rough layer get a table per seed, and with "
                          "three or more what the seeds say in expectation (each tile's and each defect's rings' mean "
                          "change against the start; ten seeds of the rough layer take about 9 min on 2 cores)")
+    ap.add_argument("--shared-noise", action="store_true",
+                    help="the rough layer once more without noise (the same renders), and per seed how much of the "
+                         "near ratio is the start's integrated noise beyond 1 mm that the inversion keeps")
     args = ap.parse_args(argv)
     if Path(args.out).exists() and not args.overwrite:
         ap.error(f"--out {args.out} exists: pass --overwrite to replace it")
@@ -548,8 +592,11 @@ def main(argv=None):
             layout = LAYOUTS[kind]
             for seed in seeds:
                 results.append(run_surface(kind, res, Path(tmp), layout=layout, seed=seed, noise=args.noise))
-                print(json.dumps({k: v for k, v in results[-1].items() if k not in ("regions", "figure", "tile_mse")},
+                print(json.dumps({k: v for k, v in results[-1].items()
+                                  if k not in ("regions", "figure", "tile_mse") and not k.startswith("_")},
                                  default=float), flush=True)
+        if args.shared_noise and "rough" in args.only:
+            clean = run_surface("rough", args.res, Path(tmp), layout=LAYOUTS["rough"], seed=seeds[0], noise=0.0)
     text = report(results)
     rough = [r for r in results if "defects" in r]
     if len(seeds) > 1 and rough:
@@ -557,6 +604,9 @@ def main(argv=None):
                            *rough_seed_table(rough), ""])
         if len(rough) > 2:
             text += "\n".join(["", *expected_change(rough), ""])
+    if args.shared_noise and rough:
+        text += "\n".join(["", f"The rough layer's start noise that `invert` keeps ({rough[0]['res']}²; the same renders "
+                           "without noise as reference; docs/inversion.md):", "", *shared_noise_lines(rough, clean), ""])
     by_seed = [r for r in results if "steps" in r]
     if len(seeds) > 1 and by_seed:
         text += "\n".join(["", f"Steps under {len(seeds)} noise seeds (steps {by_seed[0]['res']}²; mm; spread: sample "
