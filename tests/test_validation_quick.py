@@ -213,6 +213,10 @@ def test_study_defects_writes_what_several_seeds_say_without_rendering(tmp_path,
         with pytest.raises(SystemExit) as stop:
             sd.main(["--only", "rough", "--noise", bad, "--out", str(tmp_path / "never")])
         assert stop.value.code == 2 and "--noise" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:  # not a setting recorded and not applied
+        sd.main(["--only", "steps", "--shared-noise", "--out", str(tmp_path / "never")])
+    assert stop.value.code == 2 and "--shared-noise" in capsys.readouterr().err
+    assert "noise seed(s) 1, 2, 3." in text
     assert "Over 3 noise seeds, each 4 mm tile's mean squared error" in text
     row = next(line for line in text.splitlines() if line.startswith("| pore, 0.30 mm |"))
     assert row.count("|") == 6 and "**worse**" in row  # the 0.2-0.4 mm ring: +5 ± about 0.6
