@@ -195,7 +195,8 @@ def test_study_defects_writes_what_several_seeds_say_without_rendering(tmp_path,
                                  "noise_only": (0.7, 0.95), "bias_rms_um": 1.0},
                 "gradient_sigma": {"dzdx": (0.7, 0.95), "dzdy": (0.7, 0.95)}, "regions": [], "lifted": [],
                 "searched": 0, "figure": None,
-                "_errors": (np.full((8, 8), noise), np.full((8, 8), noise / 2), np.ones((8, 8), bool))}
+                # the model's own error (the noise-free run's) plus a flat noise part
+                "_errors": (np.full((8, 8), 0.001 + noise), np.full((8, 8), 0.001 + noise / 2), np.ones((8, 8), bool))}
 
     monkeypatch.setattr(sd, "run_surface", fake)
     out = tmp_path / "table"
